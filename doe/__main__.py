@@ -1,0 +1,5 @@
+import sys
+
+from doe.cli import main
+
+sys.exit(main())

@@ -1,0 +1,59 @@
+"""The ``doefab`` command line: one subcommand per stage, dispatched to its package.
+
+Each command module exposes ``register(subparsers)``; heavy imports (torch,
+build123d, klayout) happen inside the commands, so ``doefab --help`` is fast and
+``doe`` never imports torch.
+"""
+
+import argparse
+import importlib
+import sys
+
+from doe.errors import InputError
+
+COMMAND_MODULES = (
+    "doe.cli_design",      # presets, config
+    "doe.cli_retrieve",    # retrieve
+    "psf_learn.cli",       # learn, evaluate, sr
+    "fab.cli_fab",         # fab
+    "fab.cli_mesh",        # mesh
+    "fab.cli_verify",      # verify, mtf
+    "psf_learn.cli_depth", # depth, transient
+    "fab.cli_run",         # run
+)
+
+
+def build_parser():
+    """Return the argparse parser with every available subcommand registered."""
+    parser = argparse.ArgumentParser(
+        prog="doefab",
+        description="Design and fabricate diffractive phase plates for low-fill-factor sensors.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name in COMMAND_MODULES:
+        try:
+            module = importlib.import_module(name)
+        except ModuleNotFoundError as e:
+            if e.name != name:
+                raise
+            continue  # a stage not installed in this build
+        module.register(sub)
+    return parser
+
+
+def main(argv=None):
+    """Run the command line; return the exit code (0 ok, 1 check failed, 2 bad input)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except InputError as e:
+        print(f"doefab {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"doefab {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,349 @@
+"""Design configuration: TOML schema, the embedded presets, validation, derived optics.
+
+A design file is TOML with one table per concern (sensor, optics, psf,
+material, fabrication, learning); every quantity carries its unit in the key
+name. Inside the code everything is SI (metres). ``derive`` computes what an
+optics engineer checks before fabrication.
+"""
+
+import math
+import tomllib
+from dataclasses import asdict, dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Literal
+
+from doe.errors import InputError
+from doe.materials import MATERIALS, refractive_index
+
+
+@dataclass(frozen=True)
+class Sensor:
+    columns: int
+    rows: int
+    pixel_pitch: float
+    active_area: float
+    active_area_shape: Literal["circle", "square"]
+    active_offset: tuple[float, float]
+    superres_factor: int
+
+
+@dataclass(frozen=True)
+class Optics:
+    wavelength: float
+    focal_length: float
+
+
+@dataclass(frozen=True)
+class Material:
+    name: str
+    thickness: float
+
+
+@dataclass(frozen=True)
+class Fabrication:
+    levels: int
+    feature_size: float
+    aperture: float
+    grid: float
+
+
+@dataclass(frozen=True)
+class Learning:
+    seed: int
+    minutes: float
+    photons_per_pixel: float
+
+
+@dataclass(frozen=True)
+class Design:
+    """A validated design, SI units throughout."""
+
+    name: str
+    description: str
+    sensor: Sensor
+    optics: Optics
+    kernel_size: int
+    material: Material
+    fabrication: Fabrication
+    learning: Learning
+
+
+@dataclass(frozen=True)
+class Derived:
+    """Quantities that follow from a design (SI units).
+
+    ``tile_size`` is N * ``mask_pixel_pitch`` after snapping the pitch to the
+    GDS grid; the dot lattice that the tiled plate puts on the sensor then has
+    pitch lambda f / tile_size, slightly off the sub-pixel pitch, and
+    ``lattice_drift_at_edge`` is how far the outermost dot has wandered when the
+    zero order sits at the sensor centre.
+    """
+
+    subpixel_pitch: float
+    tile_size_nominal: float
+    tile_pixels: int
+    mask_pixel_pitch: float
+    tile_size: float
+    lattice_pitch: float
+    lattice_mismatch: float
+    lattice_drift_at_edge: float
+    tiles: int
+    tiled_size: float
+    refractive_index: float
+    level_step: float
+    etch_depths: tuple[float, ...]
+    masks: int
+    fill_factor: float
+
+
+# (section, key) -> (type, unit scale to SI or None, check, explanation)
+_POSITIVE = (lambda v: v > 0, "must be > 0")
+_NONNEG = (lambda v: v >= 0, "must be >= 0")
+_SCHEMA = {
+    "sensor": {
+        "columns": (int, None, _POSITIVE),
+        "rows": (int, None, _POSITIVE),
+        "pixel_pitch_um": (float, 1e-6, _POSITIVE),
+        "active_area_um": (float, 1e-6, _POSITIVE),
+        "active_area_shape": (str, None, (lambda v: v in ("circle", "square"),
+                                          "must be 'circle' or 'square'")),
+        "active_offset_um": (list, 1e-6, (lambda v: len(v) == 2, "must be [x, y]")),
+        "superres_factor": (int, None, _POSITIVE),
+    },
+    "optics": {
+        "wavelength_nm": (float, 1e-9, _POSITIVE),
+        "focal_length_mm": (float, 1e-3, _POSITIVE),
+    },
+    "psf": {
+        "kernel_size": (int, None, (lambda v: v > 0 and v % 2 == 1, "must be odd and > 0")),
+    },
+    "material": {
+        "name": (str, None, (lambda v: v in MATERIALS,
+                             f"must be one of {', '.join(sorted(MATERIALS))}")),
+        "thickness_mm": (float, 1e-3, _POSITIVE),
+    },
+    "fabrication": {
+        "levels": (int, None, (lambda v: v >= 2 and v & (v - 1) == 0,
+                               "must be a power of two >= 2 (one binary mask per bit)")),
+        "feature_size_um": (float, 1e-6, _POSITIVE),
+        "aperture_mm": (float, 1e-3, _POSITIVE),
+        "grid_nm": (int, 1e-9, _POSITIVE),
+    },
+    "learning": {
+        "seed": (int, None, _NONNEG),
+        "minutes": (float, None, _POSITIVE),
+        "photons_per_pixel": (float, None, _POSITIVE),
+    },
+}
+
+
+def preset_names():
+    """Return the names of the embedded presets."""
+    files = resources.files("doe.presets").iterdir()
+    return sorted(p.name.removesuffix(".toml") for p in files if p.name.endswith(".toml"))
+
+
+DEFAULT_PRESET = "sun2020"
+
+
+def load_design(path=None):
+    """Load and validate a design.
+
+    Parameters
+    ----------
+    path : str or Path or None
+        A TOML file, or the name of an embedded preset, or None for the default.
+        A file may set only some keys: the rest come from the default preset.
+    """
+    base = _read_preset(DEFAULT_PRESET)
+    if path is None:
+        return parse_design(base, DEFAULT_PRESET)
+    if str(path) in preset_names():
+        return parse_design(_read_preset(str(path)), str(path))
+    path = Path(path)
+    try:
+        raw = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(path, "no such design file (or preset name)") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(path, f"cannot read: {e}") from None
+    except tomllib.TOMLDecodeError as e:
+        raise InputError(path, f"not valid TOML: {e}") from None
+    return parse_design(_merge(base, raw), path)
+
+
+def _read_preset(name):
+    return tomllib.loads(resources.files("doe.presets").joinpath(f"{name}.toml").read_text())
+
+
+def _merge(base, override):
+    out = dict(base)
+    for k, v in override.items():
+        out[k] = _merge(base[k], v) if isinstance(v, dict) and isinstance(base.get(k), dict) else v
+    return out
+
+
+def parse_design(raw, source="design"):
+    """Validate a raw TOML mapping and return a :class:`Design` (raises InputError)."""
+    si = {}
+    for key in raw:
+        if key not in _SCHEMA and key not in ("name", "description"):
+            raise InputError(source, f"unknown section or key {key!r}")
+    for section, fields in _SCHEMA.items():
+        table = raw.get(section)
+        if not isinstance(table, dict):
+            raise InputError(source, f"missing table [{section}]")
+        unknown = set(table) - set(fields)
+        if unknown:
+            raise InputError(source, f"[{section}] has unknown key(s) {sorted(unknown)}; "
+                             f"known: {sorted(fields)}")
+        for key, (typ, scale, (ok, why)) in fields.items():
+            where = f"{source}: [{section}] {key}"
+            if key not in table:
+                raise InputError(where, "missing")
+            si[section, key] = _check_value(where, table[key], typ, scale, ok, why)
+    for key in ("name", "description"):
+        if not isinstance(raw.get(key, ""), str):
+            raise InputError(f"{source}: {key}", "must be a string")
+
+    s = lambda sec, k: si[sec, k]  # noqa: E731
+    design = Design(
+        name=raw.get("name", Path(str(source)).stem),
+        description=raw.get("description", ""),
+        sensor=Sensor(s("sensor", "columns"), s("sensor", "rows"),
+                      s("sensor", "pixel_pitch_um"), s("sensor", "active_area_um"),
+                      s("sensor", "active_area_shape"), tuple(s("sensor", "active_offset_um")),
+                      s("sensor", "superres_factor")),
+        optics=Optics(s("optics", "wavelength_nm"), s("optics", "focal_length_mm")),
+        kernel_size=s("psf", "kernel_size"),
+        material=Material(s("material", "name"), s("material", "thickness_mm")),
+        fabrication=Fabrication(s("fabrication", "levels"), s("fabrication", "feature_size_um"),
+                                s("fabrication", "aperture_mm"), s("fabrication", "grid_nm")),
+        learning=Learning(s("learning", "seed"), s("learning", "minutes"),
+                          s("learning", "photons_per_pixel")),
+    )
+    _check_consistency(design, source)
+    return design
+
+
+def _check_value(where, value, typ, scale, ok, why):
+    if typ is float and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    if not isinstance(value, typ) or isinstance(value, bool):
+        raise InputError(where, f"must be {typ.__name__}, got {value!r}")
+    if typ is list:
+        if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value):
+            raise InputError(where, f"must be a list of numbers, got {value!r}")
+        value = [float(v) for v in value]
+        if not all(math.isfinite(v) for v in value):
+            raise InputError(where, f"must be finite, got {value!r}")
+    elif typ is float and not math.isfinite(value):
+        raise InputError(where, f"must be finite, got {value!r}")
+    if not ok(value):
+        raise InputError(where, f"{why}, got {value!r}")
+    if scale is not None:
+        value = [v * scale for v in value] if typ is list else value * scale
+    return value
+
+
+def _check_consistency(d, source):
+    sensor, fab = d.sensor, d.fabrication
+    if sensor.active_area > sensor.pixel_pitch:
+        raise InputError(f"{source}: [sensor] active_area_um",
+                         "the active area is larger than the pixel pitch")
+    refractive_index(d.material.name, d.optics.wavelength)  # raises outside its range
+    der = derive(d)
+    if der.tile_size > fab.aperture:
+        raise InputError(f"{source}: [fabrication] aperture_mm",
+                         f"the phase tile ({der.tile_size * 1e3:.3f} mm) is larger than the "
+                         f"aperture ({fab.aperture * 1e3:.3f} mm)")
+    if d.kernel_size > der.tile_pixels:
+        raise InputError(f"{source}: [psf] kernel_size",
+                         f"K = {d.kernel_size} exceeds the tile's N = {der.tile_pixels} pixels")
+    if der.mask_pixel_pitch <= 0:
+        raise InputError(f"{source}: [fabrication] grid_nm", "the grid is coarser than a pixel")
+
+
+def derive(d, tile_pixels=None):
+    """Return the :class:`Derived` quantities of design ``d``.
+
+    ``tile_pixels`` overrides N (default: the tile size divided by the target
+    feature size, rounded).
+    """
+    sensor, fab, wl, f = d.sensor, d.fabrication, d.optics.wavelength, d.optics.focal_length
+    subpixel = sensor.pixel_pitch / sensor.superres_factor
+    tile_nominal = wl * f / subpixel           # order spacing lambda f / T = sub-pixel pitch
+    n_pix = tile_pixels or max(1, round(tile_nominal / fab.feature_size))
+    grid_steps = round(tile_nominal / n_pix / fab.grid)
+    pitch = grid_steps * fab.grid
+    tile = n_pix * pitch
+    lattice = wl * f / tile if tile > 0 else math.inf
+    half_width_subpixels = sensor.columns * sensor.superres_factor / 2
+    n = refractive_index(d.material.name, wl)
+    step = wl / (n - 1) / fab.levels
+    masks = int(math.log2(fab.levels))
+    if sensor.active_area_shape == "circle":
+        active = math.pi * (sensor.active_area / 2) ** 2
+    else:
+        active = sensor.active_area**2
+    return Derived(
+        subpixel_pitch=subpixel,
+        tile_size_nominal=tile_nominal,
+        tile_pixels=n_pix,
+        mask_pixel_pitch=pitch,
+        tile_size=tile,
+        lattice_pitch=lattice,
+        lattice_mismatch=lattice - subpixel,
+        lattice_drift_at_edge=(lattice - subpixel) * half_width_subpixels,
+        tiles=max(1, math.floor(fab.aperture / tile + 1e-9)) if tile > 0 else 0,
+        tiled_size=math.floor(fab.aperture / tile + 1e-9) * tile if tile > 0 else 0.0,
+        refractive_index=n,
+        level_step=step,
+        etch_depths=tuple(step * 2**k for k in reversed(range(masks))),
+        masks=masks,
+        fill_factor=active / sensor.pixel_pitch**2,
+    )
+
+
+def design_summary(d):
+    """Return the design and its derived quantities as a JSON-ready dict, units in the keys."""
+    der = derive(d)
+    return {
+        "name": d.name,
+        "description": d.description,
+        "sensor": {
+            "columns": d.sensor.columns, "rows": d.sensor.rows,
+            "pixel_pitch_um": d.sensor.pixel_pitch * 1e6,
+            "active_area_um": d.sensor.active_area * 1e6,
+            "active_area_shape": d.sensor.active_area_shape,
+            "active_offset_um": [v * 1e6 for v in d.sensor.active_offset],
+            "superres_factor": d.sensor.superres_factor,
+        },
+        "optics": {"wavelength_nm": d.optics.wavelength * 1e9,
+                   "focal_length_mm": d.optics.focal_length * 1e3},
+        "psf": {"kernel_size": d.kernel_size},
+        "material": {"name": d.material.name, "thickness_mm": d.material.thickness * 1e3},
+        "fabrication": {"levels": d.fabrication.levels,
+                        "feature_size_um": d.fabrication.feature_size * 1e6,
+                        "aperture_mm": d.fabrication.aperture * 1e3,
+                        "grid_nm": round(d.fabrication.grid * 1e9)},
+        "learning": asdict(d.learning),
+        "derived": {
+            "subpixel_pitch_um": der.subpixel_pitch * 1e6,
+            "fill_factor": der.fill_factor,
+            "tile_size_nominal_um": der.tile_size_nominal * 1e6,
+            "tile_pixels": der.tile_pixels,
+            "mask_pixel_pitch_nm": round(der.mask_pixel_pitch * 1e9),
+            "tile_size_um": der.tile_size * 1e6,
+            "lattice_pitch_um": der.lattice_pitch * 1e6,
+            "lattice_mismatch_um": der.lattice_mismatch * 1e6,
+            "lattice_drift_at_edge_um": der.lattice_drift_at_edge * 1e6,
+            "tiles_across_aperture": der.tiles,
+            "tiled_size_mm": der.tiled_size * 1e3,
+            "refractive_index": der.refractive_index,
+            "level_step_nm": der.level_step * 1e9,
+            "etch_depths_nm": [v * 1e9 for v in der.etch_depths],
+            "masks": der.masks,
+        },
+    }

@@ -1,0 +1,172 @@
+"""Reading and writing the contract files (psf.npy, levels.npy, JSON) safely.
+
+Readers validate against CONVENTIONS.md and raise InputError naming the file;
+writers go through a staging folder so that a failed or killed command leaves
+no half-written output behind.
+"""
+
+import contextlib
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from doe.errors import InputError
+
+
+def load_npy(path):
+    """Load a .npy array without pickles, raising InputError if unreadable."""
+    path = Path(path)
+    try:
+        return np.load(path, allow_pickle=False)
+    except FileNotFoundError:
+        raise InputError(path, "no such file") from None
+    except (OSError, ValueError, EOFError) as e:
+        raise InputError(path, f"not a readable .npy array ({e})") from None
+
+
+def check_psf(psf, source, tol=1e-6):
+    """Validate a PSF array against the contract; return it as float64 normalised to sum 1.
+
+    A sum within ``tol`` of 1 is renormalised exactly; any other non-zero sum is
+    refused, so a PSF is never silently rescaled.
+    """
+    psf = np.asarray(psf)
+    if psf.dtype.kind != "f":
+        raise InputError(source, f"PSF must be a float array, got dtype {psf.dtype}")
+    if psf.ndim != 2 or psf.shape[0] != psf.shape[1]:
+        raise InputError(source, f"PSF must be square (K, K), got shape {psf.shape}")
+    if psf.shape[0] % 2 == 0:
+        raise InputError(source, f"PSF size K must be odd (centre = optical axis), got {psf.shape[0]}")
+    if not np.all(np.isfinite(psf)):
+        raise InputError(source, "PSF contains NaN or infinite values")
+    if np.any(psf < 0):
+        raise InputError(source, f"PSF has negative values (min {psf.min():.3g})")
+    total = float(psf.sum())
+    if total <= 0:
+        raise InputError(source, "PSF sums to zero")
+    if abs(total - 1) > tol:
+        raise InputError(source, f"PSF must sum to 1 (sums to {total:.6g}); normalise it first")
+    return psf.astype(np.float64) / total
+
+
+def read_psf(path):
+    """Read and validate ``psf.npy``; return float64 (K, K) summing to 1."""
+    return check_psf(load_npy(path), path)
+
+
+def check_levels(levels, n_levels, source):
+    """Validate a level map against the contract; return it as uint8 (N, N)."""
+    levels = np.asarray(levels)
+    if levels.dtype != np.uint8:
+        raise InputError(source, f"levels must be uint8, got dtype {levels.dtype}")
+    if levels.ndim != 2 or levels.shape[0] != levels.shape[1]:
+        raise InputError(source, f"levels must be square (N, N), got shape {levels.shape}")
+    if levels.size and levels.max() >= n_levels:
+        raise InputError(source, f"levels must lie in 0..{n_levels - 1}, found {levels.max()}")
+    return levels
+
+
+def read_levels(path, n_levels):
+    """Read and validate ``levels.npy`` for ``n_levels`` phase levels."""
+    return check_levels(load_npy(path), n_levels, path)
+
+
+def read_json(path):
+    """Read a JSON file, raising InputError naming it if missing or malformed."""
+    path = Path(path)
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(path, "no such file") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise InputError(path, f"not readable JSON ({e})") from None
+
+
+def write_json(path, obj):
+    """Write ``obj`` as indented, key-sorted JSON (deterministic bytes), atomically."""
+    text = json.dumps(obj, indent=2, sort_keys=True, default=_json_default) + "\n"
+    atomic_write_bytes(path, text.encode())
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def save_npy(path, array):
+    """Save an array as .npy atomically."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "wb") as f:
+        np.save(f, np.asarray(array), allow_pickle=False)
+    os.replace(tmp, path)
+
+
+def atomic_write_bytes(path, data):
+    """Write bytes to ``path`` via a temporary file and rename (old or new, never half)."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+@contextlib.contextmanager
+def staged_output(out_dir, force=False, names=None):
+    """Yield a temporary folder; on success move its files into ``out_dir``.
+
+    Nothing appears in ``out_dir`` unless the block finishes, so a failed
+    command leaves no half-written output. Existing files in ``out_dir`` that the
+    command would write are refused unless ``force``.
+
+    Parameters
+    ----------
+    out_dir : path
+        Final output folder (created if needed).
+    force : bool
+        Overwrite files that already exist in ``out_dir``.
+    names : iterable of str or None
+        Files the command will write, checked up front; when None the check
+        happens at the end against what was actually written.
+    """
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(out_dir, "output path exists and is not a folder")
+    if names is not None and not force:
+        _refuse_overwrite(out_dir, names)
+    parent = out_dir.parent
+    parent.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(dir=parent, prefix=f".{out_dir.name}.staging-"))
+    try:
+        yield stage
+        written = sorted(p.relative_to(stage) for p in stage.rglob("*") if p.is_file())
+        if not force:
+            _refuse_overwrite(out_dir, [str(p) for p in written])
+        out_dir.mkdir(parents=True, exist_ok=True)
+        for rel in written:
+            dest = out_dir / rel
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(stage / rel, dest)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+
+
+def _refuse_overwrite(out_dir, names):
+    clash = [n for n in names if (Path(out_dir) / n).exists()]
+    if clash:
+        raise InputError(out_dir, f"would overwrite {', '.join(sorted(clash)[:4])}"
+                         f"{' ...' if len(clash) > 4 else ''}; use --force or another --out")

@@ -1,0 +1,109 @@
+"""Fraunhofer model of a periodic phase tile: the one forward model of CONVENTIONS.md.
+
+A tile of N x N pixels repeated across the aperture puts light only into the
+diffraction orders of its period; order (m, n) carries |FFT(tile)|^2 / N^4 of the
+power. The K x K window of orders around the zero order is the PSF on the
+sensor's sub-pixel grid.
+"""
+
+import numpy as np
+
+
+def level_phase(levels, n_levels):
+    """Return the phase (rad) of a level map: level l delays 2 pi l / L."""
+    return 2 * np.pi * np.asarray(levels, dtype=np.float64) / n_levels
+
+
+def order_amplitudes(phase):
+    """Return the complex amplitudes of all N x N orders of a tile, total power 1.
+
+    Parameters
+    ----------
+    phase : (N, N) array
+        Phase of each mask pixel in radians.
+    """
+    phase = np.asarray(phase, dtype=np.float64)
+    return np.fft.fft2(np.exp(1j * phase)) / phase.size
+
+
+def window_indices(n, k):
+    """Return the FFT indices of the K orders centred on the zero order (axis index i -> order i - K//2)."""
+    return (np.arange(k) - k // 2) % n
+
+
+def window_power(phase, k):
+    """Return the power (fraction of the incident light) in each order of the K x K window.
+
+    Element [K//2, K//2] is the zero order; rows grow downwards (-y), columns to +x.
+    """
+    amp = order_amplitudes(phase)
+    idx = window_indices(phase.shape[0], k)
+    return np.abs(amp[np.ix_(idx, idx)]) ** 2
+
+
+def simulate_psf(phase, k):
+    """Return (psf, efficiency): the normalised K x K PSF and the power in the window."""
+    window = window_power(phase, k)
+    efficiency = float(window.sum())
+    return window / efficiency, efficiency
+
+
+def simulate_levels(levels, n_levels, k):
+    """Return (psf, efficiency) of a quantised level map (the contract's definition)."""
+    return simulate_psf(level_phase(levels, n_levels), k)
+
+
+def correlation(psf, target):
+    """Return the Pearson correlation of two PSFs, flattened."""
+    return float(np.corrcoef(np.ravel(psf), np.ravel(target))[0, 1])
+
+
+def rmse(psf, target):
+    """Return the RMS difference of the two PSFs, each normalised to its peak."""
+    psf, target = np.asarray(psf, float), np.asarray(target, float)
+    return float(np.sqrt(np.mean((psf / psf.max() - target / target.max()) ** 2)))
+
+
+def quality(phase, target):
+    """Return a dict of correlation, rmse and efficiency of ``phase`` against ``target``."""
+    psf, eff = simulate_psf(phase, target.shape[0])
+    return {"correlation": correlation(psf, target), "rmse": rmse(psf, target), "efficiency": eff}
+
+
+def dot_lattice_image(phase, shape, order_pitch_px, centre=None, spot_sigma_px=0.8):
+    """Render the dot lattice that the tiled plate forms on a detector.
+
+    Every diffraction order (m, n) becomes a Gaussian spot at ``centre +
+    (n, m) * order_pitch_px`` (x right, y down), weighted by its power. This is
+    the picture a camera or the SPAD sees before sampling; the spot width stands
+    in for the aperture's diffraction-limited spot.
+
+    Parameters
+    ----------
+    phase : (N, N) array
+        Tile phase (rad).
+    shape : (H, W)
+        Image size in detector pixels.
+    order_pitch_px : float
+        Spacing of the orders in detector pixels (lambda f / tile size / pixel pitch).
+    centre : (row, col) or None
+        Detector position of the zero order; default the image centre.
+    spot_sigma_px : float
+        Standard deviation of each spot, in detector pixels.
+    """
+    h, w = shape
+    n = phase.shape[0]
+    power = np.abs(order_amplitudes(phase)) ** 2
+    cy, cx = centre if centre is not None else ((h - 1) / 2, (w - 1) / 2)
+    orders = np.fft.fftfreq(n, 1 / n).astype(int)   # 0, 1, ..., -1
+    rows = cy + orders * order_pitch_px
+    cols = cx + orders * order_pitch_px
+    keep_r = (rows > -4 * spot_sigma_px) & (rows < h + 4 * spot_sigma_px)
+    keep_c = (cols > -4 * spot_sigma_px) & (cols < w + 4 * spot_sigma_px)
+    y = np.arange(h)[:, None]
+    x = np.arange(w)[:, None]
+    # Separable: image = sum_mn P[m, n] gy_m(y) gx_n(x) = Gy^T P Gx
+    gy = np.exp(-0.5 * ((y - rows[keep_r][None, :]) / spot_sigma_px) ** 2)
+    gx = np.exp(-0.5 * ((x - cols[keep_c][None, :]) / spot_sigma_px) ** 2)
+    sub = power[np.ix_(keep_r, keep_c)]
+    return gy @ sub @ gx.T / (2 * np.pi * spot_sigma_px**2)
