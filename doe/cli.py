@@ -12,14 +12,14 @@ import sys
 from doe.errors import InputError
 
 COMMAND_MODULES = (
-    "doe.cli_design",      # presets, config
-    "doe.cli_retrieve",    # retrieve
-    "psf_learn.cli",       # learn, evaluate, sr
-    "fab.cli_fab",         # fab
-    "fab.cli_mesh",        # mesh
-    "fab.cli_verify",      # verify, mtf
-    "psf_learn.cli_depth", # depth, transient
-    "fab.cli_run",         # run
+    "doe.cli_design",  # presets, config
+    "doe.cli_retrieve",  # retrieve
+    "psf_learn.cli",  # learn, evaluate, sr
+    "fab.cli_fab",  # fab
+    "fab.cli_mesh",  # mesh
+    "fab.cli_verify",  # verify, mtf
+    "psf_learn.cli_depth",  # depth, transient
+    "fab.cli_run",  # run
 )
 
 

@@ -11,7 +11,9 @@ def register(sub):
     p = sub.add_parser("config", help="show a resolved design with its derived optics")
     csub = p.add_subparsers(dest="action", metavar="ACTION", required=True)
     show = csub.add_parser("show", help="print the resolved design")
-    show.add_argument("--config", help="design TOML file or preset name (default: the default preset)")
+    show.add_argument(
+        "--config", help="design TOML file or preset name (default: the default preset)"
+    )
     show.add_argument("--json", action="store_true", help="print JSON instead of a table")
     show.set_defaults(func=_show)
 

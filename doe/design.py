@@ -106,8 +106,11 @@ _SCHEMA = {
         "rows": (int, None, _POSITIVE),
         "pixel_pitch_um": (float, 1e-6, _POSITIVE),
         "active_area_um": (float, 1e-6, _POSITIVE),
-        "active_area_shape": (str, None, (lambda v: v in ("circle", "square"),
-                                          "must be 'circle' or 'square'")),
+        "active_area_shape": (
+            str,
+            None,
+            (lambda v: v in ("circle", "square"), "must be 'circle' or 'square'"),
+        ),
         "active_offset_um": (list, 1e-6, (lambda v: len(v) == 2, "must be [x, y]")),
         "superres_factor": (int, None, _POSITIVE),
     },
@@ -119,13 +122,22 @@ _SCHEMA = {
         "kernel_size": (int, None, (lambda v: v > 0 and v % 2 == 1, "must be odd and > 0")),
     },
     "material": {
-        "name": (str, None, (lambda v: v in MATERIALS,
-                             f"must be one of {', '.join(sorted(MATERIALS))}")),
+        "name": (
+            str,
+            None,
+            (lambda v: v in MATERIALS, f"must be one of {', '.join(sorted(MATERIALS))}"),
+        ),
         "thickness_mm": (float, 1e-3, _POSITIVE),
     },
     "fabrication": {
-        "levels": (int, None, (lambda v: v >= 2 and v & (v - 1) == 0,
-                               "must be a power of two >= 2 (one binary mask per bit)")),
+        "levels": (
+            int,
+            None,
+            (
+                lambda v: v >= 2 and v & (v - 1) == 0,
+                "must be a power of two >= 2 (one binary mask per bit)",
+            ),
+        ),
         "feature_size_um": (float, 1e-6, _POSITIVE),
         "aperture_mm": (float, 1e-3, _POSITIVE),
         "grid_nm": (int, 1e-9, _POSITIVE),
@@ -196,8 +208,9 @@ def parse_design(raw, source="design"):
             raise InputError(source, f"missing table [{section}]")
         unknown = set(table) - set(fields)
         if unknown:
-            raise InputError(source, f"[{section}] has unknown key(s) {sorted(unknown)}; "
-                             f"known: {sorted(fields)}")
+            raise InputError(
+                source, f"[{section}] has unknown key(s) {sorted(unknown)}; known: {sorted(fields)}"
+            )
         for key, (typ, scale, (ok, why)) in fields.items():
             where = f"{source}: [{section}] {key}"
             if key not in table:
@@ -211,17 +224,27 @@ def parse_design(raw, source="design"):
     design = Design(
         name=raw.get("name", Path(str(source)).stem),
         description=raw.get("description", ""),
-        sensor=Sensor(s("sensor", "columns"), s("sensor", "rows"),
-                      s("sensor", "pixel_pitch_um"), s("sensor", "active_area_um"),
-                      s("sensor", "active_area_shape"), tuple(s("sensor", "active_offset_um")),
-                      s("sensor", "superres_factor")),
+        sensor=Sensor(
+            s("sensor", "columns"),
+            s("sensor", "rows"),
+            s("sensor", "pixel_pitch_um"),
+            s("sensor", "active_area_um"),
+            s("sensor", "active_area_shape"),
+            tuple(s("sensor", "active_offset_um")),
+            s("sensor", "superres_factor"),
+        ),
         optics=Optics(s("optics", "wavelength_nm"), s("optics", "focal_length_mm")),
         kernel_size=s("psf", "kernel_size"),
         material=Material(s("material", "name"), s("material", "thickness_mm")),
-        fabrication=Fabrication(s("fabrication", "levels"), s("fabrication", "feature_size_um"),
-                                s("fabrication", "aperture_mm"), s("fabrication", "grid_nm")),
-        learning=Learning(s("learning", "seed"), s("learning", "minutes"),
-                          s("learning", "photons_per_pixel")),
+        fabrication=Fabrication(
+            s("fabrication", "levels"),
+            s("fabrication", "feature_size_um"),
+            s("fabrication", "aperture_mm"),
+            s("fabrication", "grid_nm"),
+        ),
+        learning=Learning(
+            s("learning", "seed"), s("learning", "minutes"), s("learning", "photons_per_pixel")
+        ),
     )
     _check_consistency(design, source)
     return design
@@ -250,17 +273,25 @@ def _check_value(where, value, typ, scale, ok, why):
 def _check_consistency(d, source):
     sensor, fab = d.sensor, d.fabrication
     if sensor.active_area > sensor.pixel_pitch:
-        raise InputError(f"{source}: [sensor] active_area_um",
-                         "the active area is larger than the pixel pitch")
-    refractive_index(d.material.name, d.optics.wavelength)  # raises outside its range
+        raise InputError(
+            f"{source}: [sensor] active_area_um", "the active area is larger than the pixel pitch"
+        )
+    try:
+        refractive_index(d.material.name, d.optics.wavelength)
+    except InputError as e:
+        raise InputError(f"{source}: [optics] wavelength_nm", e.problem) from None
     der = derive(d)
     if der.tile_size > fab.aperture:
-        raise InputError(f"{source}: [fabrication] aperture_mm",
-                         f"the phase tile ({der.tile_size * 1e3:.3f} mm) is larger than the "
-                         f"aperture ({fab.aperture * 1e3:.3f} mm)")
+        raise InputError(
+            f"{source}: [fabrication] aperture_mm",
+            f"the phase tile ({der.tile_size * 1e3:.3f} mm) is larger than the "
+            f"aperture ({fab.aperture * 1e3:.3f} mm)",
+        )
     if d.kernel_size > der.tile_pixels:
-        raise InputError(f"{source}: [psf] kernel_size",
-                         f"K = {d.kernel_size} exceeds the tile's N = {der.tile_pixels} pixels")
+        raise InputError(
+            f"{source}: [psf] kernel_size",
+            f"K = {d.kernel_size} exceeds the tile's N = {der.tile_pixels} pixels",
+        )
     if der.mask_pixel_pitch <= 0:
         raise InputError(f"{source}: [fabrication] grid_nm", "the grid is coarser than a pixel")
 
@@ -273,7 +304,7 @@ def derive(d, tile_pixels=None):
     """
     sensor, fab, wl, f = d.sensor, d.fabrication, d.optics.wavelength, d.optics.focal_length
     subpixel = sensor.pixel_pitch / sensor.superres_factor
-    tile_nominal = wl * f / subpixel           # order spacing lambda f / T = sub-pixel pitch
+    tile_nominal = wl * f / subpixel  # order spacing lambda f / T = sub-pixel pitch
     n_pix = tile_pixels or max(1, round(tile_nominal / fab.feature_size))
     grid_steps = round(tile_nominal / n_pix / fab.grid)
     pitch = grid_steps * fab.grid
@@ -313,21 +344,26 @@ def design_summary(d):
         "name": d.name,
         "description": d.description,
         "sensor": {
-            "columns": d.sensor.columns, "rows": d.sensor.rows,
+            "columns": d.sensor.columns,
+            "rows": d.sensor.rows,
             "pixel_pitch_um": d.sensor.pixel_pitch * 1e6,
             "active_area_um": d.sensor.active_area * 1e6,
             "active_area_shape": d.sensor.active_area_shape,
             "active_offset_um": [v * 1e6 for v in d.sensor.active_offset],
             "superres_factor": d.sensor.superres_factor,
         },
-        "optics": {"wavelength_nm": d.optics.wavelength * 1e9,
-                   "focal_length_mm": d.optics.focal_length * 1e3},
+        "optics": {
+            "wavelength_nm": d.optics.wavelength * 1e9,
+            "focal_length_mm": d.optics.focal_length * 1e3,
+        },
         "psf": {"kernel_size": d.kernel_size},
         "material": {"name": d.material.name, "thickness_mm": d.material.thickness * 1e3},
-        "fabrication": {"levels": d.fabrication.levels,
-                        "feature_size_um": d.fabrication.feature_size * 1e6,
-                        "aperture_mm": d.fabrication.aperture * 1e3,
-                        "grid_nm": round(d.fabrication.grid * 1e9)},
+        "fabrication": {
+            "levels": d.fabrication.levels,
+            "feature_size_um": d.fabrication.feature_size * 1e6,
+            "aperture_mm": d.fabrication.aperture * 1e3,
+            "grid_nm": round(d.fabrication.grid * 1e9),
+        },
         "learning": asdict(d.learning),
         "derived": {
             "subpixel_pitch_um": der.subpixel_pitch * 1e6,

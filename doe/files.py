@@ -40,7 +40,9 @@ def check_psf(psf, source, tol=1e-6):
     if psf.ndim != 2 or psf.shape[0] != psf.shape[1]:
         raise InputError(source, f"PSF must be square (K, K), got shape {psf.shape}")
     if psf.shape[0] % 2 == 0:
-        raise InputError(source, f"PSF size K must be odd (centre = optical axis), got {psf.shape[0]}")
+        raise InputError(
+            source, f"PSF size K must be odd (centre = optical axis), got {psf.shape[0]}"
+        )
     if not np.all(np.isfinite(psf)):
         raise InputError(source, "PSF contains NaN or infinite values")
     if np.any(psf < 0):
@@ -168,5 +170,8 @@ def staged_output(out_dir, force=False, names=None):
 def _refuse_overwrite(out_dir, names):
     clash = [n for n in names if (Path(out_dir) / n).exists()]
     if clash:
-        raise InputError(out_dir, f"would overwrite {', '.join(sorted(clash)[:4])}"
-                         f"{' ...' if len(clash) > 4 else ''}; use --force or another --out")
+        raise InputError(
+            out_dir,
+            f"would overwrite {', '.join(sorted(clash)[:4])}"
+            f"{' ...' if len(clash) > 4 else ''}; use --force or another --out",
+        )

@@ -27,7 +27,7 @@ def order_amplitudes(phase):
 
 
 def window_indices(n, k):
-    """Return the FFT indices of the K orders centred on the zero order (axis index i -> order i - K//2)."""
+    """Return the FFT indices of the K orders centred on the zero order (index i: order i - K//2)."""
     return (np.arange(k) - k // 2) % n
 
 
@@ -95,7 +95,7 @@ def dot_lattice_image(phase, shape, order_pitch_px, centre=None, spot_sigma_px=0
     n = phase.shape[0]
     power = np.abs(order_amplitudes(phase)) ** 2
     cy, cx = centre if centre is not None else ((h - 1) / 2, (w - 1) / 2)
-    orders = np.fft.fftfreq(n, 1 / n).astype(int)   # 0, 1, ..., -1
+    orders = np.fft.fftfreq(n, 1 / n).astype(int)  # 0, 1, ..., -1
     rows = cy + orders * order_pitch_px
     cols = cx + orders * order_pitch_px
     keep_r = (rows > -4 * spot_sigma_px) & (rows < h + 4 * spot_sigma_px)

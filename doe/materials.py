@@ -56,6 +56,8 @@ MATERIALS = {
 def refractive_index(material, wavelength):
     """Return the refractive index of ``material`` (a key of MATERIALS) at ``wavelength`` (m)."""
     if material not in MATERIALS:
-        raise InputError("material.name", f"unknown material {material!r}; choose one of "
-                         f"{', '.join(sorted(MATERIALS))}")
+        raise InputError(
+            "material.name",
+            f"unknown material {material!r}; choose one of {', '.join(sorted(MATERIALS))}",
+        )
     return MATERIALS[material].index(wavelength)

@@ -1,0 +1,147 @@
+"""Design schema, presets and derived optics."""
+
+import math
+
+import pytest
+
+from doe.cli import main
+from doe.design import _read_preset, derive, load_design, parse_design, preset_names
+from doe.errors import InputError
+from doe.materials import MATERIALS, refractive_index
+
+
+def raw_default():
+    return _read_preset("sun2020")
+
+
+def with_value(section, key, value):
+    raw = raw_default()
+    raw[section] = dict(raw[section], **{key: value})
+    return raw
+
+
+def test_default_preset_matches_the_paper_prototype():
+    d = load_design()
+    assert d.sensor.columns == 64 and d.sensor.rows == 32
+    assert d.sensor.pixel_pitch == pytest.approx(150e-6)
+    assert d.optics.wavelength == pytest.approx(655e-9)
+    assert d.kernel_size == 11 and d.fabrication.levels == 8
+    der = derive(d)
+    assert der.fill_factor == pytest.approx(math.pi * 15**2 / 150**2)
+
+
+def test_derived_quantities_follow_from_first_principles():
+    d = load_design()
+    der = derive(d)
+    wl, f = 655e-9, 50e-3
+    assert der.subpixel_pitch == pytest.approx(37.5e-6)
+    assert der.tile_size_nominal == pytest.approx(wl * f / 37.5e-6)
+    n_pix = round(der.tile_size_nominal / 5e-6)
+    assert der.tile_pixels == n_pix
+    # the pitch lands on the 1 nm grid and is the nearest grid value
+    pitch_nm = der.mask_pixel_pitch * 1e9
+    assert pitch_nm == pytest.approx(round(pitch_nm), abs=1e-6)
+    assert abs(pitch_nm - der.tile_size_nominal * 1e9 / n_pix) <= 0.5
+    assert der.lattice_pitch == pytest.approx(wl * f / (n_pix * der.mask_pixel_pitch))
+    assert der.lattice_drift_at_edge == pytest.approx((der.lattice_pitch - 37.5e-6) * 64 * 4 / 2)
+    assert der.tiles == math.floor(14e-3 / der.tile_size)
+    # binary-weighted etch depths from the Sellmeier index, deepest first
+    n = refractive_index("fused_silica", wl)
+    step = wl / (n - 1) / 8
+    assert der.level_step == pytest.approx(step)
+    assert der.etch_depths == pytest.approx((4 * step, 2 * step, step))
+    # the paper's numbers to 0.5 nm
+    assert [d * 1e9 for d in der.etch_depths] == pytest.approx([717.6, 358.8, 179.4], abs=0.5)
+
+
+@pytest.mark.parametrize(
+    ("material", "wavelength_um", "index"),
+    [
+        # Malitson's fused silica and SCHOTT N-BK7 catalogue values
+        ("fused_silica", 0.6328, 1.45702),
+        ("fused_silica", 1.064, 1.44963),
+        ("bk7", 0.5876, 1.51680),
+        ("bk7", 0.6563, 1.51432),
+    ],
+)
+def test_sellmeier_index_matches_catalogue(material, wavelength_um, index):
+    assert refractive_index(material, wavelength_um * 1e-6) == pytest.approx(index, abs=2e-5)
+
+
+def test_every_material_refuses_wavelengths_outside_its_fit():
+    for m in MATERIALS.values():
+        with pytest.raises(InputError, match="outside the Sellmeier range"):
+            m.index(m.valid[1] * 1.01)
+
+
+@pytest.mark.parametrize(
+    ("section", "key", "value", "message"),
+    [
+        ("fabrication", "levels", 6, "power of two"),
+        ("fabrication", "levels", 1, "power of two"),
+        ("fabrication", "aperture_mm", 0.5, "larger than the aperture"),
+        ("optics", "wavelength_nm", 5000.0, "outside the Sellmeier range"),
+        ("sensor", "pixel_pitch_um", -150.0, "must be > 0"),
+        ("psf", "kernel_size", 10, "odd"),
+        ("psf", "kernel_size", 401, "exceeds"),
+        ("sensor", "active_area_um", 200.0, "larger than the pixel pitch"),
+        ("material", "name", "unobtainium", "must be one of"),
+        ("sensor", "columns", 64.5, "must be int"),
+        ("optics", "focal_length_mm", float("nan"), "finite"),
+        ("sensor", "active_offset_um", [1.0], r"\[x, y\]"),
+        ("sensor", "colums", 64, "unknown key"),
+    ],
+)
+def test_impossible_designs_are_refused(section, key, value, message):
+    with pytest.raises(InputError, match=message):
+        parse_design(with_value(section, key, value), "bad.toml")
+
+
+def test_missing_table_is_refused():
+    raw = raw_default()
+    del raw["optics"]
+    with pytest.raises(InputError, match=r"missing table \[optics\]"):
+        parse_design(raw, "bad.toml")
+
+
+def test_partial_file_overrides_the_default(tmp_path):
+    f = tmp_path / "bk7.toml"
+    f.write_text('name = "bk7-test"\n[material]\nname = "bk7"\n')
+    d = load_design(f)
+    assert d.name == "bk7-test" and d.material.name == "bk7"
+    assert derive(d).refractive_index == pytest.approx(refractive_index("bk7", 655e-9))
+    assert d.sensor == load_design().sensor
+
+
+def test_presets_are_listed_and_load():
+    assert "sun2020" in preset_names()
+    for name in preset_names():
+        load_design(name)
+
+
+def test_config_show_cli(capsys):
+    assert main(["config", "show", "--json"]) == 0
+    out = capsys.readouterr().out
+    assert '"tile_pixels": 175' in out and '"mask_pixel_pitch_nm": 4990' in out
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        ("[fabrication]\nlevels = 6\n", "power of two"),
+        ("this is = = not toml", "not valid TOML"),
+        ("[fabrication]\naperture_mm = 0.1\n", "larger than the aperture"),
+    ],
+)
+def test_config_show_refuses_bad_files_with_exit_2(tmp_path, capsys, content, message):
+    f = tmp_path / "design.toml"
+    f.write_text(content)
+    assert main(["config", "show", "--config", str(f)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(f) in err and message in err
+
+
+def test_missing_config_file_exits_2(tmp_path, capsys):
+    missing = tmp_path / "nope.toml"
+    assert main(["config", "show", "--config", str(missing)]) == 2
+    assert str(missing) in capsys.readouterr().err

@@ -1,0 +1,53 @@
+"""Contract readers and the staged (all-or-nothing) output folder."""
+
+import numpy as np
+import pytest
+
+from doe.errors import InputError
+from doe.files import read_levels, read_psf, save_npy, staged_output
+
+
+def test_staged_output_leaves_nothing_on_failure(tmp_path):
+    out = tmp_path / "out"
+    with pytest.raises(RuntimeError), staged_output(out) as stage:
+        (stage / "a.txt").write_text("half")
+        raise RuntimeError("killed")
+    assert not out.exists()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_staged_output_moves_files_and_refuses_overwrite(tmp_path):
+    out = tmp_path / "out"
+    with staged_output(out) as stage:
+        (stage / "a.txt").write_text("one")
+    assert (out / "a.txt").read_text() == "one"
+    with pytest.raises(InputError, match="--force"), staged_output(out) as stage:
+        (stage / "a.txt").write_text("two")
+    assert (out / "a.txt").read_text() == "one"
+    with staged_output(out, force=True) as stage:
+        (stage / "a.txt").write_text("two")
+    assert (out / "a.txt").read_text() == "two"
+
+
+def test_read_psf_normalises_within_tolerance_only(tmp_path):
+    psf = np.zeros((3, 3))
+    psf[1, 1] = 1 + 1e-9
+    save_npy(tmp_path / "ok.npy", psf)
+    assert read_psf(tmp_path / "ok.npy").sum() == pytest.approx(1, abs=1e-15)
+    save_npy(tmp_path / "bad.npy", psf * 2)
+    with pytest.raises(InputError, match="sum to 1"):
+        read_psf(tmp_path / "bad.npy")
+
+
+@pytest.mark.parametrize(
+    ("array", "message"),
+    [
+        (np.full((4, 4), 8, np.uint8), "0..7"),
+        (np.zeros((4, 5), np.uint8), "square"),
+        (np.zeros((4, 4), np.int64), "uint8"),
+    ],
+)
+def test_read_levels_refuses_contract_violations(tmp_path, array, message):
+    save_npy(tmp_path / "levels.npy", array)
+    with pytest.raises(InputError, match=message):
+        read_levels(tmp_path / "levels.npy", 8)
