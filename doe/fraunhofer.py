@@ -27,7 +27,7 @@ def order_amplitudes(phase):
 
 
 def window_indices(n, k):
-    """Return the FFT indices of the K orders centred on the zero order (index i: order i - K//2)."""
+    """Return the FFT indices of the K window orders (window index i holds order i - K//2)."""
     return (np.arange(k) - k // 2) % n
 
 
