@@ -1,0 +1,104 @@
+"""``doefab run``: the whole pipeline, sensor to fabrication package, in one command."""
+
+import sys
+import time
+from pathlib import Path
+
+from doe.errors import InputError
+
+MESH_FORMATS = "ply,glb,3mf,stl,step"
+
+
+def register(sub):
+    p = sub.add_parser(
+        "run",
+        help="learn the PSF, retrieve the phase, build masks, GDS, meshes and reports",
+        description="Run the whole pipeline on the default preset or a design file. "
+        "Re-running skips stages whose inputs did not change; an interrupted run resumes.",
+    )
+    p.add_argument("--config", help="design TOML file or preset name (default preset if absent)")
+    p.add_argument("--out", required=True, help="run folder")
+    p.add_argument("--psf", help="use this psf.npy instead of learning one")
+    p.add_argument("--minutes", type=float, help="training budget (default: the design's)")
+    p.add_argument("--seed", type=int, help="seed of every stage (default: the design's)")
+    p.add_argument("--formats", default=MESH_FORMATS, help=f"mesh formats (default {MESH_FORMATS})")
+    p.add_argument("--force", action="store_true", help="redo every stage and overwrite")
+    p.set_defaults(func=_run)
+
+
+def plan(args, run_dir, design):
+    """Return the list of stages for these arguments."""
+    from fab.pipeline import Stage
+
+    config = ["--config", args.config] if args.config else []
+    config_inputs = (Path(args.config),) if args.config and Path(args.config).is_file() else ()
+    seed = str(args.seed if args.seed is not None else design.learning.seed)
+    stages = []
+    if args.psf:
+        psf = Path(args.psf)
+        if not psf.is_file():
+            raise InputError(psf, "no such PSF file")
+    else:
+        minutes = str(args.minutes if args.minutes is not None else design.learning.minutes)
+        stages.append(
+            Stage("learn", ("learn", "--minutes", minutes, "--seed", seed, *config), config_inputs)
+        )
+        psf = run_dir / "learn" / "psf.npy"
+    retrieve = run_dir / "retrieve"
+    fab = run_dir / "fab"
+    stages += [
+        Stage("retrieve", ("retrieve", str(psf), "--seed", seed, *config), (psf, *config_inputs)),
+        Stage(
+            "fab",
+            ("fab", str(retrieve), *config),
+            (retrieve / "levels.npy", retrieve / "target_psf.npy", *config_inputs),
+        ),
+        Stage(
+            "mesh",
+            ("mesh", str(fab), "--formats", args.formats),
+            (fab / "fab_manifest.json", fab / "levels.npy"),
+        ),
+    ]
+    return stages
+
+
+def _run(args):
+    from doe.cli import main as doefab
+    from doe.design import load_design
+    from fab.pipeline import check_overwrite, is_current, load_state, run_stage, save_state
+    from fab.run_report import write_index, write_manifest
+
+    design = load_design(args.config)
+    run_dir = Path(args.out)
+    if run_dir.exists() and not run_dir.is_dir():
+        raise InputError(run_dir, "exists and is not a folder")
+    run_dir.mkdir(parents=True, exist_ok=True)
+    state = {} if args.force else load_state(run_dir)
+    if (
+        not state
+        and not args.force
+        and any(p for p in run_dir.iterdir() if not p.name.startswith("."))
+    ):
+        raise InputError(
+            run_dir, "is not empty and holds no doefab run; use --force or a new --out"
+        )
+    timings = {}
+    stages = plan(args, run_dir, design)
+    for i, stage in enumerate(stages, 1):
+        # inputs of later stages exist only once earlier ones ran: plan lazily
+        if not args.force and is_current(stage, state, run_dir):
+            print(f"[{i}/{len(stages)}] {stage.name}: up to date, skipped", file=sys.stderr)
+            continue
+        check_overwrite(stage, state, run_dir, args.force)
+        print(f"[{i}/{len(stages)}] {stage.name}: doefab {' '.join(stage.argv)}", file=sys.stderr)
+        t0 = time.perf_counter()
+        code = run_stage(stage, run_dir, state, doefab)
+        timings[stage.name] = round(time.perf_counter() - t0, 2)
+        if code != 0:
+            print(f"doefab run: stage {stage.name} failed (exit {code})", file=sys.stderr)
+            return code
+    save_state(run_dir, state)
+    write_index(run_dir, design, [s.name for s in stages])
+    write_manifest(run_dir, design, args, timings)
+    print(f"doefab run: done, open {run_dir / 'index.html'}", file=sys.stderr)
+    return 0

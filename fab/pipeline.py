@@ -1,0 +1,150 @@
+"""The whole pipeline as a list of stages with content-hash skipping and resume.
+
+Each stage is one ``doefab`` subcommand writing into its own folder of the run
+directory. A stage's key is the SHA-256 of its arguments and the contents of its
+input files; ``run_state.json`` records, per finished stage, the key and the
+SHA-256 of every file it wrote. A re-run skips a stage whose key and files are
+unchanged (so an interrupted run resumes at the first unfinished stage), redoes
+it when an input changed, and never overwrites a file that the run did not
+write itself (or that was edited since) unless ``force``.
+"""
+
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from doe.errors import InputError
+
+STATE_FILE = "run_state.json"
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One step of the pipeline.
+
+    ``argv`` is the doefab command line without ``--out``/``--force``; paths in it
+    that are inside the run folder are written relative to it so that the key
+    does not depend on where the run folder lives.
+    """
+
+    name: str
+    argv: tuple[str, ...]
+    inputs: tuple[Path, ...] = field(default=())
+
+
+def sha256_file(path):
+    """Return the hex SHA-256 of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def stage_key(stage, run_dir):
+    """Return the content key of a stage: its arguments and its inputs' bytes."""
+    run_dir = Path(run_dir).resolve()
+    argv = [_relative(a, run_dir) for a in stage.argv]
+    inputs = {}
+    for p in stage.inputs:
+        if not Path(p).is_file():
+            raise InputError(p, f"input of stage {stage.name!r} is missing")
+        inputs[_relative(str(p), run_dir)] = sha256_file(p)
+    blob = json.dumps({"argv": argv, "inputs": inputs}, sort_keys=True).encode()
+    return hashlib.sha256(blob).hexdigest()
+
+
+def _relative(arg, run_dir):
+    p = Path(arg)
+    try:
+        return str(p.resolve().relative_to(run_dir)) if p.exists() or p.is_absolute() else arg
+    except ValueError:
+        return arg
+
+
+def stage_files(folder):
+    """Return {relative path: sha256} of every file below ``folder`` (hidden files skipped)."""
+    folder = Path(folder)
+    return {
+        str(p.relative_to(folder)): sha256_file(p)
+        for p in sorted(folder.rglob("*"))
+        if p.is_file() and not any(part.startswith(".") for part in p.relative_to(folder).parts)
+    }
+
+
+def load_state(run_dir):
+    path = Path(run_dir) / STATE_FILE
+    if not path.exists():
+        return {}
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise InputError(path, f"unreadable run state ({e}); use --force to start over") from None
+
+
+def is_current(stage, state, run_dir):
+    """True when ``stage`` finished before with the same key and untouched outputs."""
+    rec = state.get(stage.name)
+    if not rec or rec.get("key") != stage_key(stage, run_dir):
+        return False
+    return stage_files(Path(run_dir) / stage.name) == rec.get("files")
+
+
+def check_overwrite(stage, state, run_dir, force):
+    """Refuse to redo a stage whose folder holds files the run did not write (or were edited)."""
+    folder = Path(run_dir) / stage.name
+    if force or not folder.exists():
+        return
+    recorded = state.get(stage.name, {}).get("files", {})
+    foreign = [p for p, h in stage_files(folder).items() if recorded.get(p) != h]
+    if foreign:
+        raise InputError(
+            folder / foreign[0],
+            f"not written by this run or edited since ({len(foreign)} such file(s)); "
+            "use --force to overwrite or choose another --out",
+        )
+
+
+def run_stage(stage, run_dir, state, invoke):
+    """Run one stage into a fresh folder and swap it in; record it in the state.
+
+    ``invoke(argv) -> exit code`` runs a doefab command. The stage writes to
+    ``.NAME.new`` (kept across an interrupt, so a stage with its own checkpoints,
+    such as training, resumes there), which replaces ``NAME`` only on success.
+    """
+    run_dir = Path(run_dir)
+    key = stage_key(stage, run_dir)
+    new = run_dir / f".{stage.name}.new"
+    key_file = new / ".stage_key"
+    if new.exists() and (not key_file.exists() or key_file.read_text() != key):
+        _remove_tree(new)  # a leftover of another configuration: start clean
+    new.mkdir(parents=True, exist_ok=True)
+    key_file.write_text(key)
+    code = invoke([*stage.argv, "--out", str(new), "--force"])
+    if code != 0:
+        return code
+    final = run_dir / stage.name
+    old = run_dir / f".{stage.name}.old"
+    if old.exists():
+        _remove_tree(old)
+    if final.exists():
+        final.rename(old)
+    new.rename(final)
+    if old.exists():
+        _remove_tree(old)
+    state[stage.name] = {"key": key, "files": stage_files(final)}
+    save_state(run_dir, state)
+    return 0
+
+
+def save_state(run_dir, state):
+    from doe.files import write_json
+
+    write_json(Path(run_dir) / STATE_FILE, state)
+
+
+def _remove_tree(path):
+    import shutil
+
+    shutil.rmtree(path)

@@ -1,0 +1,138 @@
+"""The run folder's front page (``index.html``) and ``manifest.json``."""
+
+import html
+import json
+import platform
+from importlib import metadata
+from pathlib import Path
+
+from doe.design import design_summary
+from doe.files import atomic_write_bytes, write_json
+from fab.pipeline import sha256_file
+
+PACKAGES = (
+    "doefab",
+    "numpy",
+    "scipy",
+    "nlopt",
+    "torch",
+    "gdstk",
+    "klayout",
+    "OpenImageIO",
+    "trimesh",
+    "manifold3d",
+    "build123d",
+    "matplotlib",
+    "scikit-image",
+)
+
+# Headline numbers shown on the front page: (stage, file, key path, label)
+HEADLINES = (
+    ("learn", "learn.json", ("final", "psnr"), "training PSNR (dB)"),
+    ("retrieve", "retrieval.json", ("quantised", "correlation"), "correlation (8 levels)"),
+    ("retrieve", "retrieval.json", ("quantised", "rmse"), "rmse (8 levels)"),
+    ("retrieve", "retrieval.json", ("quantised", "efficiency"), "efficiency (8 levels)"),
+    ("fab", "fab_manifest.json", ("level_step_nm",), "level step (nm)"),
+    ("fab", "fab_manifest.json", ("pixel_pitch_nm",), "mask pixel pitch (nm)"),
+    ("fab", "fab_manifest.json", ("tiles",), "tiles across the aperture"),
+)
+
+
+def product_files(run_dir):
+    """Every product file of the run (hidden and bookkeeping files excluded), sorted."""
+    run_dir = Path(run_dir)
+    skip = {"manifest.json", "timings.json", "run_state.json"}
+    return [
+        p
+        for p in sorted(run_dir.rglob("*"))
+        if p.is_file()
+        and not any(part.startswith(".") for part in p.relative_to(run_dir).parts)
+        and str(p.relative_to(run_dir)) not in skip
+    ]
+
+
+def package_versions():
+    out = {"python": platform.python_version()}
+    for name in PACKAGES:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            out[name] = None
+    return out
+
+
+def write_manifest(run_dir, design, args, timings):
+    """Write ``manifest.json`` (deterministic) and ``timings.json`` (the one varying file)."""
+    run_dir = Path(run_dir)
+    files = [
+        {"path": str(p.relative_to(run_dir)), "sha256": sha256_file(p), "bytes": p.stat().st_size}
+        for p in product_files(run_dir)
+    ]
+    seed = args.seed if args.seed is not None else design.learning.seed
+    manifest = {
+        "tool": "doefab run",
+        "config": args.config or "preset:sun2020",
+        "design": design_summary(design),
+        "psf_source": args.psf or "learn/psf.npy",
+        "seeds": {"learn": None if args.psf else seed, "retrieve": seed},
+        "versions": package_versions(),
+        "files": files,
+        "timings_file": "timings.json",
+    }
+    write_json(run_dir / "manifest.json", manifest)
+    write_json(run_dir / "timings.json", {"seconds_per_stage": timings})
+
+
+def _lookup(run_dir, stage, name, path):
+    try:
+        value = json.loads((Path(run_dir) / stage / name).read_text())
+        for key in path:
+            value = value[key]
+        return value
+    except (OSError, KeyError, TypeError, json.JSONDecodeError):
+        return None
+
+
+def write_index(run_dir, design, stages):
+    """Write ``index.html`` linking every result of the run, with its figures."""
+    run_dir = Path(run_dir)
+    e = html.escape
+    rows = []
+    for stage, name, path, label in HEADLINES:
+        value = _lookup(run_dir, stage, name, path)
+        if value is not None:
+            shown = f"{value:.6g}" if isinstance(value, float) else str(value)
+            rows.append(f"<tr><td>{e(label)}</td><td>{e(shown)}</td></tr>")
+    parts = [
+        "<!DOCTYPE html><html><head><meta charset='utf-8'>",
+        f"<title>doefab run: {e(design.name)}</title>",
+        "<style>body{font-family:sans-serif;max-width:1100px;margin:2em auto}"
+        "img{max-width:48%;margin:4px;border:1px solid #ccc}td{padding:2px 10px}</style>",
+        "</head><body>",
+        f"<h1>doefab run: {e(design.name)}</h1><p>{e(design.description)}</p>",
+        "<p>Files and their SHA-256 are listed in <a href='manifest.json'>manifest.json</a>.</p>",
+        "<h2>Summary</h2><table>",
+        *rows,
+        "</table>",
+    ]
+    for stage in stages:
+        folder = run_dir / stage
+        if not folder.is_dir():
+            continue
+        files = [p for p in product_files(run_dir) if p.parent.is_relative_to(folder)]
+        parts.append(f"<h2>{e(stage)}</h2>")
+        reports = [p for p in files if p.suffix == ".html"]
+        for p in reports:
+            rel = e(str(p.relative_to(run_dir)))
+            parts.append(f"<p><b>Report:</b> <a href='{rel}'>{rel}</a></p>")
+        for p in files:
+            if p.suffix == ".png":
+                rel = e(str(p.relative_to(run_dir)))
+                parts.append(f"<a href='{rel}'><img src='{rel}' alt='{rel}'></a>")
+        parts.append("<ul>")
+        for p in files:
+            rel = e(str(p.relative_to(run_dir)))
+            parts.append(f"<li><a href='{rel}'>{rel}</a> ({p.stat().st_size:,} bytes)</li>")
+        parts.append("</ul>")
+    parts.append("</body></html>\n")
+    atomic_write_bytes(run_dir / "index.html", "\n".join(parts).encode())

@@ -1,0 +1,88 @@
+"""Stage bookkeeping of ``doefab run``: skip unchanged, redo changed, resume, never clobber."""
+
+import pytest
+
+from doe.errors import InputError
+from fab.pipeline import Stage, check_overwrite, is_current, load_state, run_stage
+
+
+class FakeDoefab:
+    """Stands in for the doefab CLI: copies its input file, upper-cased, into --out."""
+
+    def __init__(self, fail_on=None):
+        self.calls = []
+        self.fail_on = fail_on
+
+    def __call__(self, argv):
+        self.calls.append(argv[0])
+        if argv[0] == self.fail_on:
+            return 2
+        src, out = argv[1], argv[argv.index("--out") + 1]
+        with open(src) as f:
+            text = f.read().upper()
+        with open(f"{out}/{argv[0]}.txt", "w") as f:
+            f.write(text)
+        return 0
+
+
+def stages(tmp_path):
+    src = tmp_path / "input.txt"
+    return [
+        Stage("first", ("first", str(src)), (src,)),
+        Stage(
+            "second",
+            ("second", str(tmp_path / "run" / "first" / "first.txt")),
+            (tmp_path / "run" / "first" / "first.txt",),
+        ),
+    ]
+
+
+def run_all(tmp_path, fake, force=False):
+    run = tmp_path / "run"
+    run.mkdir(exist_ok=True)
+    state = {} if force else load_state(run)
+    for stage in stages(tmp_path):
+        if not force and is_current(stage, state, run):
+            continue
+        check_overwrite(stage, state, run, force)
+        code = run_stage(stage, run, state, fake)
+        if code:
+            return code
+    return 0
+
+
+def test_rerun_skips_unchanged_and_redoes_changed_stages(tmp_path):
+    (tmp_path / "input.txt").write_text("abc")
+    fake = FakeDoefab()
+    assert run_all(tmp_path, fake) == 0
+    assert fake.calls == ["first", "second"]
+    assert (tmp_path / "run" / "second" / "second.txt").read_text() == "ABC"
+    assert run_all(tmp_path, fake) == 0
+    assert fake.calls == ["first", "second"]  # nothing redone
+    (tmp_path / "input.txt").write_text("xyz")
+    assert run_all(tmp_path, fake) == 0
+    assert fake.calls[2:] == ["first", "second"]
+    assert (tmp_path / "run" / "second" / "second.txt").read_text() == "XYZ"
+    assert run_all(tmp_path, fake, force=True) == 0
+    assert fake.calls[4:] == ["first", "second"]
+
+
+def test_interrupted_run_resumes_at_the_failed_stage(tmp_path):
+    (tmp_path / "input.txt").write_text("abc")
+    assert run_all(tmp_path, FakeDoefab(fail_on="second")) == 2
+    assert not (tmp_path / "run" / "second").exists()  # no half-written stage
+    fake = FakeDoefab()
+    assert run_all(tmp_path, fake) == 0
+    assert fake.calls == ["second"]
+
+
+def test_edited_output_is_not_overwritten_without_force(tmp_path):
+    (tmp_path / "input.txt").write_text("abc")
+    assert run_all(tmp_path, FakeDoefab()) == 0
+    edited = tmp_path / "run" / "first" / "first.txt"
+    edited.write_text("my notes")
+    with pytest.raises(InputError, match="--force"):
+        run_all(tmp_path, FakeDoefab())
+    assert edited.read_text() == "my notes"
+    assert run_all(tmp_path, FakeDoefab(), force=True) == 0
+    assert edited.read_text() == "ABC"
