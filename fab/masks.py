@@ -145,3 +145,31 @@ def levels_from_masks(masks, n_levels, level_step):
 def etch_depth_map(masks):
     """Return the total etch depth (m) of each pixel: the sum over masks covering it."""
     return sum(mk.bitmap.astype(np.float64) * mk.etch_depth for mk in masks)
+
+
+def min_feature_pixels(bitmap):
+    """Return the narrowest run (in pixels) of etched or unetched pixels along rows and columns.
+
+    Runs that touch the tile edge continue into the neighbouring tile, so they
+    are measured on the periodically extended tile (a 3 x 3 tiling's centre).
+    A uniform bitmap has no feature and returns its size.
+    """
+    b = np.asarray(bitmap, dtype=bool)
+    n_rows, n_cols = b.shape
+    big = np.tile(b, (3, 3))
+    best = max(n_rows, n_cols)
+    for arr in (big, big.T):
+        rows = arr.shape[0] // 3
+        centre = arr[rows : 2 * rows].astype(np.int8)
+        change = np.diff(centre, axis=1) != 0
+        r, c = np.nonzero(change)  # a run ends after column c of row r
+        if len(r) < 2:
+            continue
+        same_row = r[1:] == r[:-1]
+        lengths = (c[1:] - c[:-1])[same_row]
+        width = arr.shape[1] // 3
+        # only runs that overlap the central copy of the tile
+        inside = (c[1:][same_row] >= width) & (c[:-1][same_row] < 2 * width)
+        if np.any(inside):
+            best = min(best, int(lengths[inside].min()))
+    return best

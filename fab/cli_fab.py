@@ -1,0 +1,242 @@
+"""``doefab fab DESIGN_DIR --out DIR``: the fabrication package of a phase tile.
+
+Masks -> GDS (+ optional OASIS) -> KLayout read-back check -> layer images ->
+tolerance analysis -> manifest -> report, all written through a staging folder
+so that a failed or refused run leaves nothing behind.
+"""
+
+import shutil
+import sys
+from pathlib import Path
+
+from doe.errors import InputError
+
+
+def register(sub):
+    p = sub.add_parser(
+        "fab",
+        help="write masks (GDSII), layer images, tolerances, manifest and report of a design",
+        description=(
+            "Turn DESIGN_DIR/levels.npy (uint8 N x N, values 0..L-1) into a fabrication "
+            "package: binary masks with Sellmeier etch depths, a GDSII file with the tile "
+            "as one cell placed by one AREF over the aperture, alignment marks, layer images, "
+            "a tolerance table, fab_manifest.json and fab_report.{md,html}."
+        ),
+    )
+    p.add_argument(
+        "design_dir",
+        metavar="DESIGN_DIR",
+        help="folder with levels.npy "
+        "(and target_psf.npy; retrieval.json optional), e.g. doefab retrieve's --out",
+    )
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--config", help="design TOML file or preset name (default preset if absent)")
+    p.add_argument("--force", action="store_true", help="overwrite existing files in --out")
+    p.add_argument("--oasis", action="store_true", help="also write mask.oas (KLayout)")
+    p.set_defaults(func=_fab)
+
+
+class _CheckFailed(Exception):
+    """The written package failed its self-check: nothing is released."""
+
+
+def _fab(args):
+    try:
+        result = run_fab(
+            args.design_dir, args.out, config=args.config, force=args.force, oasis=args.oasis
+        )
+    except _CheckFailed as e:
+        print(f"doefab fab: FAIL {e}; nothing written", file=sys.stderr)
+        return 1
+    m = result["manifest"]
+    depths = ", ".join(f"{mk['name']} {mk['etch_depth_nm']:.1f} nm" for mk in m["masks"])
+    print(
+        f"doefab fab: wrote {len(result['files'])} files to {args.out} "
+        f"(N={m['tile_pixels']}, pitch {m['pixel_pitch_nm']} nm, tiles {m['tiles']}; {depths})"
+    )
+    return 0
+
+
+def load_design_dir(design_dir, n_levels):
+    """Read and validate DESIGN_DIR's levels and target PSF.
+
+    Returns
+    -------
+    levels : (N, N) uint8
+    target : (K, K) float64 or None
+        None when DESIGN_DIR has no target_psf.npy.
+    """
+    from doe.files import read_json, read_levels, read_psf
+
+    d = Path(design_dir)
+    if not d.is_dir():
+        raise InputError(d, "no such design folder (expected doefab retrieve's output)")
+    info = d / "retrieval.json"
+    if info.is_file():
+        got = read_json(info).get("levels")
+        if got is not None and int(got) != n_levels:
+            raise InputError(
+                info,
+                f"the design was quantised to {got} levels but the "
+                f"configuration has {n_levels}; pass the matching --config",
+            )
+    levels = read_levels(d / "levels.npy", n_levels)
+    target_path = d / "target_psf.npy"
+    target = read_psf(target_path) if target_path.exists() else None
+    return levels, target
+
+
+def tile_derived(design, n):
+    """Return derive(design) for a tile of N pixels (pitch re-snapped to the grid if N differs)."""
+    from doe.design import derive
+
+    der = derive(design)
+    return der if der.tile_pixels == n else derive(design, tile_pixels=n)
+
+
+def mask_table(masks, counts, pitch_nm):
+    """Return the per-mask dicts of the report (depth, fill, polygon count, min feature...)."""
+    from fab.masks import min_feature_pixels
+
+    return [
+        {
+            "name": mk.name,
+            "gds_layer": mk.gds_layer,
+            "etch_depth_nm": mk.etch_depth * 1e9,
+            "exposure_order": mk.exposure_order,
+            "fill_fraction": mk.fill_fraction,
+            "polygon_count": counts[mk.name],
+            "min_feature_um": min_feature_pixels(mk.bitmap) * pitch_nm / 1000,
+        }
+        for mk in masks
+    ]
+
+
+def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=True):
+    """Write the fabrication package; return {"manifest", "files"}.
+
+    Raises InputError for unusable input (exit 2) and _CheckFailed when the
+    written GDS does not read back as the masks (exit 1); in both cases
+    nothing is left in ``out``.
+    """
+    from tqdm import tqdm
+
+    from doe.design import design_summary, load_design
+    from doe.files import staged_output
+    from doe.fraunhofer import simulate_levels
+    from fab import manifest as fm
+    from fab.layer_images import write_layer_images
+    from fab.masks import masks_from_levels
+    from layouts.gds import build_library, write_gds, write_oasis
+    from layouts.marks import plate_half_size_nm
+    from layouts.readback import check_written_gds
+
+    design = load_design(config)
+    n_levels = design.fabrication.levels
+    levels, target = load_design_dir(design_dir, n_levels)
+    n = levels.shape[0]
+    der = tile_derived(design, n)
+    k = target.shape[0] if target is not None else design.kernel_size
+    if k > n:
+        raise InputError(
+            Path(design_dir) / "target_psf.npy",
+            f"PSF size K = {k} exceeds the tile's N = {n} pixels",
+        )
+    simulated, efficiency = simulate_levels(levels, n_levels, k)
+    extra = {}
+    if target is None:
+        target = simulated
+        extra["target_psf_source"] = "simulated from levels.npy (DESIGN_DIR had no target_psf.npy)"
+        print(
+            "doefab fab: no target_psf.npy in the design folder; using the simulated PSF of "
+            "levels.npy as the target",
+            file=sys.stderr,
+        )
+    pitch_nm = round(der.mask_pixel_pitch * 1e9)
+    tiles = (der.tiles, der.tiles)
+    aperture_nm = round(design.fabrication.aperture * 1e9)
+    masks = masks_from_levels(levels, n_levels, der.level_step)
+
+    stages = ["gds", "check", "images", "tolerance", "manifest", "report"]
+    bar = tqdm(
+        stages, desc="doefab fab", file=sys.stderr, disable=not (progress and sys.stderr.isatty())
+    )
+    with staged_output(out, force) as stage:
+        bar.set_postfix_str("gds")
+        lib, layout = build_library(masks, pitch_nm, tiles, design.name, aperture_nm)
+        write_gds(lib, stage / fm.GDS_NAME)
+        if oasis:
+            write_oasis(stage / fm.GDS_NAME, stage / fm.OASIS_NAME)
+            extra["oasis"] = fm.OASIS_NAME
+        bar.update()
+        bar.set_postfix_str("check")
+        problems = check_written_gds(stage / fm.GDS_NAME, layout, masks)
+        if problems:
+            raise _CheckFailed("; ".join(problems))
+        bar.update()
+        bar.set_postfix_str("images")
+        half = max(tiles) * n * pitch_nm // 2 + 1
+        aperture_half = max(half, aperture_nm // 2)
+        write_layer_images(
+            stage, masks, tiles, pitch_nm, plate_half_size_nm(aperture_half), aperture_half
+        )
+        bar.update()
+        bar.set_postfix_str("tolerance")
+        tolerance = _tolerance(levels, n_levels, target, masks, der, design)
+        if tolerance is None:
+            extra["tolerance_note"] = "fab.tolerance not available in this build"
+        bar.update()
+        bar.set_postfix_str("manifest")
+        shutil.copyfile(Path(design_dir) / "levels.npy", stage / fm.LEVELS_FILE)
+        if (Path(design_dir) / "target_psf.npy").exists():
+            shutil.copyfile(Path(design_dir) / "target_psf.npy", stage / fm.TARGET_PSF_FILE)
+        else:
+            from doe.files import save_npy
+
+            save_npy(stage / fm.TARGET_PSF_FILE, target)
+        acceptance = tolerance.get("acceptance") if tolerance else None
+        manifest = fm.build_manifest(design, der, layout, masks, acceptance, extra)
+        fm.write_manifest(stage, manifest)
+        bar.update()
+        bar.set_postfix_str("report")
+        written = sorted(str(p.relative_to(stage)) for p in stage.rglob("*") if p.is_file())
+        files = fm.file_records(stage, written)
+        context = {
+            "design": design_summary(design),
+            "manifest": manifest,
+            "masks": mask_table(masks, layout.polygon_counts, pitch_nm),
+            "levels": levels,
+            "target_psf": target,
+            "simulated_psf": simulated,
+            "efficiency": efficiency,
+            "tolerance": tolerance,
+            "orientation": fm.ORIENTATION,
+            "files": files,
+        }
+        report_files = _report(stage, context)
+        bar.update()
+        bar.close()
+        all_files = sorted(str(p.relative_to(stage)) for p in stage.rglob("*") if p.is_file())
+    return {"manifest": manifest, "files": all_files, "report_files": report_files}
+
+
+def _tolerance(levels, n_levels, target, masks, der, design):
+    try:
+        from fab.tolerance import tolerance_analysis
+    except ImportError as e:  # the tolerance stage is not installed in this build
+        print(f"doefab fab: skipping the tolerance analysis ({e})", file=sys.stderr)
+        return None
+    return tolerance_analysis(
+        levels, n_levels, target, masks,
+        pixel_pitch=der.mask_pixel_pitch, level_step=der.level_step,
+        wavelength=design.optics.wavelength, refractive_index=der.refractive_index, seed=0,
+    )  # fmt: skip
+
+
+def _report(stage, context):
+    try:
+        from fab.report import write_fab_report
+    except ImportError as e:  # the report stage is not installed in this build
+        print(f"doefab fab: skipping the report ({e})", file=sys.stderr)
+        return []
+    return list(write_fab_report(stage, context))

@@ -1,0 +1,129 @@
+"""Raster images of every mask (OpenImageIO): the tile at mask-pixel resolution, a plate preview.
+
+Pixel values: 255 = etched (a drawn polygon), 0 = not etched; row 0 is the
+top edge of the layout, viewed onto the patterned surface (right-reading). In
+the plate preview a pixel is the etched fraction of the mask pixels it covers,
+and the plate edge and the clear-aperture frame are drawn in grey (128).
+This module and :func:`read_image` are the only places here that touch image files.
+"""
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+ETCHED = 255
+OUTLINE_GREY = 128
+PREVIEW_MAX_PX = 1024
+# TIFF writers stamp the current time; pin it so the bytes are reproducible.
+PINNED_DATETIME = "2020:01:01 00:00:00"
+
+
+def tile_image(bitmap):
+    """Return the (N, N, 1) uint8 image of a mask bitmap: 255 where etched, row 0 at the top."""
+    return (np.asarray(bitmap, dtype=bool).astype(np.uint8) * ETCHED)[:, :, None]
+
+
+def plate_preview(bitmap, tiles, pitch_nm, plate_half_nm, aperture_half_nm, max_px=PREVIEW_MAX_PX):
+    """Return a downsampled picture of the whole plate for one mask.
+
+    Parameters
+    ----------
+    bitmap : (N, N) bool array
+        The mask's tile.
+    tiles : (int, int)
+        Tiles along x and y.
+    pitch_nm : int
+        Mask pixel pitch.
+    plate_half_nm, aperture_half_nm : int
+        Half sizes of the plate and of the clear aperture (nm), centred on the array.
+    max_px : int
+        Upper bound of the preview's width and height.
+
+    Returns
+    -------
+    (H, W, 1) uint8 array
+        Each preview pixel covers f x f mask pixels (f an integer), value = 255 x etched fraction.
+    """
+    b = np.asarray(bitmap, dtype=bool)
+    n = b.shape[0]
+    nx, ny = tiles
+    f = max(1, math.ceil(2 * plate_half_nm / pitch_nm / max_px))
+    s = f * pitch_nm  # preview pixel size, nm
+    full = np.tile(b, (ny, nx)).astype(np.float64)
+    hp, wp = -(-full.shape[0] // f) * f, -(-full.shape[1] // f) * f
+    padded = np.zeros((hp, wp))
+    padded[: full.shape[0], : full.shape[1]] = full
+    small = padded.reshape(hp // f, f, wp // f, f).mean(axis=(1, 3))
+    size = math.ceil(2 * plate_half_nm / s)
+    canvas = np.zeros((size, size))
+    centre = size / 2
+    # Row 0 of the array is its top edge: place it at y = +ny * n * p / 2.
+    top = round(centre - ny * n * pitch_nm / 2 / s)
+    left = round(centre - nx * n * pitch_nm / 2 / s)
+    h, w = min(small.shape[0], size - top), min(small.shape[1], size - left)
+    if top < 0 or left < 0 or h <= 0 or w <= 0:
+        raise ValueError("the tiled array does not fit inside the plate")
+    canvas[top : top + h, left : left + w] = small[:h, :w]
+    img = np.rint(canvas * ETCHED).astype(np.uint8)
+    for half in (plate_half_nm, aperture_half_nm):
+        r = half / s
+        lo = int(np.clip(round(centre - r), 0, size - 1))
+        hi = int(np.clip(round(centre + r) - 1, 0, size - 1))
+        img[lo, lo : hi + 1] = img[hi, lo : hi + 1] = OUTLINE_GREY
+        img[lo : hi + 1, lo] = img[lo : hi + 1, hi] = OUTLINE_GREY
+    return img[:, :, None]
+
+
+def write_image(path, image):
+    """Write an (H, W, 1) uint8 array as a single-channel TIFF or PNG with pinned metadata."""
+    import OpenImageIO as oiio
+
+    image = np.ascontiguousarray(image, dtype=np.uint8)
+    if image.ndim == 2:
+        image = image[:, :, None]  # OIIO scrambles pixels of a 2-D array
+    h, w, c = image.shape
+    spec = oiio.ImageSpec(w, h, c, "uint8")
+    spec.attribute("DateTime", PINNED_DATETIME)
+    if str(path).lower().endswith((".tif", ".tiff")):
+        spec.attribute("compression", "lzw")
+    out = oiio.ImageOutput.create(str(path))
+    if out is None:
+        raise OSError(f"{path}: OpenImageIO cannot write this format: {oiio.geterror()}")
+    try:
+        if not out.open(str(path), spec) or not out.write_image(image):
+            raise OSError(f"{path}: OpenImageIO write failed: {out.geterror()}")
+    finally:
+        out.close()
+
+
+def read_image(path):
+    """Read an 8-bit single-channel image back as (H, W) uint8 (for checks and tests)."""
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise OSError(f"{path}: OpenImageIO cannot read it: {oiio.geterror()}")
+    try:
+        data = inp.read_image("uint8")
+    finally:
+        inp.close()
+    return np.asarray(data)[:, :, 0]
+
+
+def layer_image_names(mask_name):
+    """Return (tile TIFF, plate preview PNG) file names of a mask."""
+    return f"{mask_name}_tile.tif", f"{mask_name}_plate.png"
+
+
+def write_layer_images(out_dir, masks, tiles, pitch_nm, plate_half_nm, aperture_half_nm):
+    """Write the tile TIFF and the plate preview PNG of every mask; return the file names."""
+    out_dir = Path(out_dir)
+    names = []
+    for mk in masks:
+        tif, png = layer_image_names(mk.name)
+        write_image(out_dir / tif, tile_image(mk.bitmap))
+        preview = plate_preview(mk.bitmap, tiles, pitch_nm, plate_half_nm, aperture_half_nm)
+        write_image(out_dir / png, preview)
+        names += [tif, png]
+    return names

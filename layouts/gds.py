@@ -1,0 +1,174 @@
+"""The GDSII library of a phase plate: one tile cell, one AREF over the aperture.
+
+Units: user unit 1 um, database unit 1 nm (``unit=1e-6, precision=1e-9``).
+Every vertex is an integer number of nanometres and every pattern vertex lies
+on the mask pixel grid. Pixel (row r, col c) of the tile covers
+x in [c p, (c+1) p], y in [(N-1-r) p, (N-r) p] relative to the tile origin,
+so row 0 is the top edge, viewed onto the patterned surface. The tiled array
+is centred on the plate: its lower-left corner is ``-(tiles * N * p // 2)`` nm.
+"""
+
+import re
+from dataclasses import dataclass, field
+from datetime import datetime
+
+import gdstk
+import numpy as np
+
+from layouts.marks import marks_and_labels
+from layouts.rectangles import bitmap_rectangles, rectangle_corners_nm
+
+# Pinned so that the same design gives a byte-identical file.
+GDS_TIMESTAMP = datetime(2020, 1, 1)
+LIBRARY_NAME = "DOEFAB"
+GDS_UNIT = 1e-6
+GDS_PRECISION = 1e-9
+MAX_POLYGON_VERTICES = 8190
+
+
+@dataclass(frozen=True)
+class PlateLayout:
+    """What was drawn: cell names, placement and per-layer statistics."""
+
+    top_cell: str
+    tile_cell: str
+    pixel_pitch_nm: int
+    tile_pixels: int
+    tiles: tuple[int, int]
+    array_origin_nm: tuple[int, int]
+    polygon_counts: dict = field(default_factory=dict)  # mask name -> rectangles in the tile
+    mark_layers: tuple = ()
+
+
+def cell_name(design_name, suffix):
+    """Return a GDS-safe cell name (letters, digits, underscore; at most 32 characters)."""
+    base = re.sub(r"[^A-Za-z0-9_]", "_", str(design_name)) or "DOE"
+    return f"{base[: 32 - len(suffix) - 1]}_{suffix}"
+
+
+def array_origin_nm(tiles, tile_pixels, pitch_nm):
+    """Return the lower-left corner (nm, integers) of a tiles[0] x tiles[1] array centred on 0."""
+    nx, ny = tiles
+    size = int(tile_pixels) * int(pitch_nm)
+    return (-(nx * size // 2), -(ny * size // 2))
+
+
+def tile_polygons(masks, pitch_nm):
+    """Return the gdstk rectangles of every mask of one tile, and their counts.
+
+    Parameters
+    ----------
+    masks : list of fab.masks.Mask
+        Bitmaps (N, N) bool, row 0 at the top.
+    pitch_nm : int
+        Mask pixel pitch.
+
+    Returns
+    -------
+    polygons : list of gdstk.Polygon
+    counts : dict
+        Mask name -> number of rectangles.
+    """
+    polys, counts = [], {}
+    for mk in masks:
+        n = mk.bitmap.shape[0]
+        corners = rectangle_corners_nm(bitmap_rectangles(mk.bitmap), n, pitch_nm) / 1000.0
+        counts[mk.name] = len(corners)
+        polys += [
+            gdstk.rectangle((x0, y0), (x1, y1), layer=mk.gds_layer, datatype=mk.gds_datatype)
+            for x0, y0, x1, y1 in corners.tolist()
+        ]
+    return polys, counts
+
+
+def build_library(masks, pitch_nm, tiles, design_name, aperture_nm=None, marks=True, flat=False):
+    """Build the plate's GDS library.
+
+    Parameters
+    ----------
+    masks : list of fab.masks.Mask
+        All masks of the tile, each on its own GDS layer.
+    pitch_nm : int
+        Mask pixel pitch in nm (integer: the 1 nm grid).
+    tiles : (int, int)
+        Tiles along x (columns) and along y (rows).
+    design_name : str
+        Used for cell names and mask labels.
+    aperture_nm : int or None
+        Clear aperture (full width, nm); marks go outside it. Default: the tiled size.
+    marks : bool
+        Draw alignment marks, labels and the outline.
+    flat : bool
+        Copy every tile's polygons into the top cell instead of one AREF (for
+        benchmarks only: the file grows by the number of tiles).
+
+    Returns
+    -------
+    lib : gdstk.Library
+    info : PlateLayout
+    """
+    pitch_nm = int(pitch_nm)
+    nx, ny = (int(t) for t in tiles)
+    n = masks[0].bitmap.shape[0]
+    tile_um = n * pitch_nm / 1000.0
+    x0, y0 = array_origin_nm((nx, ny), n, pitch_nm)
+    lib = gdstk.Library(LIBRARY_NAME, unit=GDS_UNIT, precision=GDS_PRECISION)
+    top_name, tile_name = cell_name(design_name, "TOP"), cell_name(design_name, "TILE")
+    top = lib.new_cell(top_name)
+    polys, counts = tile_polygons(masks, pitch_nm)
+    if flat:
+        for i in range(nx):
+            for j in range(ny):
+                dx, dy = (x0 + i * n * pitch_nm) / 1000.0, (y0 + j * n * pitch_nm) / 1000.0
+                top.add(*(p.copy().translate(dx, dy) for p in polys))
+    else:
+        tile = lib.new_cell(tile_name)
+        tile.add(*polys)
+        top.add(
+            gdstk.Reference(
+                tile, origin=(x0 / 1000.0, y0 / 1000.0), columns=nx, rows=ny,
+                spacing=(tile_um, tile_um),
+            )
+        )  # fmt: skip
+    mark_layers = ()
+    if marks:
+        half = max(nx, ny) * n * pitch_nm // 2 + 1
+        if aperture_nm is not None:
+            half = max(half, int(aperture_nm) // 2)
+        mark_polys, mark_layers = marks_and_labels(masks, half, design_name)
+        top.add(*mark_polys)
+    info = PlateLayout(
+        top_cell=top_name,
+        tile_cell=tile_name,
+        pixel_pitch_nm=pitch_nm,
+        tile_pixels=n,
+        tiles=(nx, ny),
+        array_origin_nm=(x0, y0),
+        polygon_counts=counts,
+        mark_layers=tuple(mark_layers),
+    )
+    return lib, info
+
+
+def write_gds(lib, path):
+    """Write the library as GDSII with the pinned timestamp (byte-identical for the same design)."""
+    lib.write_gds(str(path), max_points=MAX_POLYGON_VERTICES, timestamp=GDS_TIMESTAMP)
+
+
+def write_oasis(gds_path, oas_path):
+    """Convert a GDS file to OASIS with KLayout (same geometry, smaller file)."""
+    import klayout.db as kdb
+
+    layout = kdb.Layout()
+    layout.read(str(gds_path))
+    opts = kdb.SaveLayoutOptions()
+    opts.format = "OASIS"
+    opts.oasis_write_cell_bounding_boxes = False
+    opts.oasis_write_std_properties = 0
+    layout.write(str(oas_path), opts)
+
+
+def max_vertices(lib):
+    """Return the largest vertex count of any polygon in the library."""
+    counts = [len(p.points) for c in lib.cells for p in c.polygons]
+    return int(np.max(counts)) if counts else 0

@@ -1,0 +1,168 @@
+"""Alignment marks, verniers, text labels and the plate outline (outside the aperture).
+
+Every later mask is aligned to the first (deepest) one. Per later mask j the
+first mask carries a cross and two vernier combs (pitch 10 um); mask j carries
+the box around the cross and the matching combs at pitch 9.8 um, so the bar
+pair that lines up reads the overlay error in 0.2 um steps (bar k coincides
+for an offset of k * 0.2 um, k = -10 .. 10). Marks sit on their own GDS layers
+(``MARK_LAYER_OFFSET + mask layer``) that the mask shop merges into that mask's
+plate; the outline of the plate and of the clear aperture sits on
+``OUTLINE_LAYER``, a drawing layer that is not etched.
+
+All geometry is built in integer nanometres and returned as gdstk polygons in
+micrometres (the library's user unit), so every vertex lies on the 1 nm grid.
+"""
+
+from dataclasses import dataclass
+
+import gdstk
+
+# One named place for the mark geometry (nm).
+MARK_LAYER_OFFSET = 100  # marks of the mask on GDS layer L go to layer L + 100
+OUTLINE_LAYER = 200  # plate edge and clear-aperture frame (documentation, not etched)
+PLATE_MARGIN_NM = 1_500_000  # plate edge = aperture edge + 1.5 mm on every side
+MARK_RING_NM = 750_000  # mark blocks centred 0.75 mm outside the aperture edge
+BLOCK_STEP_NM = 600_000  # spacing of the blocks of successive masks along x
+CROSS_ARM_NM = 100_000  # cross: 100 um long arms
+CROSS_WIDTH_NM = 10_000  # ... 10 um wide
+BOX_INNER_NM = 120_000  # box: 120 um inside (10 um clearance to the cross arms)
+BOX_OUTER_NM = 160_000  # ... 160 um outside
+VERNIER_PITCH_REF_NM = 10_000  # first mask's comb
+VERNIER_PITCH_NM = 9_800  # later mask's comb: 0.2 um reading resolution
+VERNIER_BARS = 10  # bars k = -10 .. 10 -> reads +-2 um
+VERNIER_BAR_WIDTH_NM = 4_000
+VERNIER_BAR_LENGTH_NM = 30_000
+VERNIER_CENTRE_EXTRA_NM = 10_000  # the k = 0 bars are longer, to find the scale's zero
+VERNIER_OFFSET_NM = 250_000  # comb pairs 250 um from the cross (below it and left of it)
+LABEL_HEIGHT_NM = 150_000
+LABEL_SPACING_NM = 250_000
+OUTLINE_WIDTH_NM = 20_000
+
+
+@dataclass(frozen=True)
+class MarkLayer:
+    """A non-pattern GDS layer and what it is for."""
+
+    gds_layer: int
+    gds_datatype: int
+    purpose: str
+    merge_with_mask: str | None
+
+
+def _um(v):
+    return v / 1000.0
+
+
+def _rect(x0, y0, x1, y1, layer):
+    """An axis-aligned rectangle from integer-nm corners."""
+    return gdstk.rectangle((_um(x0), _um(y0)), (_um(x1), _um(y1)), layer=layer, datatype=0)
+
+
+def _frame(cx, cy, inner, outer, layer):
+    """A square frame (inner/outer full widths) as four rectangles (no holes, no keyholes)."""
+    hi, ho = inner // 2, outer // 2
+    return [
+        _rect(cx - ho, cy + hi, cx + ho, cy + ho, layer),  # top
+        _rect(cx - ho, cy - ho, cx + ho, cy - hi, layer),  # bottom
+        _rect(cx - ho, cy - hi, cx - hi, cy + hi, layer),  # left
+        _rect(cx + hi, cy - hi, cx + ho, cy + hi, layer),  # right
+    ]
+
+
+def _cross(cx, cy, layer):
+    """A plus sign as one 12-vertex polygon."""
+    a, w = CROSS_ARM_NM // 2, CROSS_WIDTH_NM // 2
+    pts = [(a, w), (w, w), (w, a), (-w, a), (-w, w), (-a, w),
+           (-a, -w), (-w, -w), (-w, -a), (w, -a), (w, -w), (a, -w)]  # fmt: skip
+    return gdstk.Polygon([(_um(cx + x), _um(cy + y)) for x, y in pts], layer=layer, datatype=0)
+
+
+def _comb(cx, cy, pitch, direction, layer, axis):
+    """Vernier bars at cx + k*pitch (axis "x") or cy + k*pitch (axis "y").
+
+    Bars extend from the baseline (cx, cy) away from it: ``direction`` +1 or -1.
+    """
+    out = []
+    for k in range(-VERNIER_BARS, VERNIER_BARS + 1):
+        length = VERNIER_BAR_LENGTH_NM + (VERNIER_CENTRE_EXTRA_NM if k == 0 else 0)
+        half = VERNIER_BAR_WIDTH_NM // 2
+        along0, along1 = sorted((0, direction * length))
+        if axis == "x":
+            x = cx + k * pitch
+            out.append(_rect(x - half, cy + along0, x + half, cy + along1, layer))
+        else:
+            y = cy + k * pitch
+            out.append(_rect(cx + along0, y - half, cx + along1, y + half, layer))
+    return out
+
+
+def alignment_block(cx, cy, ref_layer, layer):
+    """Cross-in-box and x/y verniers aligning ``layer`` to ``ref_layer``.
+
+    Returns
+    -------
+    list of gdstk.Polygon
+        Cross and reference combs on ``ref_layer``; box and 9.8 um combs on ``layer``.
+    """
+    polys = [_cross(cx, cy, ref_layer), *_frame(cx, cy, BOX_INNER_NM, BOX_OUTER_NM, layer)]
+    # x vernier below the cross: reference bars point up, later-mask bars down.
+    vy = cy - VERNIER_OFFSET_NM
+    polys += _comb(cx, vy, VERNIER_PITCH_REF_NM, +1, ref_layer, "x")
+    polys += _comb(cx, vy, VERNIER_PITCH_NM, -1, layer, "x")
+    # y vernier left of the cross.
+    vx = cx - VERNIER_OFFSET_NM
+    polys += _comb(vx, cy, VERNIER_PITCH_REF_NM, +1, ref_layer, "y")
+    polys += _comb(vx, cy, VERNIER_PITCH_NM, -1, layer, "y")
+    return polys
+
+
+def mark_layer(gds_layer):
+    """Return the GDS layer of the marks and labels that go with mask layer ``gds_layer``."""
+    return MARK_LAYER_OFFSET + gds_layer
+
+
+def plate_half_size_nm(aperture_half_nm):
+    """Return half the plate size (nm): the aperture plus the mark margin."""
+    return aperture_half_nm + PLATE_MARGIN_NM
+
+
+def marks_and_labels(masks, aperture_half_nm, design_name):
+    """Build every non-pattern polygon of the plate.
+
+    Parameters
+    ----------
+    masks : list of fab.masks.Mask
+        In exposure order; the first is the alignment reference.
+    aperture_half_nm : int
+        Half the clear aperture (>= half the tiled area), nm; nothing is drawn inside.
+    design_name : str
+        Design id written on every mask.
+
+    Returns
+    -------
+    polygons : list of gdstk.Polygon
+    layers : list of MarkLayer
+        The layers used, with their purpose.
+    """
+    a = int(aperture_half_nm)
+    ref = masks[0]
+    ref_layer = mark_layer(ref.gds_layer)
+    polys, layers = [], []
+    ring = a + MARK_RING_NM
+    for j, mk in enumerate(masks):
+        layer = mark_layer(mk.gds_layer)
+        layers.append(MarkLayer(layer, 0, f"alignment marks and label of {mk.name}", mk.name))
+        if j > 0:
+            for sx, sy in ((-1, -1), (1, -1), (-1, 1), (1, 1)):
+                bx = sx * (ring - (j - 1) * BLOCK_STEP_NM)
+                polys += alignment_block(bx, sy * ring, ref_layer, layer)
+        text = f"{design_name} {mk.name} {mk.etch_depth * 1e9:.1f}nm"
+        y = -(a + 300_000 + (j + 1) * LABEL_SPACING_NM)
+        polys += gdstk.text(text, _um(LABEL_HEIGHT_NM), (_um(-2_000_000), _um(y)), layer=layer)
+    h = plate_half_size_nm(a)
+    polys += _frame(0, 0, 2 * h - 2 * OUTLINE_WIDTH_NM, 2 * h, OUTLINE_LAYER)
+    polys += _frame(0, 0, 2 * a, 2 * a + 2 * OUTLINE_WIDTH_NM, OUTLINE_LAYER)
+    layers.append(
+        MarkLayer(OUTLINE_LAYER, 0, "plate edge and clear-aperture frame (not etched)", None)
+    )
+    return polys, layers
