@@ -1,0 +1,262 @@
+"""GDS: golden geometry (KLayout XOR against an independent reference), orientation, AREF,
+grid, byte-identical files, marks outside the aperture, layer images read back with OIIO."""
+
+import klayout.db as kdb
+import numpy as np
+import pytest
+
+from fab.layer_images import plate_preview, read_image, tile_image, write_image
+from fab.masks import masks_from_levels
+from layouts import marks as mk_marks
+from layouts.gds import array_origin_nm, build_library, write_gds, write_oasis
+from layouts.readback import check_written_gds
+
+L = 8
+STEP = 179.4e-9
+PITCH = 4990  # nm
+
+
+def random_levels(n, seed=0):
+    return np.random.default_rng(seed).integers(0, L, (n, n)).astype(np.uint8)
+
+
+def write_plate(tmp_path, levels, tiles=(3, 2), name="plate.gds", **kw):
+    masks = masks_from_levels(levels, L, STEP)
+    lib, info = build_library(masks, PITCH, tiles, "test design", **kw)
+    path = tmp_path / name
+    write_gds(lib, path)
+    return path, masks, info
+
+
+def read_layout(path):
+    layout = kdb.Layout()
+    layout.read(str(path))
+    return layout
+
+
+def reference_region(bitmap, tiles, origin, p=PITCH):
+    """The tiled mask built pixel by pixel with KLayout boxes (independent of gdstk/rectangles)."""
+    n = bitmap.shape[0]
+    region = kdb.Region()
+    for r, c in np.argwhere(bitmap).tolist():
+        for i in range(tiles[0]):
+            for j in range(tiles[1]):
+                x = origin[0] + (i * n + c) * p
+                y = origin[1] + (j * n + n - 1 - r) * p  # row 0 = top edge of each tile
+                region.insert(kdb.Box(x, y, x + p, y + p))
+    return region.merged()
+
+
+def flat_layer(layout, cell_name, layer):
+    li = layout.find_layer(layer, 0)
+    assert li is not None, f"layer {layer} missing"
+    return kdb.Region(layout.cell(cell_name).begin_shapes_rec(li)).merged()
+
+
+def test_golden_xor_against_independent_reference(tmp_path):
+    levels = random_levels(12, seed=3)
+    tiles = (3, 2)  # unequal so that a swapped x/y shows up
+    path, masks, info = write_plate(tmp_path, levels, tiles)
+    layout = read_layout(path)
+    origin = array_origin_nm(tiles, 12, PITCH)
+    assert info.array_origin_nm == origin == (-(3 * 12 * PITCH) // 2, -(2 * 12 * PITCH) // 2)
+    for mk in masks:
+        got = flat_layer(layout, info.top_cell, mk.gds_layer)
+        want = reference_region(mk.bitmap, tiles, origin)
+        diff = got ^ want
+        if not diff.is_empty():  # leave a debug layout next to the test output
+            dbg = kdb.Layout()
+            dbg.dbu = 0.001
+            top = dbg.create_cell("DEBUG")
+            top.shapes(dbg.layer(1, 0)).insert(diff)
+            dbg.write(str(tmp_path / f"xor_{mk.name}.gds"))
+        assert diff.is_empty(), f"{mk.name}: XOR area {diff.area()} nm^2"
+
+
+def test_single_pixel_at_row0_col0_lands_top_left(tmp_path):
+    levels = np.full((10, 10), L - 1, np.uint8)
+    levels[0, 0] = L - 2  # etched by the shallow mask only
+    path, masks, info = write_plate(tmp_path, levels, tiles=(1, 1), marks=False)
+    layout = read_layout(path)
+    tile = layout.cell(info.tile_cell)
+    shapes = {
+        m.name: [s.bbox() for s in tile.shapes(layout.find_layer(m.gds_layer, 0)).each()]
+        for m in masks
+        if layout.find_layer(m.gds_layer, 0) is not None
+    }
+    assert shapes.get("M1_deep", []) == [] and shapes.get("M2_mid", []) == []
+    (box,) = shapes["M3_shallow"]
+    # x in [0, p], y in [(N-1) p, N p]: the top-left pixel, viewed onto the patterned surface.
+    assert (box.left, box.bottom, box.right, box.top) == (0, 9 * PITCH, PITCH, 10 * PITCH)
+
+
+def test_tile_is_one_cell_placed_by_one_aref(tmp_path):
+    levels = random_levels(9, seed=1)
+    path, masks, info = write_plate(tmp_path, levels, tiles=(4, 3))
+    layout = read_layout(path)
+    assert abs(layout.dbu - 0.001) < 1e-12
+    top = layout.cell(info.top_cell)
+    insts = list(top.each_inst())
+    assert len(insts) == 1
+    inst = insts[0]
+    assert layout.cell(inst.cell_index).name == info.tile_cell
+    assert inst.is_regular_array()
+    lattice = {(inst.na, inst.a.x, inst.a.y), (inst.nb, inst.b.x, inst.b.y)}
+    assert lattice == {(4, 9 * PITCH, 0), (3, 0, 9 * PITCH)}  # 4 columns along x, 3 rows along y
+    assert (inst.trans.disp.x, inst.trans.disp.y) == info.array_origin_nm
+    assert check_written_gds(path, info, masks) == []
+
+
+def test_pattern_vertices_on_pixel_grid_and_rectangles_only(tmp_path):
+    levels = random_levels(15, seed=2)
+    path, masks, info = write_plate(tmp_path, levels, tiles=(2, 2))
+    layout = read_layout(path)
+    tile = layout.cell(info.tile_cell)
+    for mk in masks:
+        li = layout.find_layer(mk.gds_layer, 0)
+        area = 0
+        for s in tile.shapes(li).each():
+            poly = s.polygon
+            pts = [(pt.x, pt.y) for pt in poly.each_point_hull()]
+            assert len(pts) == 4 and poly.is_box()
+            assert all(x % PITCH == 0 and y % PITCH == 0 for x, y in pts)
+            area += poly.area()
+        assert area == mk.bitmap.sum() * PITCH**2  # no overlaps, no gaps
+
+
+def test_gds_bytes_identical_for_a_fixed_design(tmp_path):
+    levels = random_levels(11, seed=4)
+    a, *_ = write_plate(tmp_path, levels, name="a.gds")
+    b, *_ = write_plate(tmp_path, levels, name="b.gds")
+    assert a.read_bytes() == b.read_bytes()
+    c, *_ = write_plate(tmp_path, random_levels(11, seed=5), name="c.gds")
+    assert a.read_bytes() != c.read_bytes()
+
+
+def test_library_units_are_um_and_nm():
+    levels = random_levels(5)
+    masks = masks_from_levels(levels, L, STEP)
+    built, _ = build_library(masks, PITCH, (1, 1), "u")
+    assert built.unit == 1e-6 and built.precision == 1e-9
+
+
+def test_marks_labels_outline_outside_the_aperture(tmp_path):
+    levels = random_levels(10, seed=6)
+    tiles = (4, 4)
+    aperture = 14_000_000  # a tiny tiled area inside the preset's aperture
+    path, masks, info = write_plate(tmp_path, levels, tiles, aperture_nm=aperture)
+    layout = read_layout(path)
+    top = layout.cell(info.top_cell)
+    x0, y0 = info.array_origin_nm
+    tiled = kdb.Region(kdb.Box(x0, y0, -x0, -y0))
+    a = aperture // 2
+    clear = kdb.Region(kdb.Box(-a, -a, a, a))
+    h = mk_marks.plate_half_size_nm(a)
+    plate = kdb.Box(-h, -h, h, h)
+    pattern_layers = {mk.gds_layer for mk in masks}
+    extra = [layout.get_info(li) for li in layout.layer_indexes()]
+    extra = [i.layer for i in extra if i.layer not in pattern_layers]
+    assert sorted(extra) == [101, 102, 103, mk_marks.OUTLINE_LAYER]
+    for layer in extra:
+        region = flat_layer(layout, info.top_cell, layer)
+        assert not region.is_empty()
+        assert (region & clear).is_empty(), f"layer {layer} draws inside the aperture"
+        assert (plate & region.bbox()) == region.bbox(), f"layer {layer} draws outside the plate"
+    # The pattern layers hold nothing but the tiled area.
+    for mk in masks:
+        box = flat_layer(layout, info.top_cell, mk.gds_layer).bbox()
+        assert (box & tiled.bbox()) == box
+    assert top.bbox().width() == 2 * mk_marks.plate_half_size_nm(aperture // 2)
+
+
+def test_vernier_pitches_read_two_tenths_of_a_micron():
+    polys = mk_marks.alignment_block(0, 0, ref_layer=1, layer=2)
+
+    def bar_centres(layer):
+        xs = []
+        for p in polys:
+            (x0, _), (x1, y1) = p.bounding_box()
+            if p.layer == layer and y1 < -100 and abs((x1 - x0) - 4.0) < 1e-9:
+                xs.append(round((x0 + x1) / 2, 6))
+        return np.array(sorted(xs))
+
+    ref, moving = bar_centres(1), bar_centres(2)
+    assert len(ref) == len(moving) == 2 * mk_marks.VERNIER_BARS + 1
+    assert np.allclose(np.diff(ref), 10.0) and np.allclose(np.diff(moving), 9.8)
+    # an overlay error of k * 0.2 um lines up bar k of the two scales
+    k = 3
+    shift = k * 0.2
+    i = np.argmin(np.abs(moving + shift - ref[:, None]).min(axis=0))
+    assert np.isclose(moving[i] + shift, ref[i]) and i - mk_marks.VERNIER_BARS == k
+    # cross on the reference mask, box on the later one
+    assert any(p.layer == 1 and len(p.points) == 12 for p in polys)
+
+
+def test_oasis_reads_back_as_the_same_masks(tmp_path):
+    levels = random_levels(13, seed=7)
+    path, masks, info = write_plate(tmp_path, levels, tiles=(2, 3))
+    oas = tmp_path / "plate.oas"
+    write_oasis(path, oas)
+    assert check_written_gds(oas, info, masks) == []
+
+
+def test_readback_detects_a_mirrored_layer(tmp_path):
+    levels = random_levels(8, seed=8)
+    masks = masks_from_levels(levels, L, STEP)
+    lib, info = build_library(masks, PITCH, (2, 2), "t")
+    path = tmp_path / "ok.gds"
+    write_gds(lib, path)
+    flipped = [masks[0], masks[1], masks_from_levels(levels[::-1], L, STEP)[2]]
+    problems = check_written_gds(path, info, flipped)
+    assert len(problems) == 1 and "M3_shallow" in problems[0]
+
+
+def test_tile_image_round_trips_through_openimageio(tmp_path):
+    bitmap = np.zeros((7, 9), bool)
+    bitmap[0, 0] = True  # top-left pixel etched
+    bitmap[6, 3] = True
+    path = tmp_path / "m.tif"
+    write_image(path, tile_image(bitmap))
+    back = read_image(path)
+    assert back.shape == (7, 9) and back.dtype == np.uint8
+    assert back[0, 0] == 255 and back[6, 3] == 255 and back.sum() == 2 * 255
+    first = path.read_bytes()
+    write_image(path, tile_image(bitmap))
+    assert path.read_bytes() == first  # pinned DateTime
+
+
+def test_plate_preview_places_the_tiles_and_the_outline(tmp_path):
+    bitmap = np.ones((10, 10), bool)
+    img = plate_preview(
+        bitmap, (4, 4), PITCH, plate_half_nm=150_000, aperture_half_nm=110_000, max_px=60
+    )
+    assert img.shape[2] == 1
+    img = img[:, :, 0]
+    size = img.shape[0]
+    assert img.shape == (size, size)
+    centre = img[size // 2 - 5 : size // 2 + 5, size // 2 - 5 : size // 2 + 5]
+    assert np.all(centre == 255)  # fully etched tiles
+    assert img[0, size // 2] == 128  # plate edge drawn
+    write_image(tmp_path / "p.png", img[:, :, None])
+    assert np.array_equal(read_image(tmp_path / "p.png"), img)
+
+
+@pytest.mark.parametrize("tiles", [(1, 1), (2, 5)])
+def test_full_plate_raster_matches_tiled_levels(tmp_path, tiles):
+    """Tiny KLayout read-back: flatten, sample every pixel centre, rebuild levels."""
+    n = 7
+    levels = random_levels(n, seed=9)
+    path, masks, info = write_plate(tmp_path, levels, tiles)
+    layout = read_layout(path)
+    x0, y0 = info.array_origin_nm
+    nx, ny = tiles[0] * n, tiles[1] * n
+    depth = np.zeros((ny, nx))
+    for mk in masks:
+        region = flat_layer(layout, info.top_cell, mk.gds_layer)
+        probe = region.rasterize(
+            kdb.Point(x0 + PITCH // 2 - 1, y0 + PITCH // 2 - 1), kdb.Vector(PITCH, PITCH),
+            kdb.Vector(2, 2), nx, ny,
+        )  # fmt: skip
+        depth += (np.array(probe) > 0) * mk.steps
+    rebuilt = (L - 1) - np.flipud(depth).astype(int)
+    assert np.array_equal(rebuilt, np.tile(levels, (tiles[1], tiles[0])))
