@@ -1,0 +1,287 @@
+"""``doefab learn``, ``doefab evaluate`` and ``doefab sr`` (torch is imported inside handlers)."""
+
+import json
+import platform
+import sys
+from pathlib import Path
+
+from doe.errors import InputError
+
+PSF_CHOICES = ("learned", "delta", "box", "gaussian")
+OUTPUTS = ("psf.npy", "model.pt", "learn.json")
+
+
+def register(sub):
+    p = sub.add_parser("learn", help="train a PSF and a super-resolution network end to end")
+    p.add_argument("--out", required=True, help="output folder (psf.npy, model.pt, learn.json)")
+    p.add_argument(
+        "--images",
+        help="folder of training images (PNG/JPEG/TIFF, grayscale); "
+        "default: embedded natural + dead-leaves images",
+    )
+    p.add_argument(
+        "--psf",
+        default="learned",
+        help="learned (default), delta (low fill factor), box (full fill factor), "
+        "gaussian, or a psf.npy file (fixed)",
+    )
+    budget = p.add_mutually_exclusive_group()
+    budget.add_argument(
+        "--minutes", type=float, help="wall-clock budget (default: the design's [learning] minutes)"
+    )
+    budget.add_argument("--steps", type=int, help="number of steps (deterministic, resumable)")
+    p.add_argument("--seed", type=int, help="random seed (default: the design's)")
+    p.add_argument("--config", help="design TOML file or preset name")
+    p.add_argument("--init", metavar="MODEL_DIR", help="start from a trained model (fine-tune)")
+    p.add_argument("--freeze-psf", action="store_true", help="keep the PSF fixed")
+    p.add_argument("--features", type=int, help="network feature channels (default 32)")
+    p.add_argument("--stages", type=int, help="residual blocks / projection stages (default 6)")
+    p.add_argument("--arch", choices=("resnet", "dbpn"), help="network design (default resnet)")
+    p.add_argument("--batch", type=int, help="patches per step (default 16)")
+    p.add_argument(
+        "--patch", type=int, help="patch size in sub-pixels, a multiple of the factor (default 64)"
+    )
+    p.add_argument("--lr", type=float, help="network learning rate (default 1e-3)")
+    p.add_argument("--psf-lr", type=float, help="PSF logit learning rate (default 0.05)")
+    p.add_argument(
+        "--photons",
+        type=float,
+        help="counts of a white pixel (default: the design's photons_per_pixel); 0 = no noise",
+    )
+    p.add_argument("--dark-counts", type=float, default=0.0, help="dark counts per pixel")
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="CPU threads (default 1: robust on a "
+        "shared CPU; run several trainings side by side instead)",
+    )
+    p.add_argument("--restart", action="store_true", help="ignore an existing checkpoint")
+    p.add_argument("--force", action="store_true", help="overwrite existing outputs")
+    p.set_defaults(func=_learn)
+
+    p = sub.add_parser("evaluate", help="PSNR/SSIM of a learned model on an image folder")
+    p.add_argument("model_dir", help="folder written by `doefab learn`")
+    p.add_argument("--images", required=True, help="folder of grayscale test images")
+    p.add_argument("--psf-file", help="evaluate with this PSF (e.g. the realised plate's)")
+    p.add_argument("--seed", type=int, default=None, help="noise seed (default fixed)")
+    p.add_argument("--out", help="write the results to this JSON file")
+    p.add_argument("--force", action="store_true", help="overwrite the JSON file")
+    p.set_defaults(func=_evaluate)
+
+    p = sub.add_parser("sr", help="super-resolve raw SPAD frames (npy or images)")
+    p.add_argument("model_dir", help="folder written by `doefab learn`")
+    p.add_argument("raw", nargs="+", help="raw frames: .npy (H, W) or (T, H, W), or image files")
+    p.add_argument("--out", required=True, help="output folder (<name>_sr.npy, <name>_sr.png)")
+    p.add_argument("--photons", type=float, help="counts of white (default: the model's)")
+    p.add_argument("--force", action="store_true", help="overwrite existing outputs")
+    p.set_defaults(func=_sr)
+
+
+def _learn(args):
+    import numpy as np
+    import torch
+
+    from doe.design import load_design
+    from doe.files import read_psf, save_npy, staged_output, write_json
+    from psf_learn import images as imgio
+    from psf_learn import store
+    from psf_learn.psf import baseline_psf, gaussian_psf
+    from psf_learn.sensor import sensor_from_design
+    from psf_learn.train import TrainConfig, augment_scales, train, with_overrides
+
+    torch.set_num_threads(max(1, args.threads))
+    design = load_design(args.config)
+    k = design.kernel_size
+    for flag, value in (
+        ("--steps", args.steps),
+        ("--minutes", args.minutes),
+        ("--batch", args.batch),
+        ("--patch", args.patch),
+        ("--features", args.features),
+        ("--stages", args.stages),
+        ("--threads", args.threads),
+    ):
+        if value is not None and value <= 0:
+            raise InputError(flag, f"must be > 0, got {value}")
+    if args.photons is not None and args.photons < 0:
+        raise InputError("--photons", f"must be >= 0, got {args.photons}")
+    sensor = sensor_from_design(design, photons=args.photons, dark_counts=args.dark_counts)
+    config = with_overrides(
+        TrainConfig(minutes=design.learning.minutes, seed=design.learning.seed),
+        steps=args.steps,
+        minutes=None if args.steps else args.minutes,
+        seed=args.seed,
+        batch=args.batch,
+        patch=args.patch,
+        lr=args.lr,
+        psf_lr=args.psf_lr,
+        features=args.features,
+        stages=args.stages,
+        arch=args.arch,
+    )
+    if args.steps:
+        config = with_overrides(config, minutes=0.0)
+    if config.patch % sensor.factor:
+        raise InputError("--patch", f"must be a multiple of {sensor.factor}, got {config.patch}")
+
+    init_state = None
+    init_psf = None
+    if args.init:
+        from psf_learn.sr import load_model
+
+        base = load_model(args.init)
+        init_psf = base.psf
+        init_state = base.net.state_dict()
+        record, _, _ = store.load_model_dir(args.init)
+        net = record["network"]
+        config = with_overrides(
+            config, features=net["features"], stages=net["stages"], arch=net["arch"]
+        )
+    spec = args.psf
+    if spec == "learned":
+        psf0 = init_psf if init_psf is not None else gaussian_psf(k)
+        learn_psf = not args.freeze_psf
+    elif spec in PSF_CHOICES:
+        psf0, learn_psf = baseline_psf(spec, k, sensor.factor, sensor.sample_cell), False
+    else:
+        psf0, learn_psf = read_psf(spec), False
+    config = with_overrides(config, learn_psf=learn_psf)
+
+    margin = psf0.shape[0] - 1
+    if args.images:
+        names, images = imgio.read_folder(args.images, min_size=config.patch + margin)
+        source = str(args.images)
+    else:
+        names, images = imgio.default_images(seed=0)
+        source = "embedded (scikit-image bundled photos + dead leaves)"
+    images = augment_scales(images, config.patch + margin)
+
+    out = Path(args.out)
+    from doe.files import _refuse_overwrite
+
+    if not args.force:
+        _refuse_overwrite(out, OUTPUTS)
+    checkpoint = out / "checkpoint.pt"
+    if args.restart and checkpoint.exists():
+        checkpoint.unlink()
+    result = train(config, images, sensor, psf0, init_state=init_state, checkpoint=checkpoint)
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        rank = torch.distributed.get_rank()
+        torch.distributed.barrier()
+        torch.distributed.destroy_process_group()
+        if rank != 0:
+            return 0
+    psf = result.camera.psf.numpy()
+    info = {
+        "config": {
+            **config.identity(),
+            "psf": spec,
+            "kernel_size": int(psf.shape[0]),
+            "photons_per_pixel": sensor.photons,
+            "dark_counts": sensor.dark_counts,
+            "sample_cell": list(sensor.sample_cell),
+            "design": design.name,
+            "init": str(args.init) if args.init else None,
+        },
+        "images": {"source": source, "count": len(names)},
+        "steps": result.steps,
+        "seconds": round(result.seconds, 3),
+        "final_loss": result.loss,
+        "final_psnr_db": result.psnr,
+        "seed": config.seed,
+        "versions": {
+            "torch": torch.__version__,
+            "numpy": np.__version__,
+            "python": platform.python_version(),
+            "doefab": _version(),
+        },
+    }
+    with staged_output(out, force=args.force, names=OUTPUTS) as stage:
+        save_npy(stage / "psf.npy", psf)
+        record = store.model_record(result.camera.net, result.camera.net_config, sensor)
+        store.save_model(stage / "model.pt", record)
+        write_json(stage / "learn.json", info)
+    checkpoint.unlink(missing_ok=True)
+    print(
+        f"learned {spec} PSF model: {result.steps} steps in {result.seconds:.0f} s, "
+        f"training PSNR {result.psnr:.2f} dB -> {out}"
+    )
+    return 0
+
+
+def _version():
+    try:
+        from importlib.metadata import version
+
+        return version("doefab")
+    except Exception:
+        return "unknown"
+
+
+def _evaluate(args):
+    import torch
+
+    from doe.files import read_psf, write_json
+    from psf_learn import images as imgio
+    from psf_learn.evaluate import EVAL_SEED, evaluate
+    from psf_learn.sr import load_model
+
+    torch.set_num_threads(1)
+    out = Path(args.out) if args.out else None
+    if out is not None and out.exists() and not args.force:
+        raise InputError(out, "exists; use --force or another --out")
+    model = load_model(args.model_dir)
+    psf = read_psf(args.psf_file) if args.psf_file else None
+    names, images = imgio.read_folder(args.images, min_size=4 * model.sensor.factor)
+    res = evaluate(model, names, images, psf, EVAL_SEED if args.seed is None else args.seed)
+    for name, v in res["images"].items():
+        print(f"{name:32s} PSNR {v['psnr']:6.2f} dB  SSIM {v['ssim']:.4f}")
+    print(f"{'mean':32s} PSNR {res['psnr']:6.2f} dB  SSIM {res['ssim']:.4f}")
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        write_json(
+            out,
+            {
+                **res,
+                "model": str(args.model_dir),
+                "images_folder": args.images,
+                "psf_file": args.psf_file,
+            },
+        )
+    return 0
+
+
+def _sr(args):
+    import torch
+
+    from doe.files import save_npy, staged_output
+    from psf_learn import images as imgio
+    from psf_learn.sr import load_model, super_resolve
+
+    torch.set_num_threads(1)
+    model = load_model(args.model_dir)
+    stems = [Path(r).stem for r in args.raw]
+    if len(set(stems)) != len(stems):
+        raise InputError(args.raw[0], "two inputs share a file name; outputs would collide")
+    frames = [imgio.read_raw(r) for r in args.raw]
+    names = [f"{s}_sr{ext}" for s in stems for ext in (".npy", ".png")]
+    with staged_output(args.out, force=args.force, names=names) as stage:
+        for stem, raw in zip(stems, frames, strict=True):
+            hr = super_resolve(model, raw, photons=args.photons)
+            save_npy(stage / f"{stem}_sr.npy", hr)
+            _write_preview(stage / f"{stem}_sr.png", hr if hr.ndim == 2 else hr.mean(axis=0))
+            print(f"{stem}: {raw.shape} -> {hr.shape}", file=sys.stderr)
+    print(json.dumps({"outputs": names}))
+    return 0
+
+
+def _write_preview(path, image):
+    """Write an 8-bit PNG scaled to the image's 99.9th percentile (a viewing aid)."""
+    import numpy as np
+    from skimage import io
+
+    top = float(np.percentile(image, 99.9)) or 1.0
+    io.imsave(
+        path, (np.clip(image / top, 0, 1) * 255).round().astype(np.uint8), check_contrast=False
+    )

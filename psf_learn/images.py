@@ -1,0 +1,180 @@
+"""Image input for learning: folders of grayscale images, the embedded default set, raw frames.
+
+The only module of ``psf_learn`` that opens image files. Images come back as
+float32 (H, W) arrays scaled to [0, 1] (8-bit / 255, 16-bit / 65535); colour
+images are converted to luminance (ITU-R BT.601 weights, as in SR benchmarks).
+"""
+
+from pathlib import Path
+
+import numpy as np
+
+from doe.errors import InputError
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
+# natural photographs shipped inside scikit-image (no download on demand)
+_SKIMAGE_BUNDLED = (
+    "camera",
+    "astronaut",
+    "coffee",
+    "chelsea",
+    "rocket",
+    "motorcycle_left",
+    "brick",
+    "grass",
+    "gravel",
+    "coins",
+    "moon",
+)
+
+
+def to_gray(image, source):
+    """Return a float32 (H, W) luminance image in [0, 1] from a uint8/uint16/float array."""
+    a = np.asarray(image)
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[..., 0]
+    if a.ndim == 3 and a.shape[2] in (2, 4):  # drop alpha
+        a = a[..., : a.shape[2] - 1]
+    if a.dtype == np.uint8:
+        a = a.astype(np.float32) / 255.0
+    elif a.dtype == np.uint16:
+        a = a.astype(np.float32) / 65535.0
+    elif a.dtype.kind == "f":
+        a = a.astype(np.float32)
+    elif a.dtype == bool:
+        a = a.astype(np.float32)
+    else:
+        raise InputError(source, f"unsupported pixel type {a.dtype}")
+    if a.ndim == 3 and a.shape[2] == 3:
+        a = a @ np.array([0.299, 0.587, 0.114], dtype=np.float32)
+    elif a.ndim == 3 and a.shape[2] == 1:
+        a = a[..., 0]
+    if a.ndim != 2:
+        raise InputError(source, f"expected a grayscale or RGB image, got shape {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise InputError(source, "image contains NaN or infinite values")
+    return a
+
+
+def read_image(path):
+    """Read one image file as float32 (H, W) in [0, 1] (raises InputError if unreadable)."""
+    from skimage import io
+
+    path = Path(path)
+    try:
+        a = io.imread(path)
+    except FileNotFoundError:
+        raise InputError(path, "no such file") from None
+    except Exception as e:  # the decoders raise many types on corrupt data
+        raise InputError(path, f"not a readable image ({type(e).__name__}: {e})") from None
+    return to_gray(a, path)
+
+
+def image_files(folder):
+    """Return the sorted image files (PNG, JPEG, TIFF) of a folder; InputError if none."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(folder, "not a folder of images")
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if not files:
+        raise InputError(folder, f"no images ({', '.join(IMAGE_SUFFIXES)}) in this folder")
+    return files
+
+
+def read_folder(folder, min_size=0):
+    """Return (names, images) of every image in a folder, float32 (H, W) in [0, 1].
+
+    Images smaller than ``min_size`` on either side are refused with InputError.
+    """
+    names, images = [], []
+    for path in image_files(folder):
+        img = read_image(path)
+        if min(img.shape) < min_size:
+            raise InputError(path, f"image {img.shape} is smaller than {min_size} pixels")
+        names.append(path.name)
+        images.append(img)
+    return names, images
+
+
+def dead_leaves(size, rng, n_disks=3000, r_min=1.5, r_max=None):
+    """Return a float32 (size, size) dead-leaves image: occluding discs, power-law radii.
+
+    Radii follow p(r) ~ r^-3 between ``r_min`` and ``r_max`` (scale invariant,
+    like natural images); each disc gets a uniform grey and a faint gradient.
+    """
+    r_max = r_max or size / 4
+    img = np.full((size, size), rng.uniform(), dtype=np.float32)
+    u = rng.uniform(size=n_disks)
+    # inverse CDF of p(r) ~ r^-3 on [r_min, r_max]
+    radii = 1.0 / np.sqrt(1 / r_min**2 - u * (1 / r_min**2 - 1 / r_max**2))
+    for r in np.sort(radii)[::-1]:  # large discs first, small ones on top
+        cy, cx = rng.uniform(-r, size + r, size=2)
+        y0, y1 = max(int(cy - r), 0), min(int(cy + r) + 2, size)
+        x0, x1 = max(int(cx - r), 0), min(int(cx + r) + 2, size)
+        if y0 >= y1 or x0 >= x1:
+            continue
+        yy, xx = np.mgrid[y0:y1, x0:x1]
+        inside = (yy - cy) ** 2 + (xx - cx) ** 2 <= r * r
+        grey = rng.uniform() + rng.normal(0, 0.002) * ((yy - cy) + (xx - cx))
+        img[y0:y1, x0:x1][inside] = np.clip(grey, 0, 1)[inside]
+    return img
+
+
+def default_images(seed=0, n_dead_leaves=8, size=256):
+    """Return (names, images): natural photos bundled with scikit-image plus dead leaves.
+
+    Needs no download: only images whose files ship inside scikit-image are used.
+    """
+    import skimage
+
+    folder = Path(skimage.__file__).parent / "data"
+    names, images = [], []
+    for name in _SKIMAGE_BUNDLED:
+        files = sorted(folder.glob(f"{name}.*"))
+        if not files:
+            continue  # not bundled with this scikit-image version; never download
+        names.append(f"skimage:{name}")
+        images.append(read_image(files[0]))
+    rng = np.random.default_rng(seed)
+    for i in range(n_dead_leaves):
+        names.append(f"dead_leaves:{i}")
+        images.append(dead_leaves(size, rng))
+    return names, images
+
+
+def read_raw(path):
+    """Read raw SPAD data: .npy (H, W) or (T, H, W), or an image file (8/16 bit or float).
+
+    Returns float64 counts: npy values as stored, integer images as their integer
+    values (a 16-bit frame keeps its counts, not a [0, 1] scaling).
+    """
+    path = Path(path)
+    if path.suffix.lower() == ".npy":
+        from doe.files import load_npy
+
+        a = load_npy(path)
+        if a.dtype.kind not in "fiu" or a.ndim not in (2, 3):
+            raise InputError(
+                path, f"raw frames must be numeric (H, W) or (T, H, W), got {a.dtype} {a.shape}"
+            )
+    else:
+        from skimage import io
+
+        try:
+            a = io.imread(path)
+        except FileNotFoundError:
+            raise InputError(path, "no such file") from None
+        except Exception as e:
+            raise InputError(path, f"not a readable image ({type(e).__name__}: {e})") from None
+        if a.ndim == 3 and a.shape[2] in (3, 4):
+            a = a[..., :3].astype(np.float64) @ np.array([0.299, 0.587, 0.114])
+        if a.ndim == 3 and a.shape[2] == 1:
+            a = a[..., 0]
+        if a.ndim != 2:
+            raise InputError(path, f"expected a single-channel frame, got shape {a.shape}")
+    a = np.asarray(a, dtype=np.float64)
+    if not np.all(np.isfinite(a)):
+        raise InputError(path, "raw frames contain NaN or infinite values")
+    if a.shape[-1] < 2 or a.shape[-2] < 2:
+        raise InputError(path, f"frames of {a.shape} are too small")
+    return a

@@ -1,0 +1,99 @@
+"""PSF parametrisations: a learnable softmax PSF and the fixed baselines.
+
+Every PSF is a (K, K) array, non-negative and summing to one, element
+[K//2, K//2] on the optical axis (CONVENTIONS.md). Baselines:
+
+- ``delta``: all light on the axis; with the point-sampling SPAD this is the
+  plain low fill-factor sensor.
+- ``box``: a 4 x 4 box placed so that, sampled at the sensor's point-sample
+  cell, it gives the mean of the pixel's own 4 x 4 block (a full fill-factor
+  sensor). For the default sample cell (2, 2) the box covers axis offsets
+  -1 .. +2 (rows and columns).
+- ``gaussian``: sigma 0.459 sub-pixel, centred on the axis (the best fixed PSF
+  of Sun et al. 2020).
+"""
+
+import numpy as np
+import torch
+from torch import nn
+
+GAUSSIAN_SIGMA = 0.459  # sub-pixels, Sun et al. 2020
+
+
+def delta_psf(k):
+    """Return the (k, k) float64 PSF with all light on the axis."""
+    psf = np.zeros((k, k))
+    psf[k // 2, k // 2] = 1.0
+    return psf
+
+
+def box_psf(k, factor=4, sample_cell=(2, 2)):
+    """Return the (k, k) float64 box that turns a point sample into the pixel's block mean.
+
+    A pixel sampled at cell ``s`` of its block sees blurred[f m + s] =
+    sum_o psf[K//2 + o] scene[f m + s - o]; the block f m .. f m + f - 1 needs the
+    offsets o = s - f + 1 .. s.
+    """
+    psf = np.zeros((k, k))
+    lo = [k // 2 + s - factor + 1 for s in sample_cell]
+    if min(lo) < 0 or max(lo) + factor > k:
+        raise ValueError(
+            f"a {factor} x {factor} box for sample cell {sample_cell} needs K >= "
+            f"{2 * factor - 1}, got {k}"
+        )
+    psf[lo[0] : lo[0] + factor, lo[1] : lo[1] + factor] = 1.0 / factor**2
+    return psf
+
+
+def gaussian_psf(k, sigma=GAUSSIAN_SIGMA):
+    """Return the (k, k) float64 Gaussian PSF of ``sigma`` sub-pixels, centred on the axis."""
+    r = np.arange(k) - k // 2
+    g = np.exp(-(r[:, None] ** 2 + r[None, :] ** 2) / (2 * sigma**2))
+    return g / g.sum()
+
+
+def baseline_psf(name, k, factor=4, sample_cell=(2, 2)):
+    """Return a named fixed PSF: ``delta``, ``box`` or ``gaussian``."""
+    if name == "delta":
+        return delta_psf(k)
+    if name == "box":
+        return box_psf(k, factor, sample_cell)
+    if name == "gaussian":
+        return gaussian_psf(k)
+    raise ValueError(f"unknown baseline PSF {name!r}")
+
+
+class LearnedPSF(nn.Module):
+    """A learnable PSF: softmax over K x K logits (>= 0 and sum 1 by construction).
+
+    Parameters
+    ----------
+    init : (K, K) array
+        Initial PSF (>= 0, sum 1); its log (floored at 1e-4 of the peak, so no
+        logit starts where the softmax gradient vanishes) gives the logits.
+    trainable : bool
+        False freezes the PSF (a fixed baseline or a calibrated plate).
+    """
+
+    def __init__(self, init, trainable=True):
+        super().__init__()
+        init = np.asarray(init, dtype=np.float64)
+        floor = 1e-4 * init.max() if trainable else 0.0
+        with np.errstate(divide="ignore"):
+            logits = np.log(np.maximum(init, floor))
+        # -inf logits (exact zeros of a frozen PSF) become a large negative number
+        logits = np.where(np.isfinite(logits), logits, -1e4)
+        self.logits = nn.Parameter(
+            torch.tensor(logits, dtype=torch.float32), requires_grad=trainable
+        )
+
+    def forward(self):
+        """Return the (K, K) PSF tensor."""
+        k = self.logits.shape[-1]
+        return torch.softmax(self.logits.reshape(-1), dim=0).reshape(k, k)
+
+    def numpy(self):
+        """Return the PSF as float64 (K, K) summing to one exactly (the psf.npy contract)."""
+        logits = self.logits.detach().double().cpu().numpy()
+        p = np.exp(logits - logits.max())
+        return p / p.sum()

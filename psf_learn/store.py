@@ -1,0 +1,75 @@
+"""Files of a learned model: checkpoints, ``model.pt``, ``psf.npy``, ``learn.json``.
+
+The only module of ``psf_learn`` that writes or reads torch files. Everything is
+stored as tensors and plain Python types, so it loads with
+``torch.load(..., weights_only=True)`` (no pickled code).
+"""
+
+import os
+from pathlib import Path
+
+import torch
+
+from doe.errors import InputError
+from doe.files import read_json, read_psf
+
+MODEL_FORMAT = "doefab-sr-1"
+
+
+def save_checkpoint(path, state):
+    """Write a checkpoint dict atomically (a kill leaves the old or the new one)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path):
+    """Read a checkpoint dict written by :func:`save_checkpoint`."""
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:
+        raise InputError(path, f"not a readable checkpoint ({type(e).__name__}: {e})") from None
+
+
+def model_record(net, net_config, sensor):
+    """Return the plain dict stored as ``model.pt``: the network's weights and how to rebuild it."""
+    return {
+        "format": MODEL_FORMAT,
+        "network": dict(net_config),
+        "sensor": {
+            "weights": [list(r) for r in sensor.weights],
+            "photons": sensor.photons,
+            "dark_counts": sensor.dark_counts,
+        },
+        "state_dict": {k: v.detach().cpu().clone() for k, v in net.state_dict().items()},
+    }
+
+
+def save_model(path, record):
+    """Write ``model.pt`` (a :func:`model_record`)."""
+    torch.save(record, path)
+
+
+def load_model_dir(model_dir):
+    """Read a model folder; return (record, psf, learn) with the model.pt dict and psf.npy.
+
+    ``learn`` is the parsed ``learn.json`` or None when absent.
+    """
+    model_dir = Path(model_dir)
+    if not model_dir.is_dir():
+        raise InputError(model_dir, "not a model folder (expected model.pt and psf.npy)")
+    path = model_dir / "model.pt"
+    if not path.exists():
+        raise InputError(path, "missing: train a model with `doefab learn --out DIR` first")
+    try:
+        record = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:
+        raise InputError(path, f"not a readable model ({type(e).__name__}: {e})") from None
+    if not isinstance(record, dict) or record.get("format") != MODEL_FORMAT:
+        raise InputError(path, f"not a {MODEL_FORMAT} model file")
+    psf = read_psf(model_dir / "psf.npy")
+    learn_path = model_dir / "learn.json"
+    learn = read_json(learn_path) if learn_path.exists() else None
+    return record, psf, learn

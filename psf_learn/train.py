@@ -1,0 +1,297 @@
+"""End-to-end training of the PSF and the super-resolution network.
+
+Determinism and resume. All randomness of a step is derived from
+(seed, step, global sample index): the patch (image, position, flip) and the
+photon noise of every sample get their own numpy generator, and the network is
+initialised from ``torch.manual_seed(seed)``. A checkpoint therefore needs no
+global RNG state: it stores the weights, the PSF, the Adam state, the step and
+the elapsed time, and a resumed run repeats exactly what an uninterrupted one
+would have done (bit for bit on the same machine, for a ``steps`` budget). The
+same keys make a DistributedDataParallel run over R processes (each taking
+batch / R samples of the global batch) follow the single-process run.
+
+Multi-GPU / multi-node: launch the same command with ``torchrun``; the process
+group uses NCCL on CUDA and gloo on CPU.
+"""
+
+import math
+import os
+import sys
+import time
+from dataclasses import asdict, dataclass, replace
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from psf_learn.network import SRNet
+from psf_learn.psf import LearnedPSF
+from psf_learn.sensor import simulate_capture
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Hyper-parameters of a training run (plain values, stored in checkpoints and learn.json).
+
+    ``steps`` set: a fixed number of steps (deterministic); else ``minutes`` of wall time.
+    """
+
+    steps: int | None = None
+    minutes: float | None = 3.0
+    seed: int = 0
+    batch: int = 16
+    patch: int = 64
+    lr: float = 1e-3
+    psf_lr: float = 0.05
+    features: int = 32
+    stages: int = 6
+    arch: str = "resnet"
+    learn_psf: bool = True
+    checkpoint_seconds: float = 60.0
+
+    def identity(self):
+        """Return the fields that must match for a checkpoint to be resumed."""
+        d = asdict(self)
+        d.pop("checkpoint_seconds")
+        return d
+
+
+class CodedCamera(nn.Module):
+    """Scene -> PSF -> SPAD capture -> super-resolved image, differentiable end to end."""
+
+    def __init__(self, psf_init, sensor, config):
+        super().__init__()
+        self.sensor = sensor
+        self.psf = LearnedPSF(psf_init, trainable=config.learn_psf)
+        self.net = SRNet(sensor.factor, config.features, config.stages, config.arch)
+        self.net_config = {
+            "factor": sensor.factor,
+            "features": config.features,
+            "stages": config.stages,
+            "arch": config.arch,
+        }
+
+    def forward(self, scenes, seeds):
+        """Map (B, 1, P + K - 1, P + K - 1) scenes to (B, 1, P, P) estimates of their centres."""
+        frames = simulate_capture(scenes, self.psf(), self.sensor, padding="valid", seeds=seeds)
+        return self.net(frames)
+
+
+def augment_scales(images, min_size):
+    """Return the images plus 2x-downscaled copies (area mean) still at least ``min_size``."""
+    out = list(images)
+    for img in images:
+        h, w = (img.shape[0] // 2) * 2, (img.shape[1] // 2) * 2
+        if min(h, w) // 2 >= min_size:
+            out.append(img[:h, :w].reshape(h // 2, 2, w // 2, 2).mean(axis=(1, 3)))
+    return out
+
+
+def make_batch(images, keys, size):
+    """Return a float32 (B, 1, size, size) batch: one random patch per key.
+
+    ``keys[b]`` seeds the choice of image, position, flips and transpose.
+    """
+    batch = np.empty((len(keys), 1, size, size), dtype=np.float32)
+    for b, key in enumerate(keys):
+        rng = np.random.default_rng(np.random.SeedSequence(key))
+        img = images[rng.integers(len(images))]
+        r = rng.integers(img.shape[0] - size + 1)
+        c = rng.integers(img.shape[1] - size + 1)
+        p = img[r : r + size, c : c + size]
+        if rng.integers(2):
+            p = p[::-1]
+        if rng.integers(2):
+            p = p[:, ::-1]
+        if rng.integers(2):
+            p = p.T
+        batch[b, 0] = p
+    return torch.from_numpy(batch)
+
+
+def psnr_from_mse(mse):
+    """Return the PSNR (dB) of a mean squared error on a [0, 1] scale."""
+    return 10 * math.log10(1.0 / max(mse, 1e-12))
+
+
+def lr_factor(progress):
+    """Cosine decay from 1 to 0.05 over the run, after a 2 % linear warm-up."""
+    progress = min(max(progress, 0.0), 1.0)
+    if progress < 0.02:
+        return 0.05 + 0.95 * progress / 0.02
+    return 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * (progress - 0.02) / 0.98))
+
+
+@dataclass
+class TrainResult:
+    """The trained camera and a summary of the run."""
+
+    camera: CodedCamera
+    steps: int
+    seconds: float
+    loss: float
+    psnr: float
+    history: list
+
+
+def _dist_setup():
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world > 1 and not torch.distributed.is_initialized():
+        backend = "nccl" if torch.cuda.is_available() else "gloo"
+        torch.distributed.init_process_group(backend)
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        return torch.distributed.get_rank(), torch.distributed.get_world_size()
+    return 0, 1
+
+
+def pick_device():
+    """Return the CUDA device of this process (LOCAL_RANK) if available, else the CPU."""
+    if torch.cuda.is_available():
+        return torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+    return torch.device("cpu")
+
+
+def train(
+    config,
+    images,
+    sensor,
+    psf_init,
+    init_state=None,
+    checkpoint=None,
+    stop_at_step=None,
+    progress=None,
+):
+    """Train a coded camera; return a :class:`TrainResult` (same on every rank).
+
+    Parameters
+    ----------
+    config : TrainConfig
+    images : list of float32 (H, W) arrays in [0, 1]
+        Training scenes on the sub-pixel grid, each at least patch + K - 1 wide.
+    sensor : SensorModel
+    psf_init : (K, K) array
+        Initial (or, when ``config.learn_psf`` is False, fixed) PSF.
+    init_state : dict, optional
+        Network state_dict to start from (fine-tuning).
+    checkpoint : path, optional
+        Checkpoint file: resumed from when it exists and matches ``config``,
+        written every ``config.checkpoint_seconds`` and at the end (rank 0).
+    stop_at_step : int, optional
+        Stop (and checkpoint) after this step, as if interrupted.
+    progress : bool, optional
+        Show a tqdm bar (default: when stderr is a terminal).
+    """
+    from tqdm import tqdm
+
+    from psf_learn import store
+
+    rank, world = _dist_setup()
+    if config.batch % world:
+        raise ValueError(f"batch {config.batch} is not divisible by {world} processes")
+    device = pick_device()
+    torch.manual_seed(config.seed)
+    camera = CodedCamera(psf_init, sensor, config)
+    if init_state is not None:
+        camera.net.load_state_dict(init_state)
+    camera.to(device)
+    groups = [{"params": list(camera.net.parameters()), "lr": config.lr, "base": config.lr}]
+    if config.learn_psf:
+        groups.append({"params": [camera.psf.logits], "lr": config.psf_lr, "base": config.psf_lr})
+    opt = torch.optim.Adam(groups)
+    step, elapsed, history = 0, 0.0, []
+    if checkpoint is not None and os.path.exists(checkpoint):
+        state = store.load_checkpoint(checkpoint)
+        if state.get("config") == config.identity():
+            camera.load_state_dict(state["camera"])
+            opt.load_state_dict(state["optimizer"])
+            step, elapsed, history = state["step"], state["elapsed"], list(state["history"])
+            if rank == 0:
+                print(f"resuming from {checkpoint} at step {step}", file=sys.stderr)
+        elif rank == 0:
+            print(f"ignoring {checkpoint}: it belongs to another configuration", file=sys.stderr)
+    model = camera
+    if world > 1:
+        model = nn.parallel.DistributedDataParallel(
+            camera, device_ids=[device.index] if device.type == "cuda" else None
+        )
+    k = np.asarray(psf_init).shape[0]
+    size, local = config.patch + k - 1, config.batch // world
+    margin = k // 2
+
+    def save():
+        if checkpoint is not None and rank == 0:
+            store.save_checkpoint(
+                checkpoint,
+                {
+                    "config": config.identity(),
+                    "camera": camera.state_dict(),
+                    "optimizer": opt.state_dict(),
+                    "step": step,
+                    "elapsed": elapsed,
+                    "history": history,
+                },
+            )
+
+    budget = None if config.steps is not None else 60.0 * (config.minutes or 0)
+    show = sys.stderr.isatty() if progress is None else progress
+    bar = tqdm(
+        total=config.steps or round(budget),
+        initial=step if config.steps else 0,
+        disable=not show or rank != 0,
+        unit="step" if config.steps else "s",
+        file=sys.stderr,
+        dynamic_ncols=True,
+    )
+    last_save = time.monotonic()
+    while True:
+        done = step >= config.steps if config.steps is not None else elapsed >= budget
+        if world > 1:  # rank 0 decides, so every rank runs the same number of steps
+            flag = torch.tensor([int(done)], device=device)
+            torch.distributed.broadcast(flag, 0)
+            done = bool(flag.item())
+        if done or (stop_at_step is not None and step >= stop_at_step):
+            break
+        t0 = time.monotonic()
+        frac = step / config.steps if config.steps is not None else elapsed / budget
+        for g in opt.param_groups:
+            g["lr"] = g["base"] * lr_factor(frac)
+        ids = range(rank * local, (rank + 1) * local)
+        scenes = make_batch(images, [(config.seed, step, i, 0) for i in ids], size).to(device)
+        target = scenes[..., margin : margin + config.patch, margin : margin + config.patch]
+        estimate = model(scenes, [(config.seed, step, i, 1) for i in ids])
+        loss = F.l1_loss(estimate, target)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        mse = float(F.mse_loss(estimate.detach().clamp(0, 1), target))
+        history.append([loss.item(), psnr_from_mse(mse)])
+        step += 1
+        dt = time.monotonic() - t0
+        elapsed += dt
+        if rank == 0 and bar.disable is False:
+            recent = history[-50:]
+            bar.set_postfix(
+                loss=f"{np.mean([h[0] for h in recent]):.4f}",
+                psnr=f"{np.mean([h[1] for h in recent]):.2f}",
+            )
+            bar.update(1 if config.steps else min(dt, max(budget - bar.n, 0)))
+        if time.monotonic() - last_save > config.checkpoint_seconds:
+            save()
+            last_save = time.monotonic()
+    bar.close()
+    save()
+    recent = history[-50:] or [[float("nan"), float("nan")]]
+    return TrainResult(
+        camera,
+        step,
+        elapsed,
+        float(np.mean([h[0] for h in recent])),
+        float(np.mean([h[1] for h in recent])),
+        history,
+    )
+
+
+def with_overrides(config, **overrides):
+    """Return ``config`` with the given non-None fields replaced."""
+    return replace(config, **{k: v for k, v in overrides.items() if v is not None})
