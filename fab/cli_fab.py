@@ -125,7 +125,7 @@ def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=Tru
     from doe.files import staged_output
     from doe.fraunhofer import simulate_levels
     from fab import manifest as fm
-    from fab.layer_images import write_layer_images
+    from fab.layer_images import layer_image_names, write_layer_images
     from fab.masks import masks_from_levels
     from layouts.gds import build_library, write_gds, write_oasis
     from layouts.marks import plate_half_size_nm
@@ -161,7 +161,10 @@ def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=Tru
     bar = tqdm(
         stages, desc="doefab fab", file=sys.stderr, disable=not (progress and sys.stderr.isatty())
     )
-    with staged_output(out, force) as stage:
+    known = [fm.GDS_NAME, fm.MANIFEST_NAME, fm.LEVELS_FILE, fm.TARGET_PSF_FILE]
+    known += [name for mk in masks for name in layer_image_names(mk.name)]
+    known += [fm.OASIS_NAME] if oasis else []
+    with staged_output(out, force, names=known) as stage:
         bar.set_postfix_str("gds")
         lib, layout = build_library(masks, pitch_nm, tiles, design.name, aperture_nm)
         write_gds(lib, stage / fm.GDS_NAME)

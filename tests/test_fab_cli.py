@@ -1,0 +1,218 @@
+"""``doefab fab``: a complete, deterministic package; bad input refused (exit 2), nothing left."""
+
+import importlib.util
+import json
+
+import numpy as np
+import pytest
+
+from doe.cli import main
+from doe.design import derive, load_design
+from doe.fraunhofer import simulate_levels
+from fab.layer_images import read_image
+from fab.masks import masks_from_levels
+from layouts.gds import PlateLayout
+from layouts.readback import check_written_gds
+
+CONTRACT_KEYS = {
+    "wavelength_nm", "refractive_index", "levels", "level_step_nm", "pixel_pitch_nm",
+    "tile_pixels", "tiles", "array_origin_nm", "gds", "top_cell", "tile_cell", "levels_file",
+    "masks",
+}  # fmt: skip
+EXTRA_KEYS = {
+    "design_name", "material", "substrate_thickness_mm", "kernel_size", "focal_length_mm",
+    "tile_size_um", "lattice_pitch_um", "target_psf_file", "resist_tone", "data_polarity",
+    "marks_layers", "acceptance",
+}  # fmt: skip
+HAS_TOLERANCE = importlib.util.find_spec("fab.tolerance") is not None
+HAS_REPORT = importlib.util.find_spec("fab.report") is not None
+
+
+def make_design_dir(path, n=35, n_levels=8, seed=0, target=True, k=11):
+    path.mkdir(parents=True, exist_ok=True)
+    levels = np.random.default_rng(seed).integers(0, n_levels, (n, n)).astype(np.uint8)
+    np.save(path / "levels.npy", levels)
+    if target:
+        np.save(path / "target_psf.npy", simulate_levels(levels, n_levels, k)[0])
+    return levels
+
+
+def malitson_step_nm(wavelength_nm=655.0, n_levels=8):
+    w2 = (wavelength_nm / 1000) ** 2
+    terms = ((0.6961663, 0.0684043), (0.4079426, 0.1162414), (0.8974794, 9.896161))
+    n = np.sqrt(1 + sum(b * w2 / (w2 - c**2) for b, c in terms))
+    return wavelength_nm / (n - 1) / n_levels
+
+
+@pytest.fixture(scope="module")
+def package(tmp_path_factory):
+    root = tmp_path_factory.mktemp("fab")
+    levels = make_design_dir(root / "design")
+    assert main(["fab", str(root / "design"), "--out", str(root / "out")]) == 0
+    return root, levels
+
+
+def test_package_has_the_contract_manifest_and_files(package):
+    root, levels = package
+    out = root / "out"
+    man = json.loads((out / "fab_manifest.json").read_text())
+    assert CONTRACT_KEYS | EXTRA_KEYS <= set(man)
+    assert man["levels"] == 8 and man["tile_pixels"] == 35 and man["tiles"] == [16, 16]
+    assert isinstance(man["pixel_pitch_nm"], int)
+    assert all(isinstance(v, int) for v in man["array_origin_nm"])
+    p = man["pixel_pitch_nm"]
+    assert man["array_origin_nm"] == [-(16 * 35 * p // 2)] * 2
+    assert (out / man["gds"]).is_file() and (out / man["target_psf_file"]).is_file()
+    assert np.array_equal(np.load(out / man["levels_file"]), levels)
+    assert man["data_polarity"].startswith("a polygon marks area to etch")
+    # Etch depths within 0.5 nm of the Sellmeier values, and exact multiples of the step.
+    step = malitson_step_nm()
+    assert abs(man["level_step_nm"] - step) < 0.5
+    for mask, steps in zip(man["masks"], (4, 2, 1), strict=True):
+        assert abs(mask["etch_depth_nm"] - steps * step) < 0.5
+        assert mask["etch_depth_nm"] == steps * man["level_step_nm"]
+    assert [m["exposure_order"] for m in man["masks"]] == [1, 2, 3]
+    if HAS_TOLERANCE:
+        acc = man["acceptance"]
+        assert {"correlation_min", "rmse_max", "efficiency_min", "zero_order_max"} <= set(acc)
+    if HAS_REPORT:
+        assert (out / "fab_report.md").is_file() and (out / "fab_report.html").is_file()
+
+
+def test_pitch_is_resnapped_when_n_differs_from_the_design(package):
+    root, _ = package
+    man = json.loads((root / "out" / "fab_manifest.json").read_text())
+    der = derive(load_design())
+    assert der.tile_pixels == 175  # the preset's N; the test design has 35
+    assert man["pixel_pitch_nm"] == round(der.tile_size_nominal / 35 * 1e9)
+    assert abs(man["tile_size_um"] - 35 * man["pixel_pitch_nm"] / 1000) < 1e-9
+
+
+def test_gds_and_layer_images_reproduce_the_levels(package):
+    root, levels = package
+    out = root / "out"
+    man = json.loads((out / "fab_manifest.json").read_text())
+    masks = masks_from_levels(levels, 8, man["level_step_nm"] * 1e-9)
+    info = PlateLayout(
+        top_cell=man["top_cell"], tile_cell=man["tile_cell"],
+        pixel_pitch_nm=man["pixel_pitch_nm"], tile_pixels=man["tile_pixels"],
+        tiles=tuple(man["tiles"]), array_origin_nm=tuple(man["array_origin_nm"]),
+    )  # fmt: skip
+    assert check_written_gds(out / man["gds"], info, masks) == []
+    for mk in masks:
+        assert np.array_equal(read_image(out / f"{mk.name}_tile.tif"), mk.bitmap * np.uint8(255))
+        assert read_image(out / f"{mk.name}_plate.png").ndim == 2
+
+
+def test_same_design_gives_byte_identical_package(package, tmp_path):
+    root, _ = package
+    assert main(["fab", str(root / "design"), "--out", str(tmp_path / "again")]) == 0
+    first = sorted(p.name for p in (root / "out").iterdir())
+    second = sorted(p.name for p in (tmp_path / "again").iterdir())
+    assert first == second
+    for name in first:
+        assert (root / "out" / name).read_bytes() == (tmp_path / "again" / name).read_bytes(), name
+
+
+def test_existing_output_is_refused_without_force(package, capsys):
+    root, _ = package
+    before = (root / "out" / "mask.gds").stat().st_mtime_ns
+    assert main(["fab", str(root / "design"), "--out", str(root / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--force" in err
+    assert (root / "out" / "mask.gds").stat().st_mtime_ns == before
+
+
+def _bad_levels(kind, d):
+    rng = np.random.default_rng(1)
+    if kind == "out_of_range":
+        lv = rng.integers(0, 8, (9, 9)).astype(np.uint8)
+        lv[3, 4] = 8
+        np.save(d / "levels.npy", lv)
+    elif kind == "non_square":
+        np.save(d / "levels.npy", rng.integers(0, 8, (9, 8)).astype(np.uint8))
+    elif kind == "wrong_dtype":
+        np.save(d / "levels.npy", rng.integers(0, 8, (9, 9)).astype(np.int64))
+    elif kind == "not_npy":
+        (d / "levels.npy").write_text("not an array")
+    elif kind == "missing":
+        pass
+    return d / "levels.npy"
+
+
+@pytest.mark.parametrize(
+    "kind", ["out_of_range", "non_square", "wrong_dtype", "not_npy", "missing"]
+)
+def test_bad_levels_exit_2_and_leave_nothing(tmp_path, capsys, kind):
+    d = tmp_path / "design"
+    d.mkdir()
+    named = _bad_levels(kind, d)
+    out = tmp_path / "out"
+    assert main(["fab", str(d), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(named) in err
+    assert not out.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["design"]  # no staging leftovers
+
+
+def test_missing_design_dir_and_bad_target_exit_2(tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["fab", str(tmp_path / "nope"), "--out", str(out)]) == 2
+    assert "nope" in capsys.readouterr().err
+    d = tmp_path / "design"
+    make_design_dir(d, n=9, target=False)
+    np.save(d / "target_psf.npy", -np.ones((5, 5)) / 25)
+    assert main(["fab", str(d), "--out", str(out)]) == 2
+    assert "target_psf.npy" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_levels_mismatch_with_retrieval_json_exit_2(tmp_path, capsys):
+    d = tmp_path / "design"
+    make_design_dir(d, n=9)
+    (d / "retrieval.json").write_text(json.dumps({"levels": 4}))
+    assert main(["fab", str(d), "--out", str(tmp_path / "out")]) == 2
+    assert "retrieval.json" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+def test_missing_target_uses_the_simulated_psf_and_says_so(tmp_path, capsys):
+    d = tmp_path / "design"
+    levels = make_design_dir(d, n=21, target=False)
+    out = tmp_path / "out"
+    assert main(["fab", str(d), "--out", str(out), "--oasis"]) == 0
+    assert "simulated" in capsys.readouterr().err
+    man = json.loads((out / "fab_manifest.json").read_text())
+    assert "simulated" in man["target_psf_source"]
+    want, _ = simulate_levels(levels, 8, man["kernel_size"])
+    assert np.allclose(np.load(out / "target_psf.npy"), want)
+    assert man["oasis"] == "mask.oas" and (out / "mask.oas").stat().st_size > 0
+
+
+def test_four_level_config_gives_two_masks(tmp_path, capsys):
+    cfg = tmp_path / "four.toml"
+    cfg.write_text('name = "four"\n[fabrication]\nlevels = 4\n')
+    d = tmp_path / "design"
+    make_design_dir(d, n=15, n_levels=4)
+    out = tmp_path / "out"
+    assert main(["fab", str(d), "--out", str(out), "--config", str(cfg)]) == 0
+    man = json.loads((out / "fab_manifest.json").read_text())
+    assert [m["name"] for m in man["masks"]] == ["M1_deep", "M2_shallow"]
+    assert abs(man["masks"][0]["etch_depth_nm"] - 2 * malitson_step_nm(n_levels=4)) < 0.5
+    assert man["top_cell"].startswith("four")
+    # an 8-level map does not fit a 4-level design
+    make_design_dir(tmp_path / "eight", n=15, n_levels=8, seed=3)
+    code = main(["fab", str(tmp_path / "eight"), "--out", str(tmp_path / "o2"),
+                 "--config", str(cfg)])  # fmt: skip
+    assert code == 2 and "0..3" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_dense_default_design_fits_the_size_budget(tmp_path):
+    d = tmp_path / "design"
+    make_design_dir(d, n=175, seed=11)
+    out = tmp_path / "out"
+    assert main(["fab", str(d), "--out", str(out)]) == 0
+    assert (out / "mask.gds").stat().st_size <= 5 * 2**20
+    man = json.loads((out / "fab_manifest.json").read_text())
+    assert man["pixel_pitch_nm"] == 4990 and man["tiles"] == [16, 16]
