@@ -1,0 +1,345 @@
+"""Tests of fab.tolerance: the fabricated-plate model against independent oracles."""
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from doe.fraunhofer import level_phase, simulate_levels, window_power
+from fab.masks import masks_from_levels
+from fab.tolerance import (
+    PlateErrors,
+    ToleranceSpec,
+    plate_model,
+    plate_quality,
+    tolerance_analysis,
+    window_amplitudes,
+    zero_order_power_analytic,
+    zero_order_power_balanced,
+)
+
+L = 8
+N_INDEX = 1.4564
+WAVELENGTH = 655e-9
+STEP = WAVELENGTH / (N_INDEX - 1) / L  # level_step that makes level l = 2 pi l / L
+PITCH = 5e-6
+ATOL = 1e-14  # float64 round-off of a sum of ~N^2 unit phasors divided by N^2
+
+
+def random_levels(n, seed=0):
+    return np.random.default_rng(seed).integers(0, L, (n, n)).astype(np.uint8)
+
+
+def model_of(levels, k, supersample=None, level_step=STEP):
+    masks = masks_from_levels(levels, L, level_step)
+    return plate_model(masks, PITCH, level_step, L, WAVELENGTH, N_INDEX, k, supersample), masks
+
+
+def gs_levels(n, target, seed=0, iters=120):
+    """Return a small Gerchberg-Saxton level map that sends most light into ``target``."""
+    rng = np.random.default_rng(seed)
+    k = target.shape[0]
+    idx = np.ix_((np.arange(k) - k // 2) % n, (np.arange(k) - k // 2) % n)
+    phase = rng.uniform(0, 2 * np.pi, (n, n))
+    q = 2 * np.pi / L
+    for it in range(iters):
+        f = np.fft.fft2(np.exp(1j * phase))
+        g = np.zeros_like(f)
+        g[idx] = np.sqrt(target) * n * np.exp(1j * np.angle(f[idx]))
+        phase = np.angle(np.fft.ifft2(g))
+        if it > iters // 2:
+            phase = np.round(phase / q) * q
+    return (np.round(phase / q) % L).astype(np.uint8)
+
+
+def brute_force_window(masks, errors, supersample, k, continuous):
+    """Upsample, roll, dilate and FFT the full (N S)^2 tile: the model without its algebra."""
+    s = supersample
+    n = masks[0].bitmap.shape[0]
+    depth = np.zeros((n * s, n * s))
+    bias = round(errors.cd_bias / PITCH * s)
+    for i, mk in enumerate(masks):
+        up = np.kron(mk.bitmap.astype(np.uint8), np.ones((s, s), np.uint8))
+        dx, dy = errors.shift[i]
+        up = np.roll(up, (round(-dy / PITCH * s), round(dx / PITCH * s)), axis=(0, 1))
+        if bias > 0:
+            up = ndimage.maximum_filter(up, size=2 * bias + 1, mode="wrap")
+        elif bias < 0:
+            up = ndimage.minimum_filter(up, size=-2 * bias + 1, mode="wrap")
+        depth += up * mk.etch_depth * (1 + errors.etch[i])
+    field = np.exp(2j * np.pi * (N_INDEX - 1) * ((L - 1) * STEP - depth) / WAVELENGTH)
+    amp = np.fft.fft2(field) / field.size
+    m = np.arange(k) - k // 2
+    window = amp[np.ix_(m % (n * s), m % (n * s))]
+    if continuous:  # each sub-sample is a box of width 1/(N S) of the tile
+        box = np.exp(-1j * np.pi * m / (n * s)) * np.sinc(m / (n * s))
+        window = window * box[:, None] * box[None, :]
+    return window
+
+
+def test_zero_error_s1_is_simulate_levels():
+    levels = random_levels(24)
+    model, _ = model_of(levels, 9, supersample=1)
+    power = np.abs(window_amplitudes(model)) ** 2
+    np.testing.assert_allclose(power, window_power(level_phase(levels, L), 9), rtol=0, atol=ATOL)
+    psf, eff = simulate_levels(levels, L, 9)
+    q = plate_quality(model, psf)
+    assert q["efficiency"] == pytest.approx(eff, abs=ATOL)
+    assert q["correlation"] == pytest.approx(1.0, abs=1e-12)
+    assert q["rmse"] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_continuous_nominal_is_levels_times_pixel_sinc_envelope():
+    levels = random_levels(20, seed=3)
+    model, _ = model_of(levels, 7)
+    m = np.arange(7) - 3
+    envelope = np.sinc(m / 20) ** 2
+    expected = window_power(level_phase(levels, L), 7) * envelope[:, None] * envelope[None, :]
+    np.testing.assert_allclose(np.abs(window_amplitudes(model)) ** 2, expected, atol=ATOL)
+
+
+@pytest.mark.parametrize("continuous", [False, True])
+@pytest.mark.parametrize("bias_sub", [0, 1, -1, 2, -2])
+def test_model_matches_brute_force_supersampled_tile(continuous, bias_sub):
+    s, k = 5, 7
+    levels = random_levels(12, seed=bias_sub + 7)
+    model, masks = model_of(levels, k, supersample=None if continuous else s)
+    sub = PITCH / s
+    errors = PlateErrors(
+        etch=(0.03, -0.05, 0.1),
+        shift=((0.0, 0.0), (sub, -2 * sub), (-3 * sub, 6 * sub)),
+        cd_bias=bias_sub * sub,
+    )
+    np.testing.assert_allclose(
+        window_amplitudes(model, errors),
+        brute_force_window(masks, errors, s, k, continuous),
+        rtol=0,
+        atol=1e-13,
+    )
+
+
+def test_supersampled_model_rounds_errors_to_sub_samples():
+    levels = random_levels(12, seed=1)
+    model, _ = model_of(levels, 5, supersample=4)
+    exact = PlateErrors(shift=((0, 0), (PITCH / 4, 0), (0, 0)))
+    rounded = PlateErrors(shift=((0, 0), (PITCH / 4 * 1.2, 0), (0, 0)))
+    np.testing.assert_array_equal(
+        window_amplitudes(model, exact), window_amplitudes(model, rounded)
+    )
+
+
+@pytest.mark.parametrize("axis", ["x", "y"])
+def test_whole_pixel_overlay_equals_rolled_bitmap(axis):
+    levels = random_levels(16, seed=5)
+    model, masks = model_of(levels, 7)
+    # +x moves the pattern to larger columns; +y moves it up, to smaller rows.
+    # roll = (shift, axis) of np.roll.
+    shift, roll = ((PITCH, 0.0), (1, 1)) if axis == "x" else ((0.0, PITCH), (-1, 0))
+    shifted = window_amplitudes(model, PlateErrors(shift=((0, 0), shift, (0, 0))))
+    rolled = [masks[0], replace(masks[1], bitmap=np.roll(masks[1].bitmap, *roll)), masks[2]]
+    rolled_model = plate_model(rolled, PITCH, STEP, L, WAVELENGTH, N_INDEX, 7)
+    np.testing.assert_array_equal(shifted, window_amplitudes(rolled_model))
+
+
+def test_zero_cd_bias_is_a_no_op_and_the_model_is_continuous_in_it():
+    levels = random_levels(16, seed=2)
+    model, _ = model_of(levels, 7)
+    shift = ((0, 0), (0.3e-6, -0.7e-6), (0, 0))
+    base = window_amplitudes(model, PlateErrors(shift=shift))
+    np.testing.assert_array_equal(
+        base, window_amplitudes(model, PlateErrors(shift=shift, cd_bias=0.0))
+    )
+    for tiny in (1e-13, -1e-13):
+        near = window_amplitudes(model, PlateErrors(shift=shift, cd_bias=tiny))
+        assert np.abs(near - base).max() < 1e-7
+
+
+@pytest.mark.parametrize("bias", [0.3e-6, -0.3e-6, 1.1e-6])
+def test_cd_bias_grows_an_isolated_pixel_by_twice_the_bias(bias):
+    # One etched pixel of a pi-deep single mask: c0 = 1 - 2 * etched area / tile area.
+    n = 8
+    levels = np.full((n, n), L - 1, np.uint8)
+    levels[3, 5] = L // 2 - 1  # etched by the deep mask only
+    model, _ = model_of(levels, 3)
+    c0 = window_amplitudes(model, PlateErrors(cd_bias=bias))[1, 1]
+    top_phase = np.exp(2j * np.pi * (L - 1) / L)
+    area = (PITCH + 2 * bias) ** 2 / (n * PITCH) ** 2
+    assert c0 / top_phase == pytest.approx(1 - 2 * area, abs=1e-14)
+
+
+def test_zero_order_matches_analytic_formula_for_each_mask():
+    levels = random_levels(32, seed=11)
+    model, masks = model_of(levels, 5)
+    phase = level_phase(levels, L)
+    for i, mk in enumerate(masks):
+        mask_phase = 2 * np.pi * (N_INDEX - 1) * mk.etch_depth / WAVELENGTH
+        for eps in (-0.1, -0.02, 0.05, 0.2):
+            etch = tuple(eps if j == i else 0.0 for j in range(len(masks)))
+            p0 = abs(window_amplitudes(model, PlateErrors(etch=etch))[2, 2]) ** 2
+            analytic = zero_order_power_analytic(eps, phase, mk.bitmap, mask_phase)
+            assert p0 == pytest.approx(float(analytic), rel=1e-10, abs=1e-15)
+
+
+def test_balanced_tile_deep_etch_zero_order_is_1p05_eps_squared():
+    # Every level exactly equally often: c0 = 0, so P0 = 4 sin^2(pi eps / 2) |A|^2.
+    n = 32
+    levels = np.random.default_rng(4).permutation(np.arange(n * n) % L).reshape(n, n)
+    model, _ = model_of(levels.astype(np.uint8), 3)
+    assert abs(window_amplitudes(model)[1, 1]) ** 2 < 1e-28
+    coeff = (1 + (1 + np.sqrt(2)) ** 2) / 64 * np.pi**2  # small-eps slope, 1.0530
+    assert coeff == pytest.approx(1.053, abs=5e-4)
+    for eps in (0.01, 0.02, 0.05, 0.1):
+        p0 = abs(window_amplitudes(model, PlateErrors(etch=(eps, 0, 0)))[1, 1]) ** 2
+        assert p0 == pytest.approx(float(zero_order_power_balanced(eps, L, L // 2)), rel=1e-9)
+        assert p0 == pytest.approx(coeff * eps**2, rel=0.01 * (eps / 0.1) ** 2 + 1e-3)
+
+
+@pytest.fixture(scope="module")
+def designed():
+    """A small GS design and the analysis of it against its own nominal PSF (rmse 0)."""
+    n, k = 40, 7
+    rng = np.random.default_rng(1)
+    target = rng.uniform(0.3, 1.0, (k, k))
+    levels = gs_levels(n, target / target.sum())
+    masks = masks_from_levels(levels, L, STEP)
+    model = plate_model(masks, PITCH, STEP, L, WAVELENGTH, N_INDEX, k)
+    power = np.abs(window_amplitudes(model)) ** 2
+    own = power / power.sum()
+    result = tolerance_analysis(levels, L, own, masks, PITCH, STEP, WAVELENGTH, N_INDEX, seed=3)
+    return levels, masks, own, result
+
+
+def test_degradation_is_monotonic_for_a_plate_against_its_own_psf(designed):
+    _, _, _, result = designed
+    rows = result["rows"]
+    assert rows[0]["kind"] == "nominal" and rows[0]["rmse"] == pytest.approx(0.0, abs=1e-12)
+    groups = {}
+    for r in rows[1:]:
+        sign = np.sign(r["value"])
+        groups.setdefault((r["kind"], r["mask"], r["axis"], sign), []).append(r)
+    assert len(groups) == 3 * 2 + 2 * 2 + 2
+    for key, grp in groups.items():
+        grp = sorted(grp, key=lambda r: abs(r["value"]))
+        rmses = [0.0] + [r["rmse"] for r in grp]
+        corrs = [1.0] + [r["correlation"] for r in grp]
+        assert np.all(np.diff(rmses) > 0), key
+        assert np.all(np.diff(corrs) < 0), key
+    deep = sorted(
+        (r for r in rows if r["kind"] == "etch" and r["mask"] == "M1_deep" and r["value"] > 0),
+        key=lambda r: r["value"],
+    )
+    assert np.all(np.diff([r["zero_order_excess"] for r in deep]) > 0)
+
+
+def test_table_layout_units_and_reference_mask(designed):
+    _, masks, _, result = designed
+    rows = result["rows"]
+    spec = ToleranceSpec()
+    assert len(rows) == 1 + 3 * 3 * 2 + 2 * 4 * 2 + 2 * 2
+    assert {r["kind"] for r in rows} == {"nominal", "etch", "overlay", "cd_bias"}
+    assert result["reference_mask"] == masks[0].name
+    assert all(r["mask"] != masks[0].name for r in rows if r["kind"] == "overlay")
+    units = {r["kind"]: r["unit"] for r in rows}
+    assert units == {"nominal": "", "etch": "%", "overlay": "um", "cd_bias": "um"}
+    assert sorted({abs(r["value"]) for r in rows if r["kind"] == "etch"}) == pytest.approx(
+        [100 * v for v in spec.etch_fractions]
+    )
+    assert sorted({r["value"] for r in rows if r["kind"] == "overlay"}) == pytest.approx(
+        [1e6 * v for v in spec.overlay]
+    )
+    for r in rows:
+        assert r["zero_order_excess"] == pytest.approx(r["zero_order"] - rows[0]["zero_order"])
+    json.dumps(result)  # JSON-ready
+
+
+def test_budget_is_the_largest_value_within_the_rmse_limit(designed):
+    _, masks, own, result = designed
+    limit = result["rmse_limit"]
+    assert limit == pytest.approx(result["nominal"]["rmse"] + ToleranceSpec().rmse_allowance)
+    model = plate_model(masks, PITCH, STEP, L, WAVELENGTH, N_INDEX, own.shape[0])
+    names = [mk.name for mk in masks]
+    for b in result["budget"]:
+        v = b["si_value"]
+
+        def worst(v, b=b):
+            i = names.index(b["mask"]) if b["mask"] in names else None
+            if b["kind"] == "etch":
+                plates = [
+                    PlateErrors(etch=tuple(s * v if j == i else 0 for j in range(3)))
+                    for s in (1, -1)
+                ]
+            elif b["kind"] == "overlay":
+                plates = [
+                    PlateErrors(shift=tuple(d if j == i else (0, 0) for j in range(3)))
+                    for d in ((v, 0), (0, v))
+                ]
+            else:
+                plates = [PlateErrors(cd_bias=s * v) for s in (1, -1)]
+            return max(plate_quality(model, own, p)["rmse"] for p in plates)
+
+        assert worst(v) <= limit
+        if b["limited_by_rmse"]:
+            assert worst(v * 1.02 + 1e-12) > limit, b
+    acc = result["acceptance"]
+    nom = result["nominal"]
+    assert acc["correlation_min"] < nom["correlation"]
+    assert acc["rmse_max"] > nom["rmse"]
+    assert acc["efficiency_min"] < nom["efficiency"]
+    assert acc["zero_order_max"] > nom["zero_order"]
+    assert len(result["monte_carlo"]["rmse"]) == ToleranceSpec().monte_carlo_plates
+
+
+def test_analysis_is_deterministic_for_a_seed(designed):
+    levels, masks, own, result = designed
+    again = tolerance_analysis(levels, L, own, masks, PITCH, STEP, WAVELENGTH, N_INDEX, seed=3)
+    assert json.dumps(again, sort_keys=True) == json.dumps(result, sort_keys=True)
+
+
+def test_masks_that_do_not_make_the_levels_are_refused():
+    levels = random_levels(8)
+    masks = masks_from_levels(levels, L, STEP)
+    target = np.random.default_rng(0).uniform(0.5, 1, (3, 3))
+    wrong = [masks[0], replace(masks[1], bitmap=~masks[1].bitmap), masks[2]]
+    with pytest.raises(ValueError, match="level map"):
+        tolerance_analysis(
+            levels, L, target / target.sum(), wrong, PITCH, STEP, WAVELENGTH, N_INDEX
+        )
+
+
+def test_cd_bias_of_half_a_pixel_is_refused():
+    model, _ = model_of(random_levels(8), 3)
+    with pytest.raises(ValueError, match="half the pixel pitch"):
+        window_amplitudes(model, PlateErrors(cd_bias=PITCH / 2))
+
+
+@pytest.mark.slow
+def test_full_size_tile_nominal_row_is_the_enveloped_contract_model():
+    from doe.design import derive, load_design
+
+    design = load_design()
+    der = derive(design)
+    n, k = der.tile_pixels, design.kernel_size
+    rng = np.random.default_rng(0)
+    target = rng.uniform(0.2, 1.0, (k, k))
+    target /= target.sum()
+    levels = gs_levels(n, target, iters=60)
+    masks = masks_from_levels(levels, L, der.level_step)
+    result = tolerance_analysis(
+        levels,
+        L,
+        target,
+        masks,
+        der.mask_pixel_pitch,
+        der.level_step,
+        design.optics.wavelength,
+        der.refractive_index,
+    )
+    m = np.arange(k) - k // 2
+    env = np.sinc(m / n) ** 2
+    power = window_power(level_phase(levels, L), k) * env[:, None] * env[None, :]
+    nominal = result["rows"][0]
+    assert nominal["efficiency"] == pytest.approx(power.sum(), rel=1e-9)
+    assert nominal["zero_order"] == pytest.approx(power[k // 2, k // 2], rel=1e-9, abs=1e-15)
+    assert len(result["rows"]) == 39
