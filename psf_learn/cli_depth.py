@@ -1,0 +1,332 @@
+"""``doefab depth`` and ``doefab transient``: gated-SPAD cubes to depth, intensity and frames."""
+
+from pathlib import Path
+
+import numpy as np
+
+from doe.errors import InputError
+
+DEPTH_ARRAYS = (
+    "timing_ps",
+    "depth_m",
+    "amplitude",
+    "background",
+    "fit_quality",
+    "significance",
+    "valid",
+)
+DEPTH_FIGURES = ("intensity.png", "depth.png", "pixel_fits.png")
+GATE_FLAGS = {  # flag attribute -> (default, GateModel field)
+    "gate_width_ps": (200.0, "width"),
+    "rise_ps": (40.0, "rise"),
+    "fall_ps": (60.0, "fall"),
+    "band_sigma_ps": (100.0, "band_sigma"),
+    "pulse_fwhm_ps": (80.0, "pulse_fwhm"),
+}
+
+
+def register(sub):
+    p = sub.add_parser(
+        "depth",
+        help="fit arrival time (depth), amplitude and background per pixel of a gated SPAD cube",
+    )
+    _common(p)
+    g = p.add_argument_group("gate model (ignored with --irf)")
+    for attr, (default, _) in GATE_FLAGS.items():
+        g.add_argument(
+            "--" + attr.replace("_", "-"),
+            dest=attr,
+            type=float,
+            default=None,
+            help=f"(default {default:g})",
+        )
+    g.add_argument(
+        "--pulse",
+        choices=("gaussian", "emg"),
+        default=None,
+        help="laser pulse shape (default gaussian)",
+    )
+    g.add_argument("--tau-ps", type=float, default=None, help="exponential tail of an 'emg' pulse")
+    p.add_argument(
+        "--irf",
+        help="measured instrument response (.npy, 1-D) on the scan axis, "
+        "from a reference target at --irf-t0-ps; replaces the gate model",
+    )
+    p.add_argument(
+        "--irf-t0-ps",
+        type=float,
+        default=0.0,
+        help="arrival time of the IRF's reference target (default 0)",
+    )
+    p.add_argument(
+        "--min-significance",
+        type=float,
+        default=20.0,
+        help="likelihood-ratio threshold 2 dlogL for a return (default 20, about "
+        "1e-4 false returns per background pixel)",
+    )
+    p.set_defaults(func=_depth)
+
+    p = sub.add_parser(
+        "transient",
+        help="write the per-time-bin frames of a gated SPAD cube (npy, PNG, animated GIF)",
+    )
+    _common(p)
+    p.add_argument("--fps", type=float, default=10.0, help="GIF frame rate (default 10)")
+    p.set_defaults(func=_transient)
+
+
+def _common(p):
+    p.add_argument(
+        "cube",
+        metavar="CUBE",
+        help="(H, W, T) counts: .npy, or a folder of per-shift PNG/TIFF frames sorted by name",
+    )
+    p.add_argument(
+        "--shift-ps",
+        type=float,
+        default=20.0,
+        help="gate shift between samples: sample k is at k * shift (default 20)",
+    )
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument(
+        "--sr",
+        metavar="MODEL_DIR",
+        help="also super-resolve with a model from 'doefab learn' (into sr/)",
+    )
+    p.add_argument("--force", action="store_true", help="overwrite existing outputs")
+
+
+def _positive(value, flag):
+    if not (np.isfinite(value) and value > 0):
+        raise InputError(flag, f"must be a positive number, got {value:g}")
+    return value
+
+
+def _response(args):
+    """The temporal response from the gate flags or from --irf."""
+    from psf_learn.cubes import read_irf
+    from psf_learn.depth import GateModel, gate_response, response_from_irf
+
+    shift = _positive(args.shift_ps, "--shift-ps") * 1e-12
+    if args.irf:
+        given = [a for a in [*GATE_FLAGS, "pulse", "tau_ps"] if getattr(args, a) is not None]
+        if given:
+            raise InputError(
+                "--irf",
+                "replaces the gate model; drop "
+                + ", ".join("--" + a.replace("_", "-") for a in given),
+            )
+        irf = read_irf(args.irf)
+        if not np.isfinite(args.irf_t0_ps):
+            raise InputError("--irf-t0-ps", "must be a finite number")
+        return response_from_irf(irf, shift, args.irf_t0_ps * 1e-12), {
+            "irf": str(args.irf),
+            "irf_t0_ps": args.irf_t0_ps,
+        }
+    params = {}
+    for attr, (default, name) in GATE_FLAGS.items():
+        value = default if getattr(args, attr) is None else getattr(args, attr)
+        flag = "--" + attr.replace("_", "-")
+        if name in ("width", "pulse_fwhm"):
+            _positive(value, flag)
+        elif not (np.isfinite(value) and value >= 0):
+            raise InputError(flag, f"must be >= 0, got {value:g}")
+        params[name] = value * 1e-12
+    pulse = args.pulse or "gaussian"
+    tau = 0.0 if args.tau_ps is None else args.tau_ps
+    if pulse == "emg":
+        _positive(tau, "--tau-ps")
+    elif args.tau_ps is not None:
+        raise InputError("--tau-ps", "only applies with --pulse emg")
+    model = GateModel(pulse=pulse, tau=tau * 1e-12, **params)
+    summary = {f"{k}_ps": v / 1e-12 for k, v in params.items()}
+    summary.update(pulse=pulse, tau_ps=tau)
+    return gate_response(model), summary
+
+
+def _super_resolve_cube(model_dir, cube):
+    """Super-resolve every time bin of an (H, W, T) cube; return (fH, fW, T) counts >= 0."""
+    from psf_learn.sr import super_resolve
+
+    if not Path(model_dir).is_dir():
+        raise InputError(model_dir, "no such model folder (write one with 'doefab learn')")
+    frames = np.moveaxis(cube, -1, 0)
+    # One white level for the whole sequence keeps the frames on a common scale.
+    white = float(frames.max()) or 1.0
+    hr = np.asarray(super_resolve(model_dir, frames, photons=white), dtype=np.float64)
+    if hr.ndim != 3 or hr.shape[0] != frames.shape[0]:
+        raise InputError(
+            model_dir, f"super-resolution returned shape {hr.shape} for frames {frames.shape}"
+        )
+    # The network is not photon-exact: negative undershoot is not a count.
+    return np.clip(np.moveaxis(hr, 0, -1), 0.0, None)
+
+
+def _depth(args):
+    from doe.files import save_npy, staged_output, write_json
+    from psf_learn.cubes import read_cube
+
+    response, gate_summary = _response(args)
+    if not np.isfinite(args.min_significance) or args.min_significance < 0:
+        raise InputError("--min-significance", "must be a number >= 0")
+    cube = read_cube(args.cube)
+    shift = args.shift_ps * 1e-12
+    cubes = {"": cube}
+    if args.sr:
+        cubes["sr/"] = _super_resolve_cube(args.sr, cube)
+    names = [
+        f"{prefix}{n}"
+        for prefix in cubes
+        for n in [*(a + ".npy" for a in DEPTH_ARRAYS), *DEPTH_FIGURES]
+    ] + ["depth.json"]
+    with staged_output(args.out, args.force, names=names) as stage:
+        summary = {
+            "cube": str(args.cube),
+            "shape": list(cube.shape),
+            "shift_ps": args.shift_ps,
+            "gate": gate_summary,
+            "min_significance": args.min_significance,
+            "timing_convention": "counts(t_k) = A h(t_k - mu) + b, t_k = k * shift; "
+            "depth_m = c * mu / 2",
+        }
+        for prefix, data in cubes.items():
+            folder = stage / prefix
+            folder.mkdir(exist_ok=True)
+            stats = _fit_and_write(folder, data, shift, response, args.min_significance, save_npy)
+            summary["sr" if prefix else "native"] = stats
+        write_json(stage / "depth.json", summary)
+    s = summary["native"]
+    print(
+        f"depth: {s['valid_pixels']}/{s['pixels']} pixels with a return, timing "
+        f"{s['timing_ps_min']:.1f} .. {s['timing_ps_max']:.1f} ps, median fit quality "
+        f"{s['median_fit_quality']:.3g}; wrote {args.out}"
+    )
+    return 0
+
+
+def _fit_and_write(folder, cube, shift, response, threshold, save_npy):
+    from psf_learn.depth import expected_counts, fit_profiles, scan_times
+    from psf_learn.depth_plots import save_map, save_pixel_fits
+
+    fit = fit_profiles(cube, shift, response, threshold=threshold)
+    arrays = {
+        "timing_ps": fit.timing / 1e-12,
+        "depth_m": fit.depth,
+        "amplitude": fit.amplitude,
+        "background": fit.background,
+        "fit_quality": fit.fit_quality,
+        "significance": fit.significance,
+        "valid": fit.valid,
+    }
+    for name, value in arrays.items():
+        save_npy(folder / f"{name}.npy", value)
+    save_map(folder / "intensity.png", fit.amplitude, "fitted amplitude A", "peak counts")
+    save_map(
+        folder / "depth.png",
+        fit.depth,
+        "depth (c mu / 2); grey: no return",
+        "depth (m)",
+        cmap="viridis",
+        valid=fit.valid,
+    )
+    times = scan_times(cube.shape[-1], shift)
+    picks = _example_pixels(fit)
+    profiles = [cube[r, c] for r, c, _ in picks]
+    models = [
+        expected_counts(
+            response,
+            times,
+            fit.amplitude[r, c],
+            np.nan_to_num(fit.timing[r, c]),
+            fit.background[r, c],
+        )
+        for r, c, _ in picks
+    ]
+    labels = [
+        f"{why} ({r}, {c}): "
+        + (
+            f"mu {fit.timing[r, c] / 1e-12:.1f} ps, A {fit.amplitude[r, c]:.3g}"
+            if fit.valid[r, c]
+            else "no return"
+        )
+        for r, c, why in picks
+    ]
+    save_pixel_fits(folder / "pixel_fits.png", times, profiles, models, labels)
+    valid_t = fit.timing[fit.valid] / 1e-12
+    return {
+        "pixels": int(fit.valid.size),
+        "valid_pixels": int(fit.valid.sum()),
+        "timing_ps_min": float(valid_t.min()) if valid_t.size else float("nan"),
+        "timing_ps_max": float(valid_t.max()) if valid_t.size else float("nan"),
+        "median_fit_quality": float(np.median(fit.fit_quality)),
+    }
+
+
+def _example_pixels(fit):
+    """Up to four (row, col, reason) pixels: brightest, median, dimmest return, a non-return."""
+    picks = []
+    flat_valid = np.flatnonzero(fit.valid.ravel())
+    if flat_valid.size:
+        amp = fit.amplitude.ravel()[flat_valid]
+        order = flat_valid[np.argsort(amp, kind="stable")]
+        for why, i in (
+            ("brightest", order[-1]),
+            ("median", order[order.size // 2]),
+            ("dimmest", order[0]),
+        ):
+            if all(i != p for p, _ in picks):
+                picks.append((i, why))
+    invalid = np.flatnonzero(~fit.valid.ravel())
+    if invalid.size:
+        picks.append((invalid[0], "no return"))
+    shape = fit.valid.shape
+    return [(*np.unravel_index(i, shape), why) for i, why in picks]
+
+
+def _transient(args):
+    from doe.files import save_npy, staged_output, write_json
+    from psf_learn.cubes import read_cube, write_frame_png16
+    from psf_learn.depth import scan_times
+    from psf_learn.depth_plots import save_gif
+
+    shift = _positive(args.shift_ps, "--shift-ps") * 1e-12
+    _positive(args.fps, "--fps")
+    cube = read_cube(args.cube)
+    if args.sr:
+        cube = _super_resolve_cube(args.sr, cube)
+    frames = np.moveaxis(cube, -1, 0)
+    times = scan_times(frames.shape[0], shift)
+    scale = float(frames.max()) or 1.0
+    pngs = [f"frames/frame_{k:04d}.png" for k in range(frames.shape[0])]
+    names = ["frames.npy", "transient.json", "preview.gif", *pngs]
+    with staged_output(args.out, args.force, names=names) as stage:
+        save_npy(stage / "frames.npy", frames)
+        (stage / "frames").mkdir()
+        try:
+            from tqdm import tqdm
+        except ImportError:  # progress bars are a nicety
+
+            def tqdm(x, **_):
+                return x
+
+        for k, name in enumerate(tqdm(pngs, desc="frames", disable=None)):
+            write_frame_png16(stage / name, frames[k] / scale)
+        save_gif(stage / "preview.gif", frames, times, fps=args.fps)
+        write_json(
+            stage / "transient.json",
+            {
+                "cube": str(args.cube),
+                "frames": list(frames.shape),
+                "shift_ps": args.shift_ps,
+                "times_ps": (times / 1e-12).tolist(),
+                "super_resolved": bool(args.sr),
+                "png_full_scale_counts": scale,
+                "png_note": "frame PNGs are 16-bit, counts = value / 65535 * png_full_scale_counts",
+            },
+        )
+    print(
+        f"transient: {frames.shape[0]} frames of {frames.shape[1]} x {frames.shape[2]}; "
+        f"wrote {args.out}"
+    )
+    return 0

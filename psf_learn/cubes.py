@@ -1,0 +1,138 @@
+"""Reading gated-SPAD cubes and instrument responses; writing frame images.
+
+A cube is an (H, W, T) array of non-negative counts whose k-th sample is taken
+at scan time ``k * shift``: either one ``.npy`` file or a folder of per-shift
+frames (PNG/TIFF, 8 or 16 bit, single channel) sorted by file name. The
+readers validate and raise InputError naming the file; they never rescale.
+"""
+
+from pathlib import Path
+
+import numpy as np
+
+from doe.errors import InputError
+from doe.files import load_npy
+
+FRAME_SUFFIXES = (".png", ".tif", ".tiff")
+
+
+def check_cube(cube, source):
+    """Validate a gated cube; return it as float64 (H, W, T).
+
+    Refuses a wrong rank, non-numeric data, NaN/inf, negative counts and
+    profiles too short to fit (T < 4).
+    """
+    cube = np.asarray(cube)
+    if cube.dtype.kind not in "uif":
+        raise InputError(source, f"cube must hold numeric counts, got dtype {cube.dtype}")
+    if cube.ndim != 3:
+        raise InputError(
+            source, f"cube must be (H, W, T) with T time samples, got shape {cube.shape}"
+        )
+    if min(cube.shape) < 1 or cube.shape[2] < 4:
+        raise InputError(
+            source, f"cube must have H, W >= 1 and T >= 4 samples, got shape {cube.shape}"
+        )
+    if cube.dtype.kind == "f" and not np.all(np.isfinite(cube)):
+        raise InputError(
+            source, f"cube contains {np.count_nonzero(~np.isfinite(cube))} NaN or infinite values"
+        )
+    if cube.dtype.kind in "if" and np.any(cube < 0):
+        raise InputError(
+            source,
+            f"cube has negative counts (min {cube.min():.6g}); counts "
+            "must be >= 0 (subtract no dark level that makes them negative)",
+        )
+    return cube.astype(np.float64)
+
+
+def read_cube(path):
+    """Read a gated cube from a ``.npy`` file or a folder of frames; return float64 (H, W, T)."""
+    path = Path(path)
+    if path.is_dir():
+        return check_cube(_read_frame_folder(path), path)
+    if not path.exists():
+        raise InputError(path, "no such file or folder")
+    if path.suffix.lower() != ".npy":
+        raise InputError(path, "a cube must be a .npy file or a folder of PNG/TIFF frames")
+    return check_cube(load_npy(path), path)
+
+
+def _read_frame_folder(folder):
+    files = sorted(
+        p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in FRAME_SUFFIXES
+    )
+    if not files:
+        raise InputError(folder, f"no frames ({', '.join(FRAME_SUFFIXES)}) in this folder")
+    frames = [read_frame(p) for p in files]
+    shape = frames[0].shape
+    for p, f in zip(files, frames, strict=True):
+        if f.shape != shape:
+            raise InputError(
+                p,
+                f"frame is {f.shape[1]} x {f.shape[0]}, the first frame "
+                f"{files[0].name} is {shape[1]} x {shape[0]}",
+            )
+    return np.stack(frames, axis=-1)
+
+
+def read_frame(path):
+    """Read one single-channel frame keeping its integer type (uint8/uint16) or float32."""
+    import OpenImageIO as oiio
+
+    path = Path(path)
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise InputError(path, f"not a readable image ({oiio.geterror()})")
+    try:
+        spec = inp.spec()
+        if spec.nchannels != 1:
+            raise InputError(path, f"frame must be single-channel, has {spec.nchannels} channels")
+        base = spec.format.basetype
+        if base == oiio.UINT8:
+            fmt = "uint8"
+        elif base == oiio.UINT16:
+            fmt = "uint16"
+        elif base in (oiio.HALF, oiio.FLOAT, oiio.DOUBLE):
+            fmt = "float"
+        else:
+            raise InputError(path, f"unsupported pixel type {spec.format}; use 8/16-bit or float")
+        pixels = inp.read_image(0, 0, 0, 1, fmt)
+    finally:
+        inp.close()
+    if pixels is None:
+        raise InputError(path, "could not read the pixels")
+    return np.asarray(pixels).reshape(spec.height, spec.width)
+
+
+def read_irf(path):
+    """Read a measured instrument response: a 1-D ``.npy`` array of >= 4 finite samples."""
+    irf = load_npy(path)
+    if irf.dtype.kind not in "uif":
+        raise InputError(path, f"IRF must be numeric, got dtype {irf.dtype}")
+    irf = np.squeeze(irf)
+    if irf.ndim != 1 or irf.size < 4:
+        raise InputError(path, f"IRF must be 1-D with at least 4 samples, got shape {irf.shape}")
+    irf = irf.astype(np.float64)
+    if not np.all(np.isfinite(irf)):
+        raise InputError(path, "IRF contains NaN or infinite values")
+    if not irf.max() > 0:
+        raise InputError(path, "IRF has no positive sample")
+    return irf
+
+
+def write_frame_png16(path, frame):
+    """Write a (H, W) array in [0, 1] as a 16-bit single-channel PNG."""
+    import OpenImageIO as oiio
+
+    data = np.round(np.clip(frame, 0.0, 1.0) * 65535).astype(np.uint16)
+    spec = oiio.ImageSpec(data.shape[1], data.shape[0], 1, oiio.UINT16)
+    out = oiio.ImageOutput.create(str(path))
+    if out is None or not out.open(str(path), spec):
+        raise OSError(f"cannot write {path}: {oiio.geterror()}")
+    try:
+        # OpenImageIO scrambles a 2-D array; (H, W, 1) is read as intended.
+        if not out.write_image(data[:, :, None]):
+            raise OSError(f"cannot write {path}: {out.geterror()}")
+    finally:
+        out.close()
