@@ -116,20 +116,17 @@ def build_library(masks, pitch_nm, tiles, design_name, aperture_nm=None, marks=T
     top_name, tile_name = cell_name(design_name, "TOP"), cell_name(design_name, "TILE")
     top = lib.new_cell(top_name)
     polys, counts = tile_polygons(masks, pitch_nm)
+    tile = lib.new_cell(tile_name)
+    tile.add(*polys)
+    top.add(
+        gdstk.Reference(
+            tile, origin=(x0 / 1000.0, y0 / 1000.0), columns=nx, rows=ny,
+            spacing=(tile_um, tile_um),
+        )
+    )  # fmt: skip
     if flat:
-        for i in range(nx):
-            for j in range(ny):
-                dx, dy = (x0 + i * n * pitch_nm) / 1000.0, (y0 + j * n * pitch_nm) / 1000.0
-                top.add(*(p.copy().translate(dx, dy) for p in polys))
-    else:
-        tile = lib.new_cell(tile_name)
-        tile.add(*polys)
-        top.add(
-            gdstk.Reference(
-                tile, origin=(x0 / 1000.0, y0 / 1000.0), columns=nx, rows=ny,
-                spacing=(tile_um, tile_um),
-            )
-        )  # fmt: skip
+        top.flatten()  # copies every tile's polygons into the top cell (C++ side)
+        lib.remove(tile)
     mark_layers = ()
     if marks:
         half = max(nx, ny) * n * pitch_nm // 2 + 1
