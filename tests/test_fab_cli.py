@@ -216,3 +216,16 @@ def test_dense_default_design_fits_the_size_budget(tmp_path):
     assert (out / "mask.gds").stat().st_size <= 5 * 2**20
     man = json.loads((out / "fab_manifest.json").read_text())
     assert man["pixel_pitch_nm"] == 4990 and man["tiles"] == [16, 16]
+
+
+def test_failed_readback_exits_1_and_releases_nothing(tmp_path, monkeypatch, capsys):
+    import layouts.readback
+
+    monkeypatch.setattr(layouts.readback, "check_written_gds", lambda *a: ["layer 1: 3 differ"])
+    d = tmp_path / "design"
+    make_design_dir(d, n=9)
+    out = tmp_path / "out"
+    assert main(["fab", str(d), "--out", str(out)]) == 1
+    assert "FAIL" in capsys.readouterr().err
+    assert not out.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["design"]
