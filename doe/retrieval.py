@@ -1,0 +1,442 @@
+"""Phase retrieval: from a K x K target PSF to an L-level phase tile of N x N pixels.
+
+The pipeline, all on the forward model of :mod:`doe.fraunhofer`:
+
+1. :func:`gerchberg_saxton` -- a continuous phase whose K x K window of orders
+   has the target's shape; the orders outside the window are left free and act
+   as the light sink.
+2. :func:`refine_continuous` -- nlopt L-BFGS on :func:`objective`, which trades
+   PSF fidelity against efficiency with an analytic (adjoint) gradient.
+3. :func:`quantise_progressive` -- the same objective plus a penalty pulling
+   every phase towards the L levels, tightened over stages, then rounding.
+4. :func:`coordinate_descent` -- a direct search over the discrete levels on the
+   real quantised objective; this is what closes the gap left by rounding.
+
+:func:`retrieve_phase` runs all four and reports the quality figures of
+:func:`doe.fraunhofer.quality` for the continuous and the quantised design.
+"""
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.fft
+
+from doe import fraunhofer
+
+DEFAULT_WEIGHT = 30.0
+"""Weight of the efficiency term against the fidelity terms in :func:`objective`.
+
+The fidelity terms are 1 where the rmse or the correlation reaches its goal, so
+30 trades one percent of efficiency against 0.3 of that budget.
+"""
+
+CD_WEIGHTS = (100.0, 30.0, 10.0, 3.0)
+"""Efficiency weights of the coordinate-descent sweeps, most efficient first."""
+
+DONE = 0.4
+"""Fidelity (see :func:`fidelity`) at which coordinate descent stops trading efficiency."""
+
+
+@dataclass(frozen=True)
+class Retrieval:
+    """Result of :func:`retrieve_phase`.
+
+    Attributes
+    ----------
+    levels : (N, N) uint8
+        Quantised tile, values 0 .. L-1 (CONVENTIONS.md: phase 2 pi l / L).
+    phase : (N, N) float64
+        Continuous phase (rad) before quantisation.
+    n_levels : int
+        Number of phase levels L.
+    quality_continuous, quality_quantised : dict
+        ``correlation``, ``rmse`` and ``efficiency`` of the continuous phase and
+        of the level map, from :func:`doe.fraunhofer.quality`.
+    seconds : float
+        Wall-clock time of the retrieval.
+    seed : int
+        Seed of the random start.
+    """
+
+    levels: np.ndarray
+    phase: np.ndarray
+    n_levels: int
+    quality_continuous: dict
+    quality_quantised: dict
+    seconds: float
+    seed: int
+
+
+# --------------------------------------------------------------------------- window
+def window_matrix(n, k):
+    """Return the (K, N) partial DFT that maps a tile axis to the K window orders.
+
+    ``A @ exp(1j * phase) @ A.T / N**2`` equals the K x K window of
+    :func:`doe.fraunhofer.order_amplitudes` (row i holds order i - K//2).
+    """
+    orders = np.arange(k) - k // 2
+    return np.exp(-2j * np.pi * np.outer(orders, np.arange(n)) / n)
+
+
+def _window(field, a):
+    return a @ field @ a.T / field.size
+
+
+def _window_fft(field, idx):
+    """Return the K x K window of orders of a unit-amplitude field (FFT, no BLAS threads)."""
+    return scipy.fft.fft2(field)[np.ix_(idx, idx)] / field.size
+
+
+def _back_fft(g, idx, n):
+    """Return sum_mn g[m, n] exp(-2 pi i (m r + n c) / N) for every pixel (r, c), (N, N)."""
+    full = np.zeros((n, n), dtype=np.complex128)
+    full[np.ix_(idx, idx)] = g
+    return scipy.fft.fft2(full)
+
+
+# --------------------------------------------------------------------------- objective
+RMSE_GOAL = 0.005
+"""Peak-normalised rmse the fidelity term is measured against (the acceptance bound)."""
+
+CORRELATION_GOAL = 0.9999
+"""Pearson correlation the fidelity term is measured against (the acceptance bound)."""
+
+
+@dataclass(frozen=True)
+class _Goal:
+    """The target's constants that the fidelity terms need (see :func:`objective`)."""
+
+    target: np.ndarray   # (K, K), sum 1
+    scaled: np.ndarray   # target / max(target)
+    centred: np.ndarray  # target - mean, (K, K)
+    norm: float          # |target - mean|
+    peak: np.ndarray     # (K, K) bool, where the target has its maximum
+    c_rmse: float        # 1 / (K * RMSE_GOAL)^2
+    c_corr: float        # 1 / (1 - CORRELATION_GOAL)
+
+    @classmethod
+    def of(cls, target):
+        centred = target - target.mean()
+        tmax = float(target.max())
+        return cls(target=target, scaled=target / tmax, centred=centred,
+                   norm=float(np.sqrt((centred**2).sum())),
+                   peak=target >= tmax * (1 - 1e-12),
+                   c_rmse=1.0 / (target.shape[0] * RMSE_GOAL) ** 2,
+                   c_corr=1.0 / (1.0 - CORRELATION_GOAL))
+
+
+def _values(power, goal, weight):
+    """Return J for window powers ``power`` (..., K, K), broadcasting over leading axes."""
+    axes = (-2, -1)
+    eff = power.sum(axis=axes)
+    centred = power - eff[..., None, None] / goal.target.size
+    corr = (centred * goal.centred).sum(axis=axes) / (
+        np.sqrt((centred * centred).sum(axis=axes)) * goal.norm)
+    p0 = (power * goal.peak).sum(axis=axes) / goal.peak.sum()
+    u = power / p0[..., None, None] - goal.scaled
+    return goal.c_rmse * (u * u).sum(axis=axes) + goal.c_corr * (1.0 - corr) - weight * eff
+
+
+def _fidelity_terms(power, goal, weight):
+    """Return (J, dJ/dP) for one (K, K) window power P (see :func:`objective`)."""
+    npeak = goal.peak.sum()
+    centred = power - power.mean()
+    cnorm = np.sqrt((centred**2).sum())
+    corr = (centred * goal.centred).sum() / (cnorm * goal.norm)
+    p0 = (power * goal.peak).sum() / npeak
+    u = power / p0 - goal.scaled
+    value = float(goal.c_rmse * (u**2).sum() + goal.c_corr * (1.0 - corr) - weight * power.sum())
+    # d corr / dP: the mean removal drops out because both centred arrays sum to 0
+    d_corr = goal.centred / (cnorm * goal.norm) - corr * centred / cnorm**2
+    d_u = 2.0 * goal.c_rmse * (u / p0 - goal.peak * ((u * power).sum() / p0**2 / npeak))
+    return value, d_u - goal.c_corr * d_corr - weight
+
+
+def objective(phase, target, weight=DEFAULT_WEIGHT, goal=None):
+    """Return (J, dJ/dphase) of the retrieval objective.
+
+    J = sum((P / E - t)^2) / s - weight * E, where P is the window power of
+    ``phase`` (fraction of the incident light per order), E = sum(P) the
+    efficiency, t the target and s = :func:`fidelity_scale` (so the first term
+    is 1 where the rmse or correlation reaches its goal). The gradient is the
+    adjoint of the window DFT.
+
+    Parameters
+    ----------
+    phase : (N, N) array
+        Tile phase, rad.
+    target : (K, K) array
+        Target PSF, sum 1.
+    weight : float
+        Efficiency weight (see :data:`DEFAULT_WEIGHT`).
+    scale : float or None
+        Cached :func:`fidelity_scale`.
+
+    Returns
+    -------
+    value : float
+    grad : (N, N) float64
+        dJ/dphase, rad^-1.
+    """
+    phase = np.asarray(phase, dtype=np.float64)
+    n, k = phase.shape[0], target.shape[0]
+    idx = fraunhofer.window_indices(n, k)
+    goal = _Goal.of(target) if goal is None else goal
+    field = np.exp(1j * phase)
+    w = _window_fft(field, idx)
+    value, grad_p = _fidelity_terms(np.abs(w) ** 2, goal, weight)
+    back = _back_fft(grad_p * np.conj(w), idx, n)
+    grad = -2.0 / phase.size * np.imag(field * back)
+    return value, grad
+
+
+def fidelity(phase, target):
+    """Return the fidelity terms of :func:`objective` (1 = a quality goal just met)."""
+    value, _ = objective(phase, target, weight=0.0)
+    return value
+
+
+# --------------------------------------------------------------------------- GS
+def gerchberg_saxton(target, n_pixels, iterations=150, rng=None, phase=None, weighted=True,
+                     n_levels=None, gains=None):
+    """Return (phase, gains): a tile phase (rad, (N, N)) by (weighted) Gerchberg-Saxton.
+
+    Order plane: the K x K window gets the amplitude gains * sqrt(target) with the
+    current phases; every other order is set to zero. Tile plane: only the phase
+    is kept (phase-only plate), which scatters the light that does not fit the
+    window into the orders outside it -- the light sink. Zeroing the outside
+    orders in the projection is what pulls light into the window; leaving them
+    untouched and rescaling the window to its own power keeps the efficiency of
+    the random start (about K^2 / N^2).
+
+    Parameters
+    ----------
+    target : (K, K) array
+        Target PSF, sum 1.
+    n_pixels : int
+        Tile size N.
+    iterations : int
+        Number of iterations.
+    rng : numpy.random.Generator or None
+        Source of the random start phase (ignored when ``phase`` is given).
+    phase : (N, N) array or None
+        Start phase, rad.
+    weighted : bool
+        Weighted GS: each window order's gain is multiplied every iteration by
+        sqrt(target / simulated PSF), which evens out the orders' errors.
+    n_levels : int or None
+        If given, the tile-plane projection rounds the phase to these levels
+        (quantised GS); the returned phase then lies on the levels.
+    gains : (K, K) array or None
+        Start gains (e.g. from a previous call), default 1.
+    """
+    k = target.shape[0]
+    if phase is None:
+        rng = np.random.default_rng(0) if rng is None else rng
+        phase = rng.uniform(-np.pi, np.pi, (n_pixels, n_pixels))
+    idx = fraunhofer.window_indices(n_pixels, k)
+    sel = np.ix_(idx, idx)
+    amp = np.sqrt(target)
+    lit = target > 0
+    gains = np.ones_like(target) if gains is None else np.array(gains, dtype=np.float64)
+    phase = np.asarray(phase, dtype=np.float64)
+    for _ in range(iterations):
+        win = scipy.fft.fft2(np.exp(1j * phase))[sel]
+        if weighted:
+            power = np.abs(win) ** 2
+            power = power / power.sum()
+            gains[lit] *= np.sqrt(target[lit] / np.maximum(power[lit], 1e-300))
+            gains /= np.sqrt((gains[lit] ** 2 * target[lit]).sum())
+        spec = np.zeros((n_pixels, n_pixels), dtype=np.complex128)
+        spec[sel] = gains * amp * np.exp(1j * np.angle(win))
+        phase = np.angle(scipy.fft.ifft2(spec))
+        if n_levels is not None:
+            phase = level_step(n_levels) * np.round(phase / level_step(n_levels))
+    return phase, gains
+
+
+def level_step(n_levels):
+    """Return the phase step between two levels, 2 pi / L (rad)."""
+    return 2 * np.pi / n_levels
+
+
+# --------------------------------------------------------------------------- L-BFGS
+def _lbfgs(fun, x0, max_eval, ftol_rel=1e-10):
+    """Minimise ``fun(x) -> (value, grad)`` with nlopt L-BFGS; return the best point seen."""
+    import nlopt
+
+    best = {"x": x0.copy(), "f": np.inf}
+
+    def f(x, grad):
+        value, g = fun(x)
+        if grad.size:
+            grad[:] = g.ravel()
+        if value < best["f"]:
+            best["f"], best["x"] = value, x.copy()
+        return value
+
+    opt = nlopt.opt(nlopt.LD_LBFGS, x0.size)
+    opt.set_min_objective(f)
+    opt.set_maxeval(int(max_eval))
+    opt.set_ftol_rel(ftol_rel)
+    try:
+        opt.optimize(x0.ravel().copy())
+    except (nlopt.RoundoffLimited, ValueError, RuntimeError):
+        pass  # keep our own best point: nlopt drops it on these exceptions
+    return best["x"], best["f"]
+
+
+def refine_continuous(phase, target, weight=DEFAULT_WEIGHT, max_eval=300):
+    """Return the phase (rad, (N, N)) after L-BFGS on :func:`objective`."""
+    shape = phase.shape
+    goal = _Goal.of(target)
+
+    def fun(x):
+        value, grad = objective(x.reshape(shape), target, weight, goal)
+        return value, grad
+
+    x, _ = _lbfgs(fun, np.asarray(phase, float).ravel(), max_eval)
+    return x.reshape(shape)
+
+
+def round_levels(phase, n_levels):
+    """Return the nearest level (uint8 (N, N)) to each phase (rad), modulo 2 pi."""
+    q = np.round(np.asarray(phase) * n_levels / (2 * np.pi)).astype(np.int64) % n_levels
+    return q.astype(np.uint8)
+
+
+# --------------------------------------------------------------------------- discrete
+def coordinate_descent(levels, target, n_levels, weight=DEFAULT_WEIGHT, sweeps=1,
+                       chunk=512, rng=None, shifts=(1, -1)):
+    """Return a level map improved by greedy single-pixel level changes.
+
+    Changing pixel (r, c) from level a to b adds (e^{2 pi i b/L} - e^{2 pi i a/L})
+    A[:, r] A[:, c]^T / N^2 to the window (A = :func:`window_matrix`), so every
+    candidate costs O(K^2). Pixels are visited in chunks (random order); each
+    chunk's L - 1 candidates per pixel are scored together against the current
+    window, then the improving ones are applied in order of predicted gain, each
+    re-checked against the window updated by the moves before it.
+
+    Parameters
+    ----------
+    levels : (N, N) uint8
+        Start level map.
+    target : (K, K) array
+        Target PSF, sum 1.
+    n_levels : int
+        Number of levels L.
+    weight : float
+        Efficiency weight of :func:`objective`.
+    sweeps : int
+        Maximum passes over all pixels (stops early when a pass changes nothing).
+    chunk : int
+        Pixels scored together.
+    rng : numpy.random.Generator or None
+        Source of the visiting order.
+    shifts : sequence of int or None
+        Level changes tried per pixel (modulo L); None tries all L - 1. One level
+        up or down finds almost every improving move at a third of the cost.
+
+    Returns
+    -------
+    levels : (N, N) uint8
+    """
+    rng = np.random.default_rng(0) if rng is None else rng
+    q = np.asarray(levels).astype(np.int64)
+    n, k = q.shape[0], target.shape[0]
+    goal = _Goal.of(target)
+    a = window_matrix(n, k)
+    phasors = np.exp(1j * level_step(n_levels) * np.arange(n_levels))
+    w = _window_fft(phasors[q], fraunhofer.window_indices(n, k))
+    value = float(_values(np.abs(w) ** 2, goal, weight))
+    shifts = np.arange(1, n_levels) if shifts is None else np.asarray(shifts) % n_levels
+    for _ in range(sweeps):
+        changed = 0
+        order = rng.permutation(n * n)
+        for start in range(0, order.size, chunk):
+            pix = order[start:start + chunk]
+            r, c = pix // n, pix % n
+            cur = q[r, c]
+            cand = (cur[:, None] + shifts[None, :]) % n_levels          # (B, L-1)
+            delta = (phasors[cand] - phasors[cur][:, None]) / (n * n)  # (B, L-1)
+            basis = a[:, r].T[:, :, None] * a[:, c].T[:, None, :]      # (B, K, K)
+            trial = w + delta[:, :, None, None] * basis[:, None]        # (B, L-1, K, K)
+            vals = _values(trial.real**2 + trial.imag**2, goal, weight)
+            best = np.argmin(vals, axis=1)
+            gain = vals[np.arange(pix.size), best] - value
+            for i in np.argsort(gain, kind="stable"):
+                if gain[i] >= 0:
+                    break
+                new_w = w + delta[i, best[i]] * basis[i]
+                new_value = float(_values(new_w.real**2 + new_w.imag**2, goal, weight))
+                if new_value < value:
+                    w, value = new_w, new_value
+                    q[r[i], c[i]] = cand[i, best[i]]
+                    changed += 1
+        if changed == 0:
+            break
+    return q.astype(np.uint8)
+
+
+# --------------------------------------------------------------------------- entry point
+def retrieve_phase(target, n_pixels, n_levels=8, seed=0, weight=DEFAULT_WEIGHT,
+                   gs_iterations=150, lbfgs_evals=40, quantised_iterations=100,
+                   cd_weights=CD_WEIGHTS, done=DONE):
+    """Design an L-level phase tile whose K x K window of orders forms ``target``.
+
+    Weighted GS, L-BFGS refinement of the continuous phase, quantised weighted GS
+    from it, then coordinate descent on the level map with the efficiency weights
+    ``cd_weights`` in turn (one sweep each), stopping once the fidelity part of the
+    objective is at most ``done``.
+
+    Parameters
+    ----------
+    target : (K, K) array
+        Target PSF, values >= 0, sum 1, K odd (CONVENTIONS.md orientation).
+    n_pixels : int
+        Tile size N (>= K).
+    n_levels : int
+        Number of phase levels L.
+    seed : int
+        Seed of the random start; the same seed gives the same level map.
+    weight : float
+        Efficiency weight of the continuous refinement (see :data:`DEFAULT_WEIGHT`).
+    gs_iterations, lbfgs_evals, quantised_iterations : int
+        Effort of the three continuous/quantised stages.
+    cd_weights : sequence of float
+        Efficiency weights of the coordinate-descent sweeps, most efficient first.
+    done : float
+        Fidelity (rmse and correlation terms of :func:`objective`) at which the
+        sweeps stop.
+
+    Returns
+    -------
+    Retrieval
+    """
+    target = np.asarray(target, dtype=np.float64)
+    if target.ndim != 2 or target.shape[0] != target.shape[1] or target.shape[0] % 2 == 0:
+        raise ValueError(f"target must be square with odd size, got shape {target.shape}")
+    k = target.shape[0]
+    if k > n_pixels:
+        raise ValueError(f"kernel size K = {k} exceeds the tile size N = {n_pixels}")
+    if n_levels < 2:
+        raise ValueError(f"need at least 2 levels, got {n_levels}")
+    target = target / target.sum()
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    phase, gains = gerchberg_saxton(target, n_pixels, gs_iterations, rng)
+    phase = refine_continuous(phase, target, weight, lbfgs_evals)
+    quality_cont = fraunhofer.quality(phase, target)
+    soft, _ = gerchberg_saxton(target, n_pixels, quantised_iterations, phase=phase,
+                               n_levels=n_levels, gains=gains)
+    levels = round_levels(soft, n_levels)
+    for w in cd_weights:
+        if fidelity(fraunhofer.level_phase(levels, n_levels), target) <= done:
+            break
+        levels = coordinate_descent(levels, target, n_levels, w, sweeps=1, rng=rng)
+    seconds = time.perf_counter() - t0
+    quality_q = fraunhofer.quality(fraunhofer.level_phase(levels, n_levels), target)
+    return Retrieval(levels=levels, phase=np.mod(phase, 2 * np.pi), n_levels=n_levels,
+                     quality_continuous=quality_cont, quality_quantised=quality_q,
+                     seconds=seconds, seed=seed)

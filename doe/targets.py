@@ -1,0 +1,119 @@
+"""Named K x K target PSFs for tests, benchmarks and demonstrations.
+
+Every generator returns a float64 (K, K) array, K odd, values >= 0, sum 1, in
+the orientation of CONVENTIONS.md (element [K//2, K//2] is the optical axis,
+rows grow downwards, columns to the right). Coordinates below are in
+sub-pixels of the sensor grid, the unit of the PSF kernel.
+"""
+
+import numpy as np
+
+PAPER_SIGMA = 0.459
+"""Standard deviation (sub-pixels) of the Gaussian PSF of Sun et al. 2020."""
+
+
+def _grid(k):
+    """Return (y, x) sub-pixel offsets from the centre; y grows downwards."""
+    c = np.arange(k) - k // 2
+    return np.meshgrid(c.astype(float), c.astype(float), indexing="ij")
+
+
+def _normalise(psf):
+    psf = np.clip(np.asarray(psf, dtype=np.float64), 0.0, None)
+    return psf / psf.sum()
+
+
+def gaussian(k=11, sigma=1.0, sigma_x=None, angle=0.0, centre=(0.0, 0.0)):
+    """Return a (possibly elliptical, rotated, shifted) Gaussian PSF.
+
+    Parameters
+    ----------
+    k : int
+        Kernel size K (odd).
+    sigma : float
+        Standard deviation along y (and x unless ``sigma_x`` is given), sub-pixels.
+    sigma_x : float or None
+        Standard deviation along x, sub-pixels.
+    angle : float
+        Rotation of the ellipse, radians, counter-clockwise as seen on the sensor.
+    centre : (float, float)
+        (y, x) offset of the peak from the optical axis, sub-pixels.
+    """
+    y, x = _grid(k)
+    y, x = y - centre[0], x - centre[1]
+    sx = sigma if sigma_x is None else sigma_x
+    c, s = np.cos(angle), np.sin(angle)
+    u = c * x - s * y
+    v = s * x + c * y
+    return _normalise(np.exp(-0.5 * ((u / sx) ** 2 + (v / sigma) ** 2)))
+
+
+def compact_blob(k=11):
+    """Return a compact isotropic blob (Gaussian, sigma 1.2 sub-pixels)."""
+    return gaussian(k, sigma=1.2)
+
+
+def near_delta(k=11):
+    """Return a near-delta Gaussian (sigma 0.35): tiny but non-zero off-centre values."""
+    return gaussian(k, sigma=0.35)
+
+
+def paper_gaussian(k=11):
+    """Return the Gaussian PSF of Sun et al. 2020 (sigma 0.459 sub-pixels)."""
+    return gaussian(k, sigma=PAPER_SIGMA)
+
+
+def anisotropic(k=11):
+    """Return an elongated Gaussian (sigmas 2.2 x 0.7) rotated by 30 degrees."""
+    return gaussian(k, sigma=0.7, sigma_x=2.2, angle=np.pi / 6)
+
+
+def sparse_dots(k=11):
+    """Return a few isolated dots of unequal weight on a dark background."""
+    psf = np.zeros((k, k))
+    c = k // 2
+    spots = [((0, 0), 1.0), ((-3, 2), 0.7), ((2, -4), 0.5), ((4, 3), 0.8), ((-2, -2), 0.6)]
+    for (dy, dx), w in spots:
+        psf[(c + dy) % k, (c + dx) % k] = w
+    return _normalise(psf)
+
+
+def flat_top(k=11, radius=3.2):
+    """Return a uniform disc of ``radius`` sub-pixels (hard edge, zero outside)."""
+    y, x = _grid(k)
+    return _normalise((y**2 + x**2 <= radius**2).astype(float))
+
+
+def asymmetric(k=11):
+    """Return a shape with no symmetry: an off-axis blob with a bent tail."""
+    y, x = _grid(k)
+    blob = np.exp(-0.5 * (((y + 1) / 1.0) ** 2 + ((x - 1) / 1.3) ** 2))
+    tail = np.exp(-0.5 * (((y - 0.15 * x**2 - 1.5) / 0.6) ** 2)) * (x < 0) * np.exp(x / 4)
+    return _normalise(blob + 0.6 * tail)
+
+
+def dense_random(k=11, seed=0):
+    """Return a kernel with independent uniform random values in every element."""
+    rng = np.random.default_rng(seed)
+    return _normalise(rng.uniform(0.05, 1.0, (k, k)))
+
+
+TARGETS = {
+    "compact_blob": compact_blob,
+    "near_delta": near_delta,
+    "paper_gaussian": paper_gaussian,
+    "anisotropic": anisotropic,
+    "sparse_dots": sparse_dots,
+    "flat_top": flat_top,
+    "asymmetric": asymmetric,
+    "dense_random": dense_random,
+}
+"""Name -> generator ``f(k) -> (K, K) PSF`` of every named target."""
+
+
+def make_target(name, k=11):
+    """Return the named target PSF of size ``k`` (see :data:`TARGETS`)."""
+    try:
+        return TARGETS[name](k)
+    except KeyError:
+        raise ValueError(f"unknown target {name!r}; choose from {', '.join(TARGETS)}") from None
