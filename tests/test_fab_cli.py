@@ -160,16 +160,17 @@ def test_missing_design_dir_and_bad_target_exit_2(tmp_path, capsys):
     assert main(["fab", str(tmp_path / "nope"), "--out", str(out)]) == 2
     assert "nope" in capsys.readouterr().err
     d = tmp_path / "design"
-    make_design_dir(d, n=9, target=False)
+    make_design_dir(d, n=15, target=False)
     np.save(d / "target_psf.npy", -np.ones((5, 5)) / 25)
     assert main(["fab", str(d), "--out", str(out)]) == 2
-    assert "target_psf.npy" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "target_psf.npy" in err and "negative" in err
     assert not out.exists()
 
 
 def test_levels_mismatch_with_retrieval_json_exit_2(tmp_path, capsys):
     d = tmp_path / "design"
-    make_design_dir(d, n=9)
+    make_design_dir(d, n=15)
     (d / "retrieval.json").write_text(json.dumps({"levels": 4}))
     assert main(["fab", str(d), "--out", str(tmp_path / "out")]) == 2
     assert "retrieval.json" in capsys.readouterr().err
@@ -223,9 +224,17 @@ def test_failed_readback_exits_1_and_releases_nothing(tmp_path, monkeypatch, cap
 
     monkeypatch.setattr(layouts.readback, "check_written_gds", lambda *a: ["layer 1: 3 differ"])
     d = tmp_path / "design"
-    make_design_dir(d, n=9)
+    make_design_dir(d, n=15)
     out = tmp_path / "out"
     assert main(["fab", str(d), "--out", str(out)]) == 1
     assert "FAIL" in capsys.readouterr().err
     assert not out.exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["design"]
+
+
+def test_kernel_larger_than_tile_exit_2(tmp_path, capsys):
+    d = tmp_path / "design"
+    make_design_dir(d, n=9, k=11)
+    assert main(["fab", str(d), "--out", str(tmp_path / "out")]) == 2
+    assert "exceeds" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
