@@ -1,0 +1,177 @@
+"""Tests of fab.report: every section present, files exist, bytes deterministic."""
+
+import hashlib
+import re
+
+import numpy as np
+import pytest
+
+from doe.design import derive, design_summary, load_design
+from doe.fraunhofer import simulate_levels
+from fab.masks import masks_from_levels
+from fab.report import FIGURES, REPORT_HTML, REPORT_MD, TOLERANCE_JSON, write_fab_report
+from fab.tolerance import tolerance_analysis
+
+N, K, L = 24, 7, 8
+
+
+def make_context(tmp_path, with_tolerance=True):
+    design = load_design()
+    der = derive(design)
+    rng = np.random.default_rng(7)
+    levels = rng.integers(0, L, (N, N)).astype(np.uint8)
+    simulated, eff = simulate_levels(levels, L, K)
+    target = rng.uniform(0.5, 1.0, (K, K))
+    target /= target.sum()
+    masks = masks_from_levels(levels, L, der.level_step)
+    pitch_nm = round(der.mask_pixel_pitch * 1e9)
+    tolerance = None
+    if with_tolerance:
+        tolerance = tolerance_analysis(
+            levels,
+            L,
+            target,
+            masks,
+            der.mask_pixel_pitch,
+            der.level_step,
+            design.optics.wavelength,
+            der.refractive_index,
+            seed=1,
+        )
+    listed = tmp_path / "listed.bin"
+    listed.write_bytes(rng.bytes(100))
+    manifest = {
+        "wavelength_nm": 655.0,
+        "refractive_index": der.refractive_index,
+        "levels": L,
+        "level_step_nm": der.level_step * 1e9,
+        "pixel_pitch_nm": pitch_nm,
+        "tile_pixels": N,
+        "tiles": [3, 3],
+        "array_origin_nm": [0, 0],
+        "gds": "mask.gds",
+        "top_cell": "TOP",
+        "tile_cell": "TILE",
+        "resist_tone": "positive resist, dark-field mask",
+        "data_polarity": "a polygon marks area to etch",
+        "masks": [
+            {
+                "name": mk.name,
+                "gds_layer": mk.gds_layer,
+                "gds_datatype": 0,
+                "etch_depth_nm": mk.etch_depth * 1e9,
+                "exposure_order": mk.exposure_order,
+            }
+            for mk in masks
+        ],
+    }
+    return {
+        "design": design_summary(design),
+        "manifest": manifest,
+        "masks": [
+            {
+                "name": mk.name,
+                "gds_layer": mk.gds_layer,
+                "etch_depth_nm": mk.etch_depth * 1e9,
+                "exposure_order": mk.exposure_order,
+                "fill_fraction": mk.fill_fraction,
+                "polygon_count": 10 + i,
+                "min_feature_um": pitch_nm / 1000,
+            }
+            for i, mk in enumerate(masks)
+        ],
+        "levels": levels,
+        "target_psf": target,
+        "simulated_psf": simulated,
+        "efficiency": eff,
+        "tolerance": tolerance,
+        "orientation": "Viewed onto the patterned surface, right-reading.",
+        "files": [
+            {
+                "path": "listed.bin",
+                "bytes": 100,
+                "sha256": hashlib.sha256(listed.read_bytes()).hexdigest(),
+            }
+        ],
+    }
+
+
+@pytest.fixture(scope="module")
+def written(tmp_path_factory):
+    base = tmp_path_factory.mktemp("report")
+    context = make_context(base)
+    out = base / "out"
+    names = write_fab_report(out, context)
+    return context, out, names
+
+
+def test_every_listed_file_exists_and_figures_are_png(written):
+    _, out, names = written
+    assert {REPORT_MD, REPORT_HTML, TOLERANCE_JSON, *FIGURES.values()} == set(names)
+    for name in names:
+        assert (out / name).is_file(), name
+    for name in FIGURES.values():
+        data = (out / name).read_bytes()
+        assert data.startswith(b"\x89PNG")
+        assert b"matplotlib" not in data.lower()  # no version stamp: deterministic bytes
+
+
+@pytest.mark.parametrize("name", [REPORT_MD, REPORT_HTML])
+def test_report_has_every_required_section(written, name):
+    context, out, _ = written
+    text = (out / name).read_text()
+    for section in (
+        "Summary",
+        "Design and derived optics",
+        "Material",
+        "Process",
+        "Orientation",
+        "Figures",
+        "Tolerances",
+        "Budget",
+        "Acceptance thresholds",
+        "Files",
+    ):
+        assert section in text, section
+    for m in context["masks"]:
+        assert f"{m['etch_depth_nm']:.2f}" in text  # etch depth of every mask
+        assert m["name"] in text
+        assert f"| {m['polygon_count']} |" in text or f"<td>{m['polygon_count']}</td>" in text
+    assert context["files"][0]["sha256"] in text
+    assert f"{context['manifest']['refractive_index']:.5f}" in text
+    assert "a polygon marks area to etch" in text
+    assert "positive resist" in text
+    assert "MIRRORED" in text and "chrome-down" in text
+    assert f"{context['manifest']['level_step_nm']:.2f} nm" in text
+    acc = context["tolerance"]["acceptance"]
+    assert f"{acc['rmse_max']:.4f}" in text
+    for fig in FIGURES.values():
+        assert fig in text
+
+
+def test_html_is_self_contained_with_relative_figure_links(written):
+    _, out, _ = written
+    page = (out / REPORT_HTML).read_text()
+    assert page.startswith("<!DOCTYPE html>")
+    links = re.findall(r'(?:src|href)="([^"]+)"', page)
+    assert sorted(links) == sorted(FIGURES.values())
+    for link in links:
+        assert (out / link).is_file()
+    assert "<style>" in page and "http" not in page
+
+
+def test_same_input_gives_identical_bytes(written, tmp_path):
+    context, out, names = written
+    again = write_fab_report(tmp_path / "again", context)
+    assert again == names
+    for name in names:
+        assert (tmp_path / "again" / name).read_bytes() == (out / name).read_bytes(), name
+
+
+def test_report_without_tolerance_analysis(tmp_path):
+    context = make_context(tmp_path, with_tolerance=False)
+    names = write_fab_report(tmp_path / "out", context)
+    assert FIGURES["tolerance"] not in names and TOLERANCE_JSON not in names
+    text = (tmp_path / "out" / REPORT_MD).read_text()
+    assert "No tolerance analysis" in text
+    assert context["files"][0]["sha256"] in text
