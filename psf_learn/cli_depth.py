@@ -312,7 +312,7 @@ def _transient(args):
 
         for k, name in enumerate(tqdm(pngs, desc="frames", disable=None)):
             write_frame_png16(stage / name, frames[k] / scale)
-        save_gif(stage / "preview.gif", frames, times, fps=args.fps)
+        save_gif(stage / "preview.gif", frames, fps=args.fps)
         write_json(
             stage / "transient.json",
             {

@@ -175,6 +175,11 @@ def gate_response(model=None, step=1e-12):
     end_value = _rise(np.array([model.width]), model.rise)[0]
     gate[inside] = rise_edge
     gate[after] = end_value * _decay(t[after] - model.width, model.fall)
+    # A sample on a jump carries the mean of its two limits (the trapezoid rule), so that
+    # the gate does not gain half a sample of width at each edge.
+    right_after_end = end_value * _decay(np.array([0.0]), model.fall)[0]
+    gate[np.isclose(t, 0.0, atol=step / 4)] = 0.5 * _rise(np.array([0.0]), model.rise)[0]
+    gate[np.isclose(t, model.width, atol=step / 4)] = 0.5 * (end_value + right_after_end)
 
     # Kernels centred on the grid so that the convolution keeps the time origin.
     kt = np.arange(-np.ceil(10 * blur / step), np.ceil(10 * blur / step) + 1) * step
@@ -218,7 +223,7 @@ def response_from_irf(irf, shift, t_ref=0.0, step=1e-12):
     The IRF is the time profile of a reference target at arrival time ``t_ref``
     sampled on the scan axis: ``irf[k] = h(k * shift - t_ref)`` (background
     subtracted; negative noise is clipped to 0). Between samples h follows a
-    monotone cubic (PCHIP). Where the IRF is cut by the start or end of the scan,
+    cubic spline (clipped at 0). Where the IRF is cut by the start or end of the scan,
     h is extended by a Gaussian (leading edge) or exponential (trailing edge)
     matched to the first/last samples, so that arrival times later than the
     reference still see a complete leading edge.
@@ -242,12 +247,12 @@ def response_from_irf(irf, shift, t_ref=0.0, step=1e-12):
     irf = np.clip(irf, 0.0, None)
     if not irf.max() > 0:
         raise ValueError("the IRF is all zero")
-    from scipy.interpolate import PchipInterpolator  # slow to import; only the IRF path
+    from scipy.interpolate import CubicSpline  # slow to import; only the IRF path
 
     y = irf / irf.max()
     ts = np.arange(y.size) * shift - t_ref
     fine = np.arange(np.ceil(ts[0] / step), np.floor(ts[-1] / step) + 1) * step
-    h = np.clip(PchipInterpolator(ts, y)(fine), 0.0, None)
+    h = np.clip(CubicSpline(ts, y)(fine), 0.0, None)
 
     left = _edge_extension(ts[:4], y[:4], step, leading=True)
     right = _edge_extension(ts[-4:][::-1], y[-4:][::-1], step, leading=False)

@@ -24,8 +24,7 @@ def save_map(path, image, title, label, cmap="gray", valid=None):
     data = np.ma.masked_invalid(np.asarray(image, dtype=np.float64))
     if valid is not None:
         data = np.ma.masked_where(~np.asarray(valid), data)
-    colors = plt.get_cmap(cmap).copy()
-    colors.set_bad("0.6")
+    colors = plt.get_cmap(cmap).with_extremes(bad="0.6")
     h, w = data.shape
     fig, ax = plt.subplots(figsize=(6, 6 * h / w * 0.8 + 0.8))
     im = ax.imshow(data, cmap=colors, interpolation="nearest")
@@ -70,24 +69,26 @@ def save_pixel_fits(path, times, profiles, models, labels):
     plt.close(fig)
 
 
-def save_gif(path, frames, times, fps=10):
-    """Save an animated GIF of (T, H, W) frames on one common grey scale."""
-    plt = _pyplot()
-    from matplotlib.animation import FuncAnimation, PillowWriter
+def save_gif(path, frames, fps=10, min_width=256):
+    """Save an animated GIF of (T, H, W) frames on one common grey scale.
+
+    Frames are enlarged by an integer factor (nearest neighbour) to at least
+    ``min_width`` pixels so that a 64 x 32 sensor is visible; Pillow writes the
+    file directly (no per-frame figure drawing), which is fast and byte-stable.
+    """
+    from PIL import Image
 
     frames = np.asarray(frames, dtype=np.float64)
     vmax = float(frames.max()) or 1.0
-    h, w = frames.shape[1:]
-    fig, ax = plt.subplots(figsize=(4, 4 * h / w + 0.5))
-    im = ax.imshow(frames[0], cmap="gray", vmin=0, vmax=vmax, interpolation="nearest")
-    ax.set_axis_off()
-    title = ax.set_title("")
-
-    def show(k):
-        im.set_data(frames[k])
-        title.set_text(f"t = {times[k] / 1e-12:.0f} ps")
-        return im, title
-
-    anim = FuncAnimation(fig, show, frames=frames.shape[0], blit=False)
-    anim.save(path, writer=PillowWriter(fps=fps), dpi=60)
-    plt.close(fig)
+    zoom = max(1, int(np.ceil(min_width / frames.shape[2])))
+    grey = np.round(np.clip(frames / vmax, 0, 1) * 255).astype(np.uint8)
+    grey = np.repeat(np.repeat(grey, zoom, axis=1), zoom, axis=2)
+    images = [Image.fromarray(g) for g in grey]  # uint8 (H, W): greyscale "L"
+    images[0].save(
+        path,
+        format="GIF",
+        save_all=True,
+        append_images=images[1:],
+        duration=round(1000 / fps),
+        loop=0,
+    )

@@ -1,0 +1,336 @@
+"""Gated-SPAD depth: gate model oracles, per-pixel fit recovery, IRF path, CLI contract."""
+
+import subprocess
+import sys
+import types
+from math import erf, sqrt
+
+import numpy as np
+import pytest
+
+from doe.cli import main
+from psf_learn.cubes import read_cube, write_frame_png16
+from psf_learn.depth import (
+    FWHM_PER_SIGMA,
+    SPEED_OF_LIGHT,
+    GateModel,
+    expected_counts,
+    fit_profiles,
+    gate_response,
+    response_from_irf,
+    scan_times,
+)
+from psf_learn.depth_sim import random_scene, simulate_cube
+
+PS = 1e-12
+SHIFT = 20 * PS
+T = 120  # 2.4 ns scan: room for a complete profile anywhere in [0.62, 0.82] ns
+
+
+@pytest.fixture(scope="module")
+def response():
+    return gate_response(GateModel())
+
+
+def scene(shape, amplitude, background, response, seed):
+    rng = np.random.default_rng(seed)
+    return random_scene(shape, amplitude, background, SHIFT, T, response, rng)
+
+
+# --- the gate model ---------------------------------------------------------------------
+
+
+def test_rectangular_gate_is_a_difference_of_error_functions():
+    # No RC distortion: h = Gaussian(sqrt(s_pulse^2 + s_band^2)) * rect[0, w].
+    model = GateModel(width=200 * PS, rise=0.0, fall=0.0, band_sigma=100 * PS, pulse_fwhm=80 * PS)
+    h = gate_response(model)
+    s = np.hypot(80 * PS / FWHM_PER_SIGMA, 100 * PS)
+
+    def oracle(t):
+        return 0.5 * (erf(t / (sqrt(2) * s)) - erf((t - 200 * PS) / (sqrt(2) * s)))
+
+    t = np.linspace(-500, 700, 49) * PS
+    expected = np.array([oracle(x) for x in t]) / oracle(100 * PS)
+    np.testing.assert_allclose(h(t), expected, atol=2e-4)
+    assert h.peak_time == pytest.approx(100 * PS, abs=1.5 * PS)
+
+
+def test_rc_gate_follows_rise_and_fall_constants():
+    # A near-delta pulse and no band limit leave the RC gate itself, starting at t = 0.
+    model = GateModel(rise=40 * PS, fall=60 * PS, band_sigma=0.0, pulse_fwhm=1 * PS)
+    h = gate_response(model)
+    plateau = 1 - np.exp(-200 / 40)
+    for t_ps in (20, 50, 100, 150):
+        assert h(t_ps * PS) == pytest.approx((1 - np.exp(-t_ps / 40)) / plateau, abs=2e-3)
+    for t_ps in (230, 260, 320):
+        assert h(t_ps * PS) == pytest.approx(np.exp(-(t_ps - 200) / 60), abs=2e-3)
+    assert h(-20 * PS) < 1e-6
+
+
+def test_emg_pulse_delays_the_centroid_by_tau():
+    # The mean of a convolution is the sum of the means: the exponential tail adds tau.
+    gauss = gate_response(GateModel())
+    emg = gate_response(GateModel(pulse="emg", tau=50 * PS))
+
+    def centroid(r):
+        return np.sum(r.times * r.values) / np.sum(r.values)
+
+    assert centroid(emg) - centroid(gauss) == pytest.approx(50 * PS, abs=0.5 * PS)
+
+
+def test_expected_counts_convention(response):
+    # counts(t_k) = A h(t_k - mu) + b with t_k = k * shift: the profile peaks at mu + t_peak.
+    mu = 700 * PS
+    m = expected_counts(response, scan_times(T, SHIFT), 50.0, mu, 3.0)
+    t_peak = scan_times(T, SHIFT)[np.argmax(m)]
+    assert abs(t_peak - (mu + response.peak_time)) <= SHIFT / 2
+    assert m.max() == pytest.approx(53.0, rel=0.01)
+    assert m.min() == pytest.approx(3.0, abs=1e-6)
+
+
+# --- the fit ------------------------------------------------------------------------------
+
+
+def test_noiseless_profiles_are_recovered_exactly(response):
+    rng = np.random.default_rng(1)
+    a, mu, _ = scene((8, 8), 1.0, 0.0, response, seed=2)
+    a = rng.uniform(5, 500, size=a.shape)
+    b = rng.uniform(0, 20, size=a.shape)
+    fit = fit_profiles(simulate_cube(a, mu, b, T, SHIFT, response), SHIFT, response)
+    assert fit.valid.all()
+    np.testing.assert_allclose(fit.timing, mu, atol=0.01 * PS)
+    np.testing.assert_allclose(fit.amplitude, a, rtol=1e-4)
+    np.testing.assert_allclose(fit.background, b, atol=1e-3)
+    np.testing.assert_allclose(fit.depth, SPEED_OF_LIGHT * mu / 2, atol=1e-5)
+
+
+def cramer_rao_timing(response, a, mu, b):
+    """Per-pixel Cramer-Rao bound on the std of mu (s) for Poisson counts."""
+    t = scan_times(T, SHIFT)
+    h, dh = response(t[None, :] - mu.reshape(-1, 1), derivative=True)
+    m = a.reshape(-1, 1) * h + b.reshape(-1, 1)
+    jac = np.stack([h, -a.reshape(-1, 1) * dh, np.ones_like(h)], axis=-1)
+    fisher = np.einsum("pt,ptk,ptl->pkl", 1 / m, jac, jac)
+    return np.sqrt(np.linalg.inv(fisher)[:, 1, 1])
+
+
+@pytest.mark.parametrize(("amplitude", "background"), [(200.0, 5.0), (10.0, 2.0)])
+def test_noisy_timing_reaches_the_cramer_rao_bound(response, amplitude, background):
+    a, mu, b = scene((32, 32), amplitude, background, response, seed=3)
+    cube = simulate_cube(a, mu, b, T, SHIFT, response, np.random.default_rng(4))
+    fit = fit_profiles(cube, SHIFT, response)
+    assert fit.valid.all()
+    err = fit.timing - mu
+    crb = np.sqrt(np.mean(cramer_rao_timing(response, a.ravel(), mu.ravel(), b.ravel()) ** 2))
+    rmse = np.sqrt(np.mean(err**2))
+    assert rmse < 1.2 * crb  # an efficient estimator: within 20 % of the bound
+    assert abs(np.mean(err)) < 4 * crb / np.sqrt(err.size)  # and unbiased
+    argmax = scan_times(T, SHIFT)[np.argmax(cube, axis=-1)] - response.peak_time
+    assert rmse <= 0.5 * np.sqrt(np.mean((argmax - mu) ** 2))
+
+
+def test_fit_is_scale_equivariant(response):
+    # The Poisson stationarity condition is homogeneous: scaling counts scales A, b only.
+    a, mu, b = scene((4, 8), 40.0, 4.0, response, seed=5)
+    cube = simulate_cube(a, mu, b, T, SHIFT, response, np.random.default_rng(6))
+    f1 = fit_profiles(cube, SHIFT, response)
+    f2 = fit_profiles(cube * 7.0, SHIFT, response)
+    np.testing.assert_allclose(f2.timing, f1.timing, atol=0.05 * PS)
+    np.testing.assert_allclose(f2.amplitude, 7 * f1.amplitude, rtol=1e-3)
+
+
+def test_emg_pulse_fit(response):
+    emg = gate_response(GateModel(pulse="emg", tau=60 * PS))
+    a, mu, b = scene((4, 4), 300.0, 2.0, emg, seed=7)
+    fit = fit_profiles(simulate_cube(a, mu, b, T, SHIFT, emg), SHIFT, emg)
+    np.testing.assert_allclose(fit.timing, mu, atol=0.01 * PS)
+    # The Gaussian-pulse model misreads the same data: the pulse shape matters.
+    wrong = fit_profiles(simulate_cube(a, mu, b, T, SHIFT, emg), SHIFT, response)
+    assert np.mean(wrong.timing - mu) > 20 * PS
+
+
+def test_background_only_pixels_are_no_return(response):
+    a, mu, b = scene((16, 16), 30.0, 3.0, response, seed=8)
+    a[:8] = 0.0  # the top half sees no return at all
+    cube = simulate_cube(a, mu, b, T, SHIFT, response, np.random.default_rng(9))
+    fit = fit_profiles(cube, SHIFT, response)
+    assert not fit.valid[:8].any()
+    assert np.isnan(fit.timing[:8]).all() and np.isnan(fit.depth[:8]).all()
+    assert (fit.amplitude[:8] == 0).all()
+    np.testing.assert_allclose(fit.background[:8], cube[:8].mean(axis=-1))
+    assert fit.valid[8:].all()
+    assert np.isfinite(fit.depth[8:]).all()
+
+
+def test_pure_background_false_returns_are_rare(response):
+    rng = np.random.default_rng(10)
+    fits = [fit_profiles(rng.poisson(b, size=(500, T)), SHIFT, response) for b in (0.3, 5, 80)]
+    false = sum(int(f.valid.sum()) for f in fits)
+    assert false <= 3  # about 1e-4 per pixel at the default threshold; 1500 pixels
+
+
+def test_all_zero_pixels_are_no_return(response):
+    fit = fit_profiles(np.zeros((2, 3, T)), SHIFT, response)
+    assert not fit.valid.any() and np.isnan(fit.timing).all()
+
+
+# --- the measured-IRF path ---------------------------------------------------------------
+
+
+def test_irf_path_matches_the_gate_model(response):
+    # The IRF of a reference at mu = 0 is cut at t = 0 (half-way up the leading edge):
+    # its extension must still serve later arrivals.
+    irf = response(scan_times(T, SHIFT))
+    from_irf = response_from_irf(irf, SHIFT)
+    t = np.linspace(-400, 1000, 141) * PS
+    np.testing.assert_allclose(from_irf(t), response(t), atol=0.01)
+    a, mu, b = scene((8, 8), 100.0, 3.0, response, seed=11)
+    fit = fit_profiles(simulate_cube(a, mu, b, T, SHIFT, response), SHIFT, from_irf)
+    assert fit.valid.all()
+    np.testing.assert_allclose(fit.timing, mu, atol=2 * PS)
+
+
+def test_irf_reference_time_shifts_the_response(response):
+    irf = response(scan_times(T, SHIFT) - 500 * PS)  # reference target at 500 ps
+    from_irf = response_from_irf(irf, SHIFT, t_ref=500 * PS)
+    assert from_irf.peak_time == pytest.approx(response.peak_time, abs=2 * PS)
+
+
+# --- files and the command line -----------------------------------------------------------
+
+
+def write_scene_cube(tmp_path, response, shape=(6, 10), amplitude=80.0, background=2.0, seed=12):
+    a, mu, b = scene(shape, amplitude, background, response, seed)
+    a[0, 0] = 0.0
+    cube = simulate_cube(a, mu, b, T, SHIFT, response, np.random.default_rng(seed + 1))
+    path = tmp_path / "cube.npy"
+    np.save(path, cube.astype(np.uint16))
+    return path, mu
+
+
+def test_cli_depth_round_trip(tmp_path, response, capsys):
+    path, mu = write_scene_cube(tmp_path, response)
+    out = tmp_path / "out"
+    assert main(["depth", str(path), "--shift-ps", "20", "--out", str(out)]) == 0
+    timing = np.load(out / "timing_ps.npy")
+    depth = np.load(out / "depth_m.npy")
+    valid = np.load(out / "valid.npy")
+    assert timing.shape == depth.shape == valid.shape == mu.shape
+    assert not valid[0, 0] and np.isnan(depth[0, 0])
+    assert valid.sum() == valid.size - 1
+    np.testing.assert_allclose(timing[valid], mu[valid] / PS, atol=25)
+    np.testing.assert_allclose(depth[valid], SPEED_OF_LIGHT * timing[valid] * PS / 2)
+    for name in ("amplitude", "background", "fit_quality"):
+        assert np.load(out / f"{name}.npy").shape == mu.shape
+    for name in ("intensity.png", "depth.png", "pixel_fits.png", "depth.json"):
+        assert (out / name).stat().st_size > 0
+    first = {p.name: p.read_bytes() for p in out.iterdir()}
+    # A second run refuses to overwrite; with --force it writes identical bytes.
+    assert main(["depth", str(path), "--out", str(out)]) == 2
+    assert "--force" in capsys.readouterr().err
+    assert main(["depth", str(path), "--out", str(out), "--force"]) == 0
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == first
+
+
+def test_cli_depth_with_irf(tmp_path, response):
+    path, mu = write_scene_cube(tmp_path, response)
+    np.save(tmp_path / "irf.npy", response(scan_times(T, SHIFT)))
+    out = tmp_path / "out"
+    assert main(["depth", str(path), "--irf", str(tmp_path / "irf.npy"), "--out", str(out)]) == 0
+    timing, valid = np.load(out / "timing_ps.npy"), np.load(out / "valid.npy")
+    np.testing.assert_allclose(timing[valid], mu[valid] / PS, atol=25)
+    # The IRF replaces the gate model: giving both is a usage error.
+    assert main(["depth", str(path), "--irf", str(tmp_path / "irf.npy"), "--rise-ps", "30",
+                 "--out", str(tmp_path / "o2")]) == 2  # fmt: skip
+    assert not (tmp_path / "o2").exists()
+
+
+def bad_cubes():
+    good = np.ones((4, 5, 10))
+    nan = good.copy()
+    nan[1, 2, 3] = np.nan
+    neg = good.copy()
+    neg[0, 0, 0] = -1
+    return {"rank2": good[0], "rank4": good[None], "nan": nan, "negative": neg,
+            "short": good[..., :3], "complex": good.astype(complex)}  # fmt: skip
+
+
+@pytest.mark.parametrize("kind", sorted(bad_cubes()))
+def test_bad_cubes_are_refused(tmp_path, kind):
+    path = tmp_path / f"{kind}.npy"
+    np.save(path, bad_cubes()[kind])
+    out = tmp_path / "out"
+    proc = subprocess.run(
+        [sys.executable, "-m", "doe.cli", "depth", str(path), "--out", str(out)],
+        capture_output=True,
+        text=True,
+    )
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and str(path) in lines[0]
+    assert not out.exists()
+
+
+def test_bad_flags_are_refused(tmp_path, response):
+    path, _ = write_scene_cube(tmp_path, response, shape=(2, 2))
+    for flags in (["--shift-ps", "0"], ["--gate-width-ps", "-5"], ["--tau-ps", "10"],
+                  ["--pulse", "emg"], ["--irf", str(tmp_path / "missing.npy")]):  # fmt: skip
+        assert main(["depth", str(path), "--out", str(tmp_path / "o"), *flags]) == 2
+    assert not (tmp_path / "o").exists()
+
+
+def test_frame_folder_is_read_as_uint16_in_name_order(tmp_path):
+    rng = np.random.default_rng(13)
+    cube = rng.integers(0, 4000, size=(5, 7, 6)).astype(np.uint16)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for k in range(cube.shape[-1]):
+        write_frame_png16(folder / f"shift_{k:03d}.png", cube[..., k] / 65535.0)
+    np.testing.assert_array_equal(read_cube(folder), cube.astype(np.float64))
+
+
+def test_cli_transient(tmp_path, response):
+    path, _ = write_scene_cube(tmp_path, response, shape=(4, 6))
+    out = tmp_path / "out"
+    assert main(["transient", str(path), "--out", str(out)]) == 0
+    frames = np.load(out / "frames.npy")
+    cube = np.load(path)
+    np.testing.assert_array_equal(frames, np.moveaxis(cube, -1, 0))
+    assert len(list((out / "frames").glob("frame_*.png"))) == T
+    assert (out / "preview.gif").read_bytes()[:6] in (b"GIF89a", b"GIF87a")
+
+
+def fake_sr_module():
+    """A stand-in for psf_learn.sr: 4x nearest-neighbour upsampling of (..., h, w)."""
+
+    def super_resolve(model, frames, photons=None):
+        frames = np.asarray(frames, dtype=np.float64)
+        return np.repeat(np.repeat(frames, 4, axis=-2), 4, axis=-1)
+
+    return types.SimpleNamespace(super_resolve=super_resolve)
+
+
+def test_cli_depth_and_transient_super_resolve(tmp_path, response, monkeypatch):
+    monkeypatch.setitem(sys.modules, "psf_learn.sr", fake_sr_module())
+    model = tmp_path / "model"
+    model.mkdir()
+    path, _ = write_scene_cube(tmp_path, response, shape=(3, 4))
+    out = tmp_path / "out"
+    assert main(["depth", str(path), "--out", str(out), "--sr", str(model)]) == 0
+    native = np.load(out / "timing_ps.npy")
+    sr = np.load(out / "sr" / "timing_ps.npy")
+    assert sr.shape == (12, 16)
+    np.testing.assert_allclose(sr, np.repeat(np.repeat(native, 4, 0), 4, 1), atol=0.05)
+    short = tmp_path / "short.npy"
+    np.save(short, np.load(path)[..., :5])
+    out2 = tmp_path / "out2"
+    assert main(["transient", str(short), "--out", str(out2), "--sr", str(model)]) == 0
+    frames = np.load(out2 / "frames.npy")
+    assert frames.shape == (5, 12, 16)
+    np.testing.assert_array_equal(frames[:, ::4, ::4], np.moveaxis(np.load(short), -1, 0))
+
+
+def test_depth_module_does_not_import_torch():
+    code = "import sys, psf_learn.depth, psf_learn.depth_sim, psf_learn.cubes, psf_learn.cli_depth; print('torch' in sys.modules)"  # noqa: E501
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
