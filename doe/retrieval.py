@@ -107,23 +107,31 @@ CORRELATION_GOAL = 0.9999
 class _Goal:
     """The target's constants that the fidelity terms need (see :func:`objective`)."""
 
-    target: np.ndarray   # (K, K), sum 1
-    scaled: np.ndarray   # target / max(target)
+    target: np.ndarray  # (K, K), sum 1
+    scaled: np.ndarray  # target / max(target)
     centred: np.ndarray  # target - mean, (K, K)
-    norm: float          # |target - mean|
-    peak: np.ndarray     # (K, K) bool, where the target has its maximum
-    c_rmse: float        # 1 / (K * RMSE_GOAL)^2
-    c_corr: float        # 1 / (1 - CORRELATION_GOAL)
+    norm: float  # |target - mean|
+    peak: np.ndarray  # (K, K) bool, where the target has its maximum
+    c_rmse: float  # 1 / (K * RMSE_GOAL)^2
+    c_corr: float  # 1 / (1 - CORRELATION_GOAL)
 
     @classmethod
     def of(cls, target):
         centred = target - target.mean()
         tmax = float(target.max())
-        return cls(target=target, scaled=target / tmax, centred=centred,
-                   norm=float(np.sqrt((centred**2).sum())),
-                   peak=target >= tmax * (1 - 1e-12),
-                   c_rmse=1.0 / (target.shape[0] * RMSE_GOAL) ** 2,
-                   c_corr=1.0 / (1.0 - CORRELATION_GOAL))
+        norm = float(np.sqrt((centred**2).sum()))
+        # a uniform target has no correlation to speak of (Pearson's is undefined):
+        # the rmse term alone then measures the fit
+        flat = norm <= 1e-12 * tmax
+        return cls(
+            target=target,
+            scaled=target / tmax,
+            centred=centred,
+            norm=1.0 if flat else norm,
+            peak=target >= tmax * (1 - 1e-12),
+            c_rmse=1.0 / (target.shape[0] * RMSE_GOAL) ** 2,
+            c_corr=0.0 if flat else 1.0 / (1.0 - CORRELATION_GOAL),
+        )
 
 
 def _values(power, goal, weight):
@@ -132,7 +140,8 @@ def _values(power, goal, weight):
     eff = power.sum(axis=axes)
     centred = power - eff[..., None, None] / goal.target.size
     corr = (centred * goal.centred).sum(axis=axes) / (
-        np.sqrt((centred * centred).sum(axis=axes)) * goal.norm)
+        np.sqrt((centred * centred).sum(axis=axes)) * goal.norm
+    )
     p0 = (power * goal.peak).sum(axis=axes) / goal.peak.sum()
     u = power / p0[..., None, None] - goal.scaled
     return goal.c_rmse * (u * u).sum(axis=axes) + goal.c_corr * (1.0 - corr) - weight * eff
@@ -198,8 +207,9 @@ def fidelity(phase, target):
 
 
 # --------------------------------------------------------------------------- GS
-def gerchberg_saxton(target, n_pixels, iterations=150, rng=None, phase=None, weighted=True,
-                     n_levels=None, gains=None):
+def gerchberg_saxton(
+    target, n_pixels, iterations=150, rng=None, phase=None, weighted=True, n_levels=None, gains=None
+):
     """Return (phase, gains): a tile phase (rad, (N, N)) by (weighted) Gerchberg-Saxton.
 
     Order plane: the K x K window gets the amplitude gains * sqrt(target) with the
@@ -307,8 +317,9 @@ def round_levels(phase, n_levels):
 
 
 # --------------------------------------------------------------------------- discrete
-def coordinate_descent(levels, target, n_levels, weight=DEFAULT_WEIGHT, sweeps=1,
-                       chunk=512, rng=None, shifts=(1, -1)):
+def coordinate_descent(
+    levels, target, n_levels, weight=DEFAULT_WEIGHT, sweeps=1, chunk=512, rng=None, shifts=(1, -1)
+):
     """Return a level map improved by greedy single-pixel level changes.
 
     Changing pixel (r, c) from level a to b adds (e^{2 pi i b/L} - e^{2 pi i a/L})
@@ -355,13 +366,13 @@ def coordinate_descent(levels, target, n_levels, weight=DEFAULT_WEIGHT, sweeps=1
         changed = 0
         order = rng.permutation(n * n)
         for start in range(0, order.size, chunk):
-            pix = order[start:start + chunk]
+            pix = order[start : start + chunk]
             r, c = pix // n, pix % n
             cur = q[r, c]
-            cand = (cur[:, None] + shifts[None, :]) % n_levels          # (B, L-1)
+            cand = (cur[:, None] + shifts[None, :]) % n_levels  # (B, L-1)
             delta = (phasors[cand] - phasors[cur][:, None]) / (n * n)  # (B, L-1)
-            basis = a[:, r].T[:, :, None] * a[:, c].T[:, None, :]      # (B, K, K)
-            trial = w + delta[:, :, None, None] * basis[:, None]        # (B, L-1, K, K)
+            basis = a[:, r].T[:, :, None] * a[:, c].T[:, None, :]  # (B, K, K)
+            trial = w + delta[:, :, None, None] * basis[:, None]  # (B, L-1, K, K)
             vals = _values(trial.real**2 + trial.imag**2, goal, weight)
             best = np.argmin(vals, axis=1)
             gain = vals[np.arange(pix.size), best] - value
@@ -380,9 +391,18 @@ def coordinate_descent(levels, target, n_levels, weight=DEFAULT_WEIGHT, sweeps=1
 
 
 # --------------------------------------------------------------------------- entry point
-def retrieve_phase(target, n_pixels, n_levels=8, seed=0, weight=DEFAULT_WEIGHT,
-                   gs_iterations=150, lbfgs_evals=40, quantised_iterations=100,
-                   cd_weights=CD_WEIGHTS, done=DONE):
+def retrieve_phase(
+    target,
+    n_pixels,
+    n_levels=8,
+    seed=0,
+    weight=DEFAULT_WEIGHT,
+    gs_iterations=150,
+    lbfgs_evals=40,
+    quantised_iterations=100,
+    cd_weights=CD_WEIGHTS,
+    done=DONE,
+):
     """Design an L-level phase tile whose K x K window of orders forms ``target``.
 
     Weighted GS, L-BFGS refinement of the continuous phase, quantised weighted GS
@@ -428,8 +448,9 @@ def retrieve_phase(target, n_pixels, n_levels=8, seed=0, weight=DEFAULT_WEIGHT,
     phase, gains = gerchberg_saxton(target, n_pixels, gs_iterations, rng)
     phase = refine_continuous(phase, target, weight, lbfgs_evals)
     quality_cont = fraunhofer.quality(phase, target)
-    soft, _ = gerchberg_saxton(target, n_pixels, quantised_iterations, phase=phase,
-                               n_levels=n_levels, gains=gains)
+    soft, _ = gerchberg_saxton(
+        target, n_pixels, quantised_iterations, phase=phase, n_levels=n_levels, gains=gains
+    )
     levels = round_levels(soft, n_levels)
     for w in cd_weights:
         if fidelity(fraunhofer.level_phase(levels, n_levels), target) <= done:
@@ -437,6 +458,12 @@ def retrieve_phase(target, n_pixels, n_levels=8, seed=0, weight=DEFAULT_WEIGHT,
         levels = coordinate_descent(levels, target, n_levels, w, sweeps=1, rng=rng)
     seconds = time.perf_counter() - t0
     quality_q = fraunhofer.quality(fraunhofer.level_phase(levels, n_levels), target)
-    return Retrieval(levels=levels, phase=np.mod(phase, 2 * np.pi), n_levels=n_levels,
-                     quality_continuous=quality_cont, quality_quantised=quality_q,
-                     seconds=seconds, seed=seed)
+    return Retrieval(
+        levels=levels,
+        phase=np.mod(phase, 2 * np.pi),
+        n_levels=n_levels,
+        quality_continuous=quality_cont,
+        quality_quantised=quality_q,
+        seconds=seconds,
+        seed=seed,
+    )

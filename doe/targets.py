@@ -78,8 +78,9 @@ def sparse_dots(k=11):
     return _normalise(psf)
 
 
-def flat_top(k=11, radius=3.2):
-    """Return a uniform disc of ``radius`` sub-pixels (hard edge, zero outside)."""
+def flat_top(k=11, radius=None):
+    """Return a uniform disc of ``radius`` sub-pixels (default 0.29 K; hard edge, zero outside)."""
+    radius = 0.29 * k if radius is None else radius
     y, x = _grid(k)
     return _normalise((y**2 + x**2 <= radius**2).astype(float))
 

@@ -1,0 +1,112 @@
+"""``doefab retrieve``: an 8-level phase tile from a target PSF (see doe.retrieval)."""
+
+from pathlib import Path
+
+from doe.errors import InputError
+
+OUTPUTS = ("levels.npy", "phase.npy", "target_psf.npy", "retrieval.json", "retrieval.png")
+
+
+def register(sub):
+    p = sub.add_parser(
+        "retrieve",
+        help="design an L-level phase tile for a target PSF",
+        description="Design an L-level phase tile whose K x K window of "
+        "diffraction orders forms the target PSF (psf.npy, CONVENTIONS.md).",
+    )
+    p.add_argument("psf", help="target PSF: float64 (K, K) .npy, K odd, >= 0, sum 1")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument(
+        "--levels",
+        type=int,
+        default=None,
+        help="phase levels L, a power of two >= 2 (default: the design's)",
+    )
+    p.add_argument(
+        "--tile-pixels",
+        type=int,
+        default=None,
+        help="tile size N in pixels (default: the design's, 175 for sun2020)",
+    )
+    p.add_argument("--seed", type=int, default=0, help="seed of the random start (default 0)")
+    p.add_argument("--config", help="design TOML file or preset name (default: the default preset)")
+    p.add_argument("--force", action="store_true", help="overwrite existing output files")
+    p.set_defaults(func=run)
+
+
+def run(args):
+    import numpy as np
+
+    from doe import fraunhofer
+    from doe.design import derive, design_summary, load_design
+    from doe.figures import save_retrieval_figure
+    from doe.files import read_psf, save_npy, staged_output, write_json
+    from doe.retrieval import retrieve_phase
+
+    design = load_design(args.config)
+    n_levels = design.fabrication.levels if args.levels is None else args.levels
+    if n_levels < 2 or n_levels & (n_levels - 1):
+        raise InputError("--levels", f"must be a power of two >= 2, got {n_levels}")
+    n = derive(design).tile_pixels if args.tile_pixels is None else args.tile_pixels
+    if n < 1:
+        raise InputError("--tile-pixels", f"must be a positive number of pixels, got {n}")
+    if args.seed < 0:
+        raise InputError("--seed", f"must be >= 0, got {args.seed}")
+    target = read_psf(args.psf)
+    k = target.shape[0]
+    if k > n:
+        raise InputError(
+            args.psf,
+            f"kernel size K = {k} exceeds the tile size N = {n}; "
+            "use a smaller PSF or a larger --tile-pixels",
+        )
+    with staged_output(args.out, args.force, names=OUTPUTS) as stage:
+        result = retrieve_phase(target, n, n_levels, seed=args.seed)
+        psf, _ = fraunhofer.simulate_levels(result.levels, n_levels, k)
+        save_npy(stage / "levels.npy", result.levels)
+        save_npy(stage / "phase.npy", result.phase.astype(np.float64))
+        save_npy(stage / "target_psf.npy", target)
+        write_json(
+            stage / "retrieval.json",
+            {
+                "continuous": result.quality_continuous,
+                "quantised": result.quality_quantised,
+                "seconds": round(result.seconds, 3),
+                "seed": args.seed,
+                "levels": n_levels,
+                "tile_pixels": n,
+                "kernel_size": k,
+                "target_psf": str(Path(args.psf)),
+                "design": design_summary(design),
+                "versions": _versions(),
+            },
+        )
+        save_retrieval_figure(
+            stage / "retrieval.png", target, psf, result.levels, n_levels, result.quality_quantised
+        )
+    q = result.quality_quantised
+    print(
+        f"retrieve: {n_levels} levels, N = {n}, K = {k}: correlation {q['correlation']:.6f}, "
+        f"rmse {q['rmse']:.5f}, efficiency {q['efficiency']:.4f} in {result.seconds:.1f} s "
+        f"-> {args.out}"
+    )
+    return 0
+
+
+def _versions():
+    from importlib import metadata
+
+    import nlopt
+    import numpy
+    import scipy
+
+    try:
+        doefab = metadata.version("doefab")
+    except metadata.PackageNotFoundError:
+        doefab = "unknown"
+    return {
+        "numpy": numpy.__version__,
+        "scipy": scipy.__version__,
+        "nlopt": nlopt.__version__,
+        "doefab": doefab,
+    }

@@ -1,0 +1,60 @@
+"""Figures of the optics stage (matplotlib, Agg backend, imported lazily).
+
+PNG metadata is pinned so that the same data give byte-identical files.
+"""
+
+import numpy as np
+
+PNG_METADATA = {"Software": None}
+"""savefig metadata for PNG: no software/version stamp, so the bytes are deterministic."""
+
+
+def save_retrieval_figure(path, target, psf, levels, n_levels, quality):
+    """Write a PNG of the target, the simulated PSF, their difference and the level map.
+
+    Parameters
+    ----------
+    path : path
+        PNG file to write.
+    target, psf : (K, K) arrays
+        Target and simulated (quantised) PSF, each summing to 1.
+    levels : (N, N) uint8
+        Level map (CONVENTIONS.md orientation: row 0 at the top).
+    n_levels : int
+        Number of levels L.
+    quality : dict
+        ``correlation``, ``rmse`` and ``efficiency`` of the level map.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    diff = psf / psf.max() - target / target.max()
+    lim = max(float(np.abs(diff).max()), 1e-12)
+    k = target.shape[0]
+    ext = (-(k // 2) - 0.5, k // 2 + 0.5, k // 2 + 0.5, -(k // 2) - 0.5)
+    fig, axes = plt.subplots(1, 4, figsize=(16, 4.2))
+    panels = (
+        (target / target.max(), "target (peak = 1)", "viridis", (0, 1)),
+        (psf / psf.max(), "simulated, quantised (peak = 1)", "viridis", (0, 1)),
+        (diff, "simulated - target", "RdBu_r", (-lim, lim)),
+    )
+    for ax, (img, title, cmap, (lo, hi)) in zip(axes, panels, strict=False):
+        im = ax.imshow(img, cmap=cmap, vmin=lo, vmax=hi, extent=ext, interpolation="nearest")
+        ax.set_title(title)
+        ax.set_xlabel("order n (+x)")
+        ax.set_ylabel("order m (-y)")
+        fig.colorbar(im, ax=ax, fraction=0.046)
+    im = axes[3].imshow(levels, cmap="viridis", vmin=0, vmax=n_levels - 1, interpolation="nearest")
+    axes[3].set_title(f"level map ({n_levels} levels, {levels.shape[0]} px)")
+    axes[3].set_xlabel("column (+x)")
+    axes[3].set_ylabel("row (row 0 = top)")
+    fig.colorbar(im, ax=axes[3], fraction=0.046)
+    fig.suptitle(
+        f"correlation {quality['correlation']:.6f}   rmse {quality['rmse']:.5f}   "
+        f"efficiency {quality['efficiency']:.4f}"
+    )
+    fig.tight_layout()
+    fig.savefig(path, dpi=80, metadata=PNG_METADATA)
+    plt.close(fig)

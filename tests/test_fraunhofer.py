@@ -1,0 +1,118 @@
+"""The forward model of CONVENTIONS.md: power, analytic efficiencies, orientation and sign."""
+
+import numpy as np
+import pytest
+
+from doe import fraunhofer
+from doe.retrieval import window_matrix
+
+
+def _window_from_contract(levels, n_levels, k):
+    """The contract's formula, written out literally (the oracle for the module)."""
+    n = levels.shape[0]
+    f = np.fft.fft2(np.exp(2j * np.pi * levels / n_levels)) / n**2
+    out = np.empty((k, k))
+    for i in range(k):
+        for j in range(k):
+            out[i, j] = abs(f[(i - k // 2) % n, (j - k // 2) % n]) ** 2
+    return out
+
+
+def test_parseval_all_orders_carry_unit_power():
+    rng = np.random.default_rng(1)
+    for n in (7, 32, 45):
+        amp = fraunhofer.order_amplitudes(rng.uniform(-10, 10, (n, n)))
+        assert (np.abs(amp) ** 2).sum() == pytest.approx(1.0, abs=1e-12)
+
+
+def test_window_power_matches_contract_formula():
+    rng = np.random.default_rng(2)
+    levels = rng.integers(0, 8, (23, 23)).astype(np.uint8)
+    got = fraunhofer.window_power(fraunhofer.level_phase(levels, 8), 7)
+    np.testing.assert_allclose(got, _window_from_contract(levels, 8, 7), rtol=0, atol=1e-15)
+    psf, eff = fraunhofer.simulate_levels(levels, 8, 7)
+    assert eff == pytest.approx(got.sum(), rel=1e-14)
+    assert psf.sum() == pytest.approx(1.0, abs=1e-14)
+
+
+def test_partial_dft_equals_fft_window():
+    rng = np.random.default_rng(3)
+    n, k = 29, 9
+    phase = rng.uniform(0, 2 * np.pi, (n, n))
+    a = window_matrix(n, k)
+    w = a @ np.exp(1j * phase) @ a.T / n**2
+    idx = fraunhofer.window_indices(n, k)
+    np.testing.assert_allclose(w, fraunhofer.order_amplitudes(phase)[np.ix_(idx, idx)], atol=1e-13)
+
+
+def _staircase(n_levels, steps_width):
+    """Levels growing by one every ``steps_width`` columns: L equal steps across the tile."""
+    n = n_levels * steps_width
+    row = np.arange(n) // steps_width
+    return np.tile(row, (n, 1)).astype(np.uint8)
+
+
+@pytest.mark.parametrize("n_levels", [2, 4, 8, 16])
+def test_staircase_grating_first_order_is_sinc_squared(n_levels):
+    width = 4096 // n_levels  # fine sampling: the discrete sum converges to sinc^2 as 1/N^2
+    levels = _staircase(n_levels, width)[:1]  # one row suffices: the tile is 1-D
+    field = np.exp(2j * np.pi * levels[0] / n_levels)
+    first = abs(np.fft.fft(field)[1] / field.size) ** 2
+    assert first == pytest.approx(np.sinc(1 / n_levels) ** 2, rel=1e-5)
+
+
+@pytest.mark.parametrize("n_levels", [4, 8, 16])  # L = 2 is symmetric: +1 and -1 tie
+def test_staircase_tile_exact_sampled_efficiency_and_orientation(n_levels):
+    width = 5
+    levels = _staircase(n_levels, width)
+    n = levels.shape[0]
+    k = 5
+    window = fraunhofer.window_power(fraunhofer.level_phase(levels, n_levels), k)
+    # exact sampled staircase: |(L/N) sin(pi/L) / sin(pi/N)|^2 -> sinc^2(1/L)
+    exact = ((n_levels / n) * np.sin(np.pi / n_levels) / np.sin(np.pi / n)) ** 2
+    # levels grow towards +x (column index): the light goes to column K//2 + 1, row K//2
+    assert window[k // 2, k // 2 + 1] == pytest.approx(exact, rel=1e-12)
+    # ... which exceeds sinc^2 by the sampling factor ((pi/N) / sin(pi/N))^2 ~ 1 + (pi/N)^2/3
+    sampling = (np.pi / n) ** 2 / 3
+    assert window[k // 2, k // 2 + 1] == pytest.approx(
+        np.sinc(1 / n_levels) ** 2, rel=1.05 * sampling
+    )
+    assert window.argmax() == np.ravel_multi_index((k // 2, k // 2 + 1), window.shape)
+    # the same ramp down the rows (towards -y) goes to row K//2 + 1
+    window_t = fraunhofer.window_power(fraunhofer.level_phase(levels.T, n_levels), k)
+    assert window_t.argmax() == np.ravel_multi_index((k // 2 + 1, k // 2), window.shape)
+    # a falling ramp (levels decreasing with x) goes to -x
+    flipped = fraunhofer.window_power(fraunhofer.level_phase(levels[:, ::-1], n_levels), k)
+    assert flipped.argmax() == np.ravel_multi_index((k // 2, k // 2 - 1), window.shape)
+
+
+def test_conjugated_plate_gives_point_reflected_psf():
+    rng = np.random.default_rng(4)
+    n_levels, k = 8, 9
+    levels = rng.integers(0, n_levels, (31, 31)).astype(np.uint8)
+    conj = ((n_levels - levels.astype(int)) % n_levels).astype(np.uint8)
+    psf, eff = fraunhofer.simulate_levels(levels, n_levels, k)
+    psf_c, eff_c = fraunhofer.simulate_levels(conj, n_levels, k)
+    np.testing.assert_allclose(psf_c, psf[::-1, ::-1], atol=1e-14)
+    assert eff_c == pytest.approx(eff, rel=1e-12)
+    assert not np.allclose(psf, psf[::-1, ::-1], atol=1e-6)  # the test can tell them apart
+
+
+def test_flat_plate_sends_everything_to_the_axis():
+    psf, eff = fraunhofer.simulate_levels(np.full((15, 15), 3, np.uint8), 8, 5)
+    assert eff == pytest.approx(1.0, abs=1e-14)
+    assert psf[2, 2] == pytest.approx(1.0, abs=1e-14)
+
+
+def test_quality_figures_are_the_contract_definitions():
+    rng = np.random.default_rng(5)
+    phase = rng.uniform(0, 2 * np.pi, (25, 25))
+    target = rng.uniform(0, 1, (5, 5))
+    target /= target.sum()
+    q = fraunhofer.quality(phase, target)
+    window = _window_from_contract(phase * 8 / (2 * np.pi), 8, 5)
+    sim = window / window.sum()
+    assert q["efficiency"] == pytest.approx(window.sum(), rel=1e-12)
+    assert q["correlation"] == pytest.approx(np.corrcoef(sim.ravel(), target.ravel())[0, 1])
+    ref = np.sqrt(np.mean((sim / sim.max() - target / target.max()) ** 2))
+    assert q["rmse"] == pytest.approx(ref, rel=1e-12)

@@ -1,0 +1,287 @@
+"""Phase retrieval: objective and gradient, discrete updates, determinism, quality, CLI."""
+
+import json
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from doe import fraunhofer, retrieval, targets
+from doe.cli import main
+
+# ----------------------------------------------------------------------------- targets
+
+
+@pytest.mark.parametrize("name", list(targets.TARGETS))
+@pytest.mark.parametrize("k", [5, 11])
+def test_targets_satisfy_the_psf_contract(name, k):
+    t = targets.make_target(name, k)
+    assert t.shape == (k, k) and t.dtype == np.float64
+    assert np.all(t >= 0) and t.sum() == pytest.approx(1.0, abs=1e-12)
+
+
+def test_paper_gaussian_is_centred_with_the_paper_sigma():
+    t = targets.paper_gaussian(11)
+    assert t.argmax() == 60
+    # ratio of neighbour to centre of a sampled Gaussian is exp(-1 / (2 sigma^2))
+    assert t[5, 6] / t[5, 5] == pytest.approx(np.exp(-0.5 / targets.PAPER_SIGMA**2), rel=1e-12)
+
+
+def test_unknown_target_is_refused():
+    with pytest.raises(ValueError, match="unknown target"):
+        targets.make_target("nope")
+
+
+# ----------------------------------------------------------------------------- objective
+
+
+@pytest.mark.parametrize("name", ["compact_blob", "near_delta", "flat_top", "sparse_dots"])
+def test_objective_gradient_matches_finite_differences(name):
+    rng = np.random.default_rng(7)
+    target = targets.make_target(name, 5)
+    n = 13
+    phase = rng.uniform(0, 2 * np.pi, (n, n))
+    _, grad = retrieval.objective(phase, target, weight=3.0)
+    h = 1e-6
+    for r, c in [(0, 0), (4, 9), (12, 3), (7, 7)]:
+        up, down = phase.copy(), phase.copy()
+        up[r, c] += h
+        down[r, c] -= h
+        fd = (
+            retrieval.objective(up, target, 3.0)[0] - retrieval.objective(down, target, 3.0)[0]
+        ) / (2 * h)
+        assert grad[r, c] == pytest.approx(fd, rel=1e-5, abs=1e-7 * np.abs(grad).max())
+
+
+def test_fidelity_terms_measure_the_quality_goals():
+    # the fidelity part equals (rmse / goal)^2 + (1 - corr) / (1 - goal) exactly when the
+    # simulated peak sits where the target's does
+    rng = np.random.default_rng(8)
+    target = targets.compact_blob(7)
+    phase = retrieval.gerchberg_saxton(target, 31, 30, rng)[0]
+    q = fraunhofer.quality(phase, target)
+    expect = (q["rmse"] / retrieval.RMSE_GOAL) ** 2 + (1 - q["correlation"]) / (
+        1 - retrieval.CORRELATION_GOAL
+    )
+    assert retrieval.fidelity(phase, target) == pytest.approx(expect, rel=1e-6)
+    # and the batched evaluation used by coordinate descent agrees with it
+    power = fraunhofer.window_power(phase, 7)
+    goal = retrieval._Goal.of(target)
+    batch = retrieval._values(np.stack([power, power]), goal, 2.0)
+    one = retrieval._fidelity_terms(power, goal, 2.0)[0]
+    np.testing.assert_allclose(batch, [one, one], rtol=1e-12)
+
+
+def test_single_pixel_update_formula_matches_fft():
+    # changing pixel (r, c) from level a to b adds (e^{i phi_b} - e^{i phi_a}) A_r A_c^T / N^2
+    rng = np.random.default_rng(9)
+    n, k, n_levels = 21, 7, 8
+    levels = rng.integers(0, n_levels, (n, n))
+    a = retrieval.window_matrix(n, k)
+    idx = fraunhofer.window_indices(n, k)
+    before = fraunhofer.order_amplitudes(fraunhofer.level_phase(levels, n_levels))[np.ix_(idx, idx)]
+    r, c, b = 5, 17, (levels[5, 17] + 3) % n_levels
+    delta = np.exp(2j * np.pi * b / n_levels) - np.exp(2j * np.pi * levels[r, c] / n_levels)
+    levels[r, c] = b
+    after = fraunhofer.order_amplitudes(fraunhofer.level_phase(levels, n_levels))[np.ix_(idx, idx)]
+    np.testing.assert_allclose(
+        after, before + delta * np.outer(a[:, r], a[:, c]) / n**2, atol=1e-14
+    )
+
+
+def test_coordinate_descent_never_worsens_the_objective():
+    rng = np.random.default_rng(10)
+    target = targets.asymmetric(7)
+    levels = rng.integers(0, 8, (25, 25)).astype(np.uint8)
+    for weight in (0.0, 10.0):
+        before = retrieval.objective(fraunhofer.level_phase(levels, 8), target, weight)[0]
+        out = retrieval.coordinate_descent(levels, target, 8, weight, sweeps=2, rng=rng)
+        after = retrieval.objective(fraunhofer.level_phase(out, 8), target, weight)[0]
+        assert out.dtype == np.uint8 and out.max() < 8
+        assert after < before
+
+
+def test_quantised_gs_lands_on_the_levels():
+    target = targets.compact_blob(5)
+    phase, _ = retrieval.gerchberg_saxton(target, 17, 5, np.random.default_rng(0), n_levels=4)
+    steps = phase / (np.pi / 2)
+    np.testing.assert_allclose(steps, np.round(steps), atol=1e-12)
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.sampled_from([2, 4, 8, 16]))
+def test_rounding_levels_is_idempotent(seed, n_levels):
+    phase = np.random.default_rng(seed).uniform(-20, 20, (6, 6))
+    levels = retrieval.round_levels(phase, n_levels)
+    assert levels.dtype == np.uint8 and levels.max() < n_levels
+    again = retrieval.round_levels(fraunhofer.level_phase(levels, n_levels), n_levels)
+    np.testing.assert_array_equal(again, levels)
+    # the nearest level: the wrapped phase error is at most half a step
+    err = np.angle(np.exp(1j * (phase - fraunhofer.level_phase(levels, n_levels))))
+    assert np.abs(err).max() <= np.pi / n_levels + 1e-9
+
+
+# ----------------------------------------------------------------------------- retrieval
+
+
+def _check(q, efficiency):
+    assert q["correlation"] >= 0.9999, q
+    assert q["rmse"] <= 0.005, q
+    assert q["efficiency"] >= efficiency, q
+
+
+@pytest.mark.parametrize("name", ["compact_blob", "paper_gaussian", "asymmetric"])
+def test_retrieval_quality_small_tile(name):
+    target = targets.make_target(name, 11)
+    res = retrieval.retrieve_phase(target, 61, 8, seed=1)
+    assert res.levels.shape == (61, 61) and res.levels.dtype == np.uint8
+    assert res.levels.max() < 8
+    # the reported figures are the contract's, recomputed from the level map
+    again = fraunhofer.quality(fraunhofer.level_phase(res.levels, 8), target)
+    assert res.quality_quantised == pytest.approx(again, rel=1e-12)
+    _check(res.quality_quantised, 0.85)
+    _check(res.quality_continuous, 0.9)
+
+
+def test_rounding_alone_is_much_worse_than_the_finish():
+    # what the quantisation-aware finish buys: plain GS + rounding misses the rmse goal
+    target = targets.compact_blob(11)
+    phase, _ = retrieval.gerchberg_saxton(target, 61, 150, np.random.default_rng(1))
+    naive = fraunhofer.quality(fraunhofer.level_phase(retrieval.round_levels(phase, 8), 8), target)
+    res = retrieval.retrieve_phase(target, 61, 8, seed=1)
+    assert res.quality_quantised["rmse"] < 0.5 * naive["rmse"]
+
+
+def test_retrieval_is_deterministic_for_a_seed():
+    target = targets.anisotropic(7)
+    one = retrieval.retrieve_phase(target, 31, 8, seed=3)
+    two = retrieval.retrieve_phase(target, 31, 8, seed=3)
+    other = retrieval.retrieve_phase(target, 31, 8, seed=4)
+    assert one.levels.tobytes() == two.levels.tobytes()
+    assert one.phase.tobytes() == two.phase.tobytes()
+    assert one.levels.tobytes() != other.levels.tobytes()
+
+
+def test_retrieval_refuses_bad_arguments():
+    with pytest.raises(ValueError, match="exceeds"):
+        retrieval.retrieve_phase(targets.compact_blob(11), 9)
+    with pytest.raises(ValueError, match="odd"):
+        retrieval.retrieve_phase(np.ones((4, 4)) / 16, 31)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["compact_blob", "dense_random"])
+def test_retrieval_quality_full_tile(name):
+    target = targets.make_target(name, 11)
+    res = retrieval.retrieve_phase(target, 175, 8, seed=0)
+    _check(res.quality_quantised, 0.85)
+
+
+# ----------------------------------------------------------------------------- CLI
+
+
+def _psf_file(tmp_path, psf, name="psf.npy"):
+    path = tmp_path / name
+    np.save(path, psf)
+    return path
+
+
+def _run(args, capsys):
+    code = main(["retrieve", *map(str, args)])
+    return code, capsys.readouterr().err
+
+
+def test_cli_writes_the_contract_files(tmp_path, capsys):
+    target = targets.asymmetric(7)
+    psf = _psf_file(tmp_path, target)
+    out = tmp_path / "out"
+    code, err = _run([psf, "--out", out, "--tile-pixels", 31, "--seed", 2], capsys)
+    assert code == 0, err
+    levels = np.load(out / "levels.npy")
+    assert levels.dtype == np.uint8 and levels.shape == (31, 31) and levels.max() < 8
+    phase = np.load(out / "phase.npy")
+    assert phase.dtype == np.float64 and phase.shape == (31, 31)
+    np.testing.assert_array_equal(np.load(out / "target_psf.npy"), target)
+    info = json.loads((out / "retrieval.json").read_text())
+    assert info["levels"] == 8 and info["tile_pixels"] == 31 and info["kernel_size"] == 7
+    assert info["seed"] == 2 and info["design"]["name"] == "sun2020"
+    assert set(info["versions"]) == {"numpy", "scipy", "nlopt", "doefab"}
+    again = fraunhofer.quality(fraunhofer.level_phase(levels, 8), target)
+    assert info["quantised"] == pytest.approx(again, rel=1e-12)
+    assert (out / "retrieval.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # same seed -> byte-identical level map and figure
+    out2 = tmp_path / "out2"
+    assert _run([psf, "--out", out2, "--tile-pixels", 31, "--seed", 2], capsys)[0] == 0
+    for name in ("levels.npy", "phase.npy", "retrieval.png"):
+        assert (out / name).read_bytes() == (out2 / name).read_bytes(), name
+
+
+def test_cli_levels_and_tile_default_from_the_design(tmp_path, capsys):
+    cfg = tmp_path / "d.toml"
+    cfg.write_text("[fabrication]\nlevels = 4\n")
+    psf = _psf_file(tmp_path, targets.compact_blob(5))
+    out = tmp_path / "out"
+    code, err = _run([psf, "--out", out, "--tile-pixels", 21, "--config", cfg], capsys)
+    assert code == 0, err
+    assert json.loads((out / "retrieval.json").read_text())["levels"] == 4
+    assert np.load(out / "levels.npy").max() < 4
+
+
+def _bad_inputs(tmp_path):
+    good = targets.compact_blob(5)
+    nan = good.copy()
+    nan[0, 0] = np.nan
+    neg = good.copy()
+    neg[0, 0], neg[2, 2] = -0.01, neg[2, 2] + 0.01
+    garbage = tmp_path / "garbage.npy"
+    garbage.write_bytes(b"not an npy file")
+    return {
+        "nan": (_psf_file(tmp_path, nan, "nan.npy"), [], "NaN"),
+        "negative": (_psf_file(tmp_path, neg, "neg.npy"), [], "negative"),
+        "zero-sum": (_psf_file(tmp_path, np.zeros((5, 5)), "zero.npy"), [], "zero"),
+        "even": (_psf_file(tmp_path, np.full((4, 4), 1 / 16), "even.npy"), [], "odd"),
+        "non-square": (_psf_file(tmp_path, np.full((5, 3), 1 / 15), "rect.npy"), [], "square"),
+        "int dtype": (_psf_file(tmp_path, np.eye(3, dtype=np.int64), "int.npy"), [], "dtype"),
+        "K > N": (_psf_file(tmp_path, good, "big.npy"), ["--tile-pixels", 3], "exceeds"),
+        "unreadable": (garbage, [], "readable"),
+        "missing": (tmp_path / "missing.npy", [], "no such file"),
+        "levels 6": (_psf_file(tmp_path, good, "l6.npy"), ["--levels", 6], "--levels"),
+        "levels 1": (_psf_file(tmp_path, good, "l1.npy"), ["--levels", 1], "--levels"),
+        "tile 0": (_psf_file(tmp_path, good, "t0.npy"), ["--tile-pixels", 0], "--tile-pixels"),
+        "bad config": (
+            _psf_file(tmp_path, good, "c.npy"),
+            ["--config", tmp_path / "no.toml"],
+            "no.toml",
+        ),
+    }
+
+
+def test_cli_bad_inputs_exit_2_naming_the_problem_and_leave_nothing(tmp_path, capsys):
+    inputs = tmp_path / "in"
+    inputs.mkdir()
+    for case, (path, extra, words) in _bad_inputs(inputs).items():
+        out = tmp_path / "out"
+        code, err = _run([path, "--out", out, "--tile-pixels", 15, *extra], capsys)
+        assert code == 2, case
+        lines = err.strip().splitlines()
+        assert len(lines) == 1, (case, err)
+        assert words in lines[0], (case, err)
+        if not words.startswith("--") and case != "bad config":
+            assert path.name in lines[0], (case, err)
+        assert not out.exists(), case
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["in"], case
+
+
+def test_cli_refuses_to_overwrite_without_force(tmp_path, capsys):
+    psf = _psf_file(tmp_path, targets.compact_blob(5))
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "levels.npy").write_bytes(b"keep me")
+    code, err = _run([psf, "--out", out, "--tile-pixels", 15], capsys)
+    assert code == 2 and "--force" in err and "levels.npy" in err
+    assert (out / "levels.npy").read_bytes() == b"keep me"
+    assert sorted(p.name for p in out.iterdir()) == ["levels.npy"]
+    code, err = _run([psf, "--out", out, "--tile-pixels", 15, "--force"], capsys)
+    assert code == 0, err
+    assert np.load(out / "levels.npy").dtype == np.uint8
