@@ -1,0 +1,306 @@
+"""Camera captures of a plate's dot lattice: the one module that opens image files.
+
+Reading goes through OpenImageIO: 8- and 16-bit TIFF/PNG (16-bit data from a
+12-bit sensor may be MSB-aligned, i.e. all four low bits zero) and float
+TIFF/EXR. Integer data is read as integers (OIIO would convert to float unless
+asked), so the saturation code of the file is known exactly. The conditioning
+steps (dark subtraction, hot-pixel repair, noise estimate) are plain functions
+on arrays.
+"""
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from doe.errors import InputError
+
+# A dark-frame pixel this many robust sigmas above the dark median is hot.
+HOT_PIXEL_SIGMAS = 10.0
+# Exposure times (from the files' metadata) may differ by this fraction.
+EXPOSURE_RTOL = 0.02
+
+
+@dataclass(frozen=True)
+class RawImage:
+    """One single-channel image as stored.
+
+    Attributes
+    ----------
+    data : (H, W) array
+        uint8/uint16 as stored (MSB-aligned 12-bit data already shifted down),
+        or float32 for float files.
+    full_scale : float or None
+        Largest code the sensor can report (255, 4095, 65535); None for float files.
+    exposure : float or None
+        Exposure time in seconds from the file's metadata, when present.
+    notes : tuple of str
+        What the reader noticed (bit alignment, channels).
+    encoding : str
+        "uint8", "uint16", "uint16-msb12" or "float": how the codes are stored.
+    """
+
+    data: np.ndarray
+    full_scale: float | None
+    exposure: float | None
+    notes: tuple[str, ...] = ()
+    encoding: str = ""
+
+
+@dataclass(frozen=True)
+class Capture:
+    """A conditioned capture, ready for lattice registration.
+
+    Attributes
+    ----------
+    image : (H, W) float32 array
+        Dark-subtracted signal in data numbers (DN), hot pixels repaired.
+    saturated : (H, W) bool array
+        Pixels at the sensor's full-scale code (or a float plateau) in the raw capture.
+    hot : (H, W) bool array
+        Pixels flagged hot in the dark frame (repaired in ``image``).
+    full_scale : float or None
+        Saturation code in DN (None for float data without a plateau).
+    notes : list of str
+        Human-readable remarks for the report.
+    """
+
+    image: np.ndarray
+    saturated: np.ndarray
+    hot: np.ndarray
+    full_scale: float | None
+    notes: list = field(default_factory=list)
+
+
+def read_raw_image(path):
+    """Read a single-channel capture through OpenImageIO.
+
+    Raises
+    ------
+    InputError
+        Missing, truncated or corrupt files, colour images whose channels
+        differ, unsupported pixel formats; the message names the file.
+    """
+    import OpenImageIO as oiio
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "no such image file")
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise InputError(path, f"not a readable image ({_one_line(oiio.geterror())})")
+    try:
+        spec = inp.spec()
+        base = spec.format.basetype
+        if base in (oiio.UINT8, oiio.UINT16):
+            fmt, full = ("uint8", 255.0) if base == oiio.UINT8 else ("uint16", 65535.0)
+        elif base in (oiio.HALF, oiio.FLOAT, oiio.DOUBLE):
+            fmt, full = "float", None
+        else:
+            raise InputError(path, f"unsupported pixel format {spec.format}; use 8/16-bit or float")
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, fmt)
+        if pixels is None or inp.has_error:
+            raise InputError(path, f"truncated or corrupt image ({_one_line(inp.geterror())})")
+        exposure = spec.get_float_attribute("ExposureTime", 0.0) or None
+    finally:
+        inp.close()
+    pixels = np.asarray(pixels)
+    if pixels.ndim == 2:
+        pixels = pixels[..., None]
+    notes = []
+    if pixels.shape[2] > 1:
+        colour = pixels[..., : min(3, pixels.shape[2])]
+        if not np.all(colour == colour[..., :1]):
+            raise InputError(
+                path,
+                f"{pixels.shape[2]}-channel colour image; "
+                "give a single-channel (monochrome) capture",
+            )
+        notes.append(f"{pixels.shape[2]} identical channels: used the first")
+    data = pixels[..., 0]
+    encoding = fmt
+    if fmt == "float":
+        data = data.astype(np.float32)
+        if not np.all(np.isfinite(data)):
+            raise InputError(path, "image has NaN or infinite pixels")
+    elif fmt == "uint16" and data.any() and not np.any(data & 0xF):
+        # 12-bit sensors written MSB-aligned leave the four low bits zero.
+        data = data >> 4
+        full = 4095.0
+        encoding = "uint16-msb12"
+        notes.append("12-bit data MSB-aligned in 16 bits (low 4 bits all zero): shifted down")
+    elif fmt == "uint16" and data.max() <= 4095:
+        full = 4095.0  # 12-bit data stored LSB-aligned: it saturates at 4095, not 65535
+        notes.append("16-bit file with values <= 4095: taken as 12-bit data (saturates at 4095)")
+    return RawImage(np.ascontiguousarray(data), full, exposure, tuple(notes), encoding)
+
+
+def write_image(path, image, exposure=None):
+    """Write a single-channel uint8/uint16/float32 image through OpenImageIO.
+
+    Parameters
+    ----------
+    path : path
+        Output file; the extension picks the format (.png, .tif, .exr).
+    image : (H, W) array
+        Pixel values; the dtype picks the stored format.
+    exposure : float or None
+        Exposure time in seconds, written as the ``ExposureTime`` attribute.
+    """
+    import OpenImageIO as oiio
+
+    image = np.asarray(image)
+    fmt = {
+        np.dtype(np.uint8): "uint8",
+        np.dtype(np.uint16): "uint16",
+        np.dtype(np.float32): "float",
+    }.get(image.dtype)
+    if fmt is None:
+        raise ValueError(f"write_image needs uint8, uint16 or float32, got {image.dtype}")
+    h, w = image.shape
+    spec = oiio.ImageSpec(w, h, 1, fmt)
+    if exposure is not None:
+        spec.attribute("ExposureTime", float(exposure))
+    out = oiio.ImageOutput.create(str(path))
+    if out is None:
+        raise InputError(path, f"cannot write image ({_one_line(oiio.geterror())})")
+    # OIIO scrambles a 2-D array: hand it (H, W, 1).
+    ok = out.open(str(path), spec) and out.write_image(np.ascontiguousarray(image[..., None]))
+    out.close()
+    if not ok:
+        raise InputError(path, f"cannot write image ({_one_line(out.geterror())})")
+
+
+def read_capture(path, dark_path=None):
+    """Read and condition a capture (and its optional dark frame).
+
+    Returns
+    -------
+    Capture
+
+    Raises
+    ------
+    InputError
+        Unreadable files, or a dark frame of another size, bit depth or exposure.
+    """
+    raw = read_raw_image(path)
+    notes = [f"{Path(path).name}: {n}" for n in raw.notes]
+    dark_raw = None
+    if dark_path is not None:
+        dark_raw = read_raw_image(dark_path)
+        notes += [f"{Path(dark_path).name}: {n}" for n in dark_raw.notes]
+        check_dark(raw, dark_raw, dark_path)
+    capture = condition_capture(raw, dark_raw)
+    return Capture(
+        capture.image, capture.saturated, capture.hot, capture.full_scale, notes + capture.notes
+    )
+
+
+def check_dark(raw, dark, dark_source):
+    """Refuse a dark frame that does not match the capture (size, bit depth, exposure)."""
+    if dark.data.shape != raw.data.shape:
+        raise InputError(
+            dark_source,
+            f"dark frame is {dark.data.shape[1]}x{dark.data.shape[0]} "
+            f"pixels but the capture is {raw.data.shape[1]}x{raw.data.shape[0]}",
+        )
+    if dark.encoding != raw.encoding and dark.data.any():
+        raise InputError(
+            dark_source,
+            f"dark frame is stored as {dark.encoding} but the "
+            f"capture as {raw.encoding}; take both with the same camera settings",
+        )
+    if (
+        raw.exposure
+        and dark.exposure
+        and (abs(raw.exposure - dark.exposure) > EXPOSURE_RTOL * raw.exposure)
+    ):
+        raise InputError(
+            dark_source,
+            f"dark exposure {dark.exposure:.6g} s differs from the "
+            f"capture's {raw.exposure:.6g} s; take the dark at the same exposure",
+        )
+
+
+def condition_capture(raw, dark=None):
+    """Subtract the dark frame, flag saturation and repair hot pixels.
+
+    Parameters
+    ----------
+    raw : RawImage
+        The capture.
+    dark : RawImage or None
+        A dark frame of the same size and exposure.
+
+    Returns
+    -------
+    Capture
+        ``image`` float32 DN; without a dark frame a constant pedestal is
+        left in and removed later by the local background of each dot.
+    """
+    data = raw.data
+    notes = []
+    if raw.full_scale is not None:
+        saturated = data >= raw.full_scale
+    else:
+        peak = float(data.max())
+        # Clipped float data shows as a plateau of pixels at exactly the maximum.
+        saturated = (
+            (data >= peak)
+            if np.count_nonzero(data >= peak) >= 3 and peak > 0
+            else (np.zeros(data.shape, bool))
+        )
+    image = data.astype(np.float32)
+    hot = np.zeros(data.shape, bool)
+    if dark is not None:
+        dark_f = dark.data.astype(np.float32)
+        image -= dark_f
+        hot = hot_pixels_from_dark(dark_f)
+        if hot.any():
+            image = repair_pixels(image, hot)
+            notes.append(
+                f"{int(hot.sum())} hot pixel(s) from the dark frame repaired (median of neighbours)"
+            )
+    return Capture(image, saturated & ~hot, hot, raw.full_scale, notes)
+
+
+def robust_sigma(values):
+    """Return 1.4826 * median absolute deviation (a Gaussian sigma robust to outliers)."""
+    values = np.asarray(values, dtype=np.float64).ravel()
+    return float(1.4826 * np.median(np.abs(values - np.median(values))))
+
+
+def hot_pixels_from_dark(dark):
+    """Flag pixels of a dark frame far above its median (``HOT_PIXEL_SIGMAS`` robust sigmas)."""
+    sample = dark[::3, ::3]
+    sigma = max(robust_sigma(sample), 0.5)
+    return dark > np.median(sample) + HOT_PIXEL_SIGMAS * sigma
+
+
+def repair_pixels(image, bad):
+    """Return a copy of ``image``, ``bad`` pixels replaced by the median of good neighbours.
+
+    Parameters
+    ----------
+    image : (H, W) float array
+    bad : (H, W) bool array
+    """
+    out = np.array(image, dtype=np.float32, copy=True)
+    rows, cols = np.nonzero(bad)
+    if rows.size == 0:
+        return out
+    _h, _w = image.shape
+    padded = np.pad(np.where(bad, np.nan, out), 1, constant_values=np.nan)
+    offsets = [(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc]
+    neigh = np.stack([padded[rows + 1 + dr, cols + 1 + dc] for dr, dc in offsets], axis=1)
+    all_bad = np.all(np.isnan(neigh), axis=1)
+    fill = np.zeros(rows.size, dtype=np.float32)
+    if np.any(~all_bad):
+        fill[~all_bad] = np.nanmedian(neigh[~all_bad], axis=1)
+    out[rows, cols] = fill
+    return out
+
+
+def _one_line(message):
+    text = " ".join(str(message).split())
+    return text[:200] if text else "no details from the reader"

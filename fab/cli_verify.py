@@ -1,0 +1,268 @@
+"""``doefab verify`` (a fabricated plate against its design) and ``doefab mtf`` (slanted edge)."""
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+from doe.errors import InputError
+
+VERIFY_FILES = ("verify.json", "measured_psf.npy", "verify_report.html", "verify.png")
+MTF_FILES = ("mtf.json", "mtf.png")
+
+
+def register(sub):
+    from fab.verify import ORIENTATIONS
+
+    p = sub.add_parser(
+        "verify",
+        help="verify a fabricated plate from a capture of its dot lattice (exit 0 pass, 1 fail)",
+        description="Register the dot lattice in a point-source capture through the plate, "
+        "measure the K x K PSF and compare it with the design. Exit 0 when the plate "
+        "passes, 1 when it fails, 2 when the input is unusable.",
+    )
+    p.add_argument(
+        "design_dir",
+        help="fab output (fab_manifest.json, levels.npy) or a "
+        "retrieve output (retrieval.json, levels.npy)",
+    )
+    p.add_argument("capture", help="capture image: 8/16-bit TIFF or PNG, float TIFF or EXR")
+    p.add_argument("--dark", help="dark frame of the same size and exposure")
+    p.add_argument(
+        "--pixel-pitch-um", type=float, default=3.45, help="camera pixel pitch in um (default 3.45)"
+    )
+    p.add_argument(
+        "--lattice-pitch-um",
+        type=float,
+        help="order pitch on the camera in um (default: from the design, lambda f / tile size)",
+    )
+    p.add_argument(
+        "--orientation",
+        choices=ORIENTATIONS,
+        default="as-designed",
+        help="how the camera sees the design (default as-designed: camera row "
+        "index grows downwards = -y, columns = +x, as the PSF); never guessed",
+    )
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--force", action="store_true", help="overwrite existing output files")
+    p.set_defaults(func=_verify)
+
+    p = sub.add_parser("mtf", help="slanted-edge MTF of an image (ISO 12233 style)")
+    p.add_argument("image", help="image of a slanted edge (8/16-bit TIFF or PNG, float TIFF/EXR)")
+    p.add_argument("--oversample", type=int, default=4, help="edge-spread bins per pixel (4)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--force", action="store_true", help="overwrite existing output files")
+    p.set_defaults(func=_mtf)
+
+
+@dataclass(frozen=True)
+class DesignRef:
+    """What verification needs from a design folder (SI units)."""
+
+    levels: object
+    n_levels: int
+    kernel_size: int
+    lattice_pitch: float
+    deep_etch_depth: float | None
+    acceptance: dict | None
+    target_psf: object
+    kind: str
+    files: tuple[str, ...]
+
+
+def read_design_dir(path):
+    """Read a fab folder (fab_manifest.json) or a retrieve folder (retrieval.json).
+
+    Raises
+    ------
+    InputError
+        Missing or malformed files, naming them.
+    """
+    import numpy as np
+
+    from doe.files import read_json, read_levels, read_psf
+
+    path = Path(path)
+    if not path.is_dir():
+        raise InputError(path, "no such design folder (give a doefab fab or retrieve output)")
+    manifest_path, retrieval_path = path / "fab_manifest.json", path / "retrieval.json"
+    if manifest_path.is_file():
+        man = read_json(manifest_path)
+        source = manifest_path
+        try:
+            n_levels = int(man["levels"])
+            levels_file = path / man.get("levels_file", "levels.npy")
+            kernel = int(man["kernel_size"])
+            if "lattice_pitch_um" in man:
+                lattice = float(man["lattice_pitch_um"]) * 1e-6
+            else:
+                tile = int(man["tile_pixels"]) * float(man["pixel_pitch_nm"]) * 1e-9
+                lattice = (
+                    float(man["wavelength_nm"]) * 1e-9 * float(man["focal_length_mm"]) * 1e-3 / tile
+                )
+            masks = sorted(man.get("masks", []), key=lambda mk: mk["exposure_order"])
+            deep = float(masks[0]["etch_depth_nm"]) * 1e-9 if masks else None
+            acceptance = man.get("acceptance")
+            target_file = path / man.get("target_psf_file", "target_psf.npy")
+        except (KeyError, TypeError, ValueError) as e:
+            raise InputError(source, f"malformed manifest ({e!r} missing or wrong)") from None
+        kind = "fab"
+    elif retrieval_path.is_file():
+        ret = read_json(retrieval_path)
+        source = retrieval_path
+        try:
+            n_levels = int(ret["levels"])
+            kernel = int(ret["kernel_size"])
+            levels_file = path / "levels.npy"
+            design = ret["design"]
+            derived = design["derived"]
+            wavelength = float(design["optics"]["wavelength_nm"]) * 1e-9
+            focal = float(design["optics"]["focal_length_mm"]) * 1e-3
+            deep = float(derived["etch_depths_nm"][0]) * 1e-9
+            target_file = path / "target_psf.npy"
+            acceptance = None
+        except (KeyError, TypeError, ValueError, IndexError) as e:
+            raise InputError(source, f"malformed retrieval.json ({e!r} missing or wrong)") from None
+        kind = "retrieve"
+    else:
+        raise InputError(
+            path,
+            "neither fab_manifest.json nor retrieval.json found; give a "
+            "doefab fab or doefab retrieve output folder",
+        )
+    levels = read_levels(levels_file, n_levels)
+    if kind == "retrieve":
+        # The mask pixel pitch snaps to the GDS grid for this N (as doe.design.derive does).
+        n = levels.shape[0]
+        grid = float(design["fabrication"].get("grid_nm", 1)) * 1e-9
+        pitch = round(float(derived["tile_size_nominal_um"]) * 1e-6 / n / grid) * grid
+        lattice = wavelength * focal / (n * pitch)
+    if kernel > levels.shape[0] or kernel % 2 == 0:
+        raise InputError(source, f"kernel_size {kernel} must be odd and <= N {levels.shape[0]}")
+    target = read_psf(target_file) if target_file.is_file() else None
+    if acceptance is not None and not isinstance(acceptance, dict):
+        raise InputError(source, "acceptance must be a table of thresholds")
+    if not (math.isfinite(lattice) and lattice > 0):
+        raise InputError(source, f"lattice pitch {lattice} m is not positive")
+    files = [source.name, levels_file.name] + ([target_file.name] if target is not None else [])
+    return DesignRef(
+        np.asarray(levels), n_levels, kernel, lattice, deep, acceptance, target, kind, tuple(files)
+    )
+
+
+def _verify(args):
+    import numpy as np
+
+    from doe.files import save_npy, staged_output, write_json
+    from doe.fraunhofer import correlation, simulate_levels
+    from fab.capture import read_capture
+    from fab.lattice import LatticeNotFound, measure_orders, register_lattice
+    from fab.verify import analyse, design_order_power, resolve_thresholds
+
+    if not (args.pixel_pitch_um > 0 and math.isfinite(args.pixel_pitch_um)):
+        raise InputError("--pixel-pitch-um", f"must be > 0, got {args.pixel_pitch_um}")
+    design = read_design_dir(args.design_dir)
+    lattice_pitch = design.lattice_pitch
+    if args.lattice_pitch_um is not None:
+        if not args.lattice_pitch_um > 0:
+            raise InputError("--lattice-pitch-um", f"must be > 0, got {args.lattice_pitch_um}")
+        lattice_pitch = args.lattice_pitch_um * 1e-6
+    nominal_px = lattice_pitch / (args.pixel_pitch_um * 1e-6)
+    capture = read_capture(args.capture, args.dark)
+    try:
+        lattice = register_lattice(capture.image, nominal_px)
+    except LatticeNotFound as e:
+        extra = (
+            f"; {int(capture.saturated.sum())} saturated pixels" if capture.saturated.any() else ""
+        )
+        raise InputError(args.capture, f"{e}{extra}") from None
+    grid = measure_orders(capture.image, lattice, capture.saturated)
+    design_psf, design_eff = simulate_levels(design.levels, design.n_levels, design.kernel_size)
+    try:
+        thresholds = resolve_thresholds(
+            design.acceptance, design_eff, design_order_power(design.levels, design.n_levels)[0, 0]
+        )
+    except ValueError as e:
+        raise InputError(Path(args.design_dir) / "fab_manifest.json", str(e)) from None
+    result, measured = analyse(
+        grid, design.levels, design.n_levels, design.kernel_size, args.orientation, thresholds
+    )
+    if measured is None:
+        r, c = result["zero_order_px"]
+        raise InputError(
+            args.capture,
+            f"the {design.kernel_size}x{design.kernel_size} window "
+            f"around the zero order at row {r:.0f}, col {c:.0f} runs off the "
+            "frame; centre the zero order in the capture",
+        )
+    report = {
+        **result,
+        "lattice": {**lattice.summary(), "nominal_pitch_px": nominal_px},
+        "thresholds": thresholds,
+        "orientation": args.orientation,
+        "pixel_pitch_um": args.pixel_pitch_um,
+        "lattice_pitch_um": lattice_pitch * 1e6,
+        "inputs": {
+            "design_dir": str(args.design_dir),
+            "design_files": list(design.files),
+            "capture": Path(args.capture).name,
+            "dark": Path(args.dark).name if args.dark else None,
+        },
+        "notes": capture.notes + _notes(result, capture, design),
+    }
+    if result["implied_deep_etch_error"] is not None and design.deep_etch_depth:
+        report["implied_deep_etch_error_nm"] = (
+            result["implied_deep_etch_error"] * design.deep_etch_depth * 1e9
+        )
+    if design.target_psf is not None and design.target_psf.shape == measured.shape:
+        report["correlation_target"] = correlation(measured, design.target_psf)
+    with staged_output(args.out, args.force, names=VERIFY_FILES) as stage:
+        from fab.verify_figures import write_verify_report
+
+        save_npy(stage / "measured_psf.npy", np.asarray(measured, dtype=np.float64))
+        write_json(stage / "verify.json", report)
+        write_verify_report(
+            stage, report, capture.image, grid, lattice, measured, design_psf, args.orientation
+        )
+    verdict = "PASS" if report["pass"] else "FAIL"
+    print(
+        f"{verdict}: {', '.join(report['diagnosis'])}  correlation {report['correlation']:.4f}"
+        f"  rmse {report['rmse']:.4f}  efficiency {report['efficiency']:.4f}"
+        f"  zero order {report['zero_order']:.4g} -> {args.out}"
+    )
+    return 0 if report["pass"] else 1
+
+
+def _notes(result, capture, design):
+    notes = []
+    if capture.saturated.any() and not result["saturated_dots"]:
+        notes.append(f"{int(capture.saturated.sum())} saturated pixel(s) outside the dots")
+    if result["saturated_dots"]:
+        notes.append(
+            f"{result['saturated_dots']} dot(s) hold saturated pixels: their powers are "
+            "clipped; shorten the exposure"
+        )
+    if design.acceptance is None:
+        notes.append("no acceptance in the design folder: default thresholds used")
+    return notes
+
+
+def _mtf(args):
+    from doe.files import staged_output, write_json
+    from fab.capture import read_raw_image
+    from fab.mtf import EdgeNotFound, slanted_edge_mtf
+
+    if not 1 <= args.oversample <= 16:
+        raise InputError("--oversample", f"must be 1..16, got {args.oversample}")
+    raw = read_raw_image(args.image)
+    try:
+        result = slanted_edge_mtf(raw.data, oversample=args.oversample)
+    except EdgeNotFound as e:
+        raise InputError(args.image, str(e)) from None
+    result["image"] = Path(args.image).name
+    with staged_output(args.out, args.force, names=MTF_FILES) as stage:
+        from fab.verify_figures import write_mtf_plot
+
+        write_json(stage / "mtf.json", result)
+        write_mtf_plot(stage / "mtf.png", result)
+    print(f"MTF50 {result['mtf50_cycles_per_pixel']:.4f} cycles/pixel -> {args.out}")
+    return 0

@@ -1,0 +1,371 @@
+"""Compare a measured dot lattice with the design and diagnose the plate.
+
+The dot powers measured on the camera lattice (``fab.lattice``) are put into
+the design's frame by the camera orientation the user states (never guessed: a
+conjugate plate's PSF is the design's rotated by 180 degrees, so a search over
+orientations would pass it). The zero order is found by correlating the
+measured powers with the design's far field over integer offsets: it is often
+not the brightest dot. Then the K x K window is the measured PSF, compared with
+``doe.fraunhofer.simulate_levels`` the CONVENTIONS way, and the faults that
+leave fingerprints are named: zero-order excess (a deep-etch depth error), a
+point-reflected pattern (conjugate plate: etch and glass swapped), a mirrored
+one, a plate of another design, low signal, saturation.
+
+Far-field model of a real plate: order (m, n) carries
+``|DFT[m mod N, n mod N]|^2 sinc^2(m/N) sinc^2(n/N)`` of the power (square
+mask pixels); the contract's PSF leaves out the sinc envelope, which inside the
+K x K window of an N = 175 tile changes powers by under 0.3 %.
+"""
+
+import numpy as np
+
+from doe.fraunhofer import correlation, level_phase, order_amplitudes, rmse, simulate_levels
+from fab.masks import masks_from_levels
+
+ORIENTATIONS = ("as-designed", "rot90", "rot180", "rot270", "mirror-x", "mirror-y")
+
+# Pass/fail thresholds used when the fabrication manifest has no "acceptance"
+# (fab.tolerance derives them from the tolerance budget when it does).
+# Efficiency and zero order are relative to the design, because absolute values
+# depend on it: efficiency >= ratio * design efficiency, zero order <= design's
+# zero order + excess.
+DEFAULT_ACCEPTANCE = {
+    "correlation_min": 0.95,
+    "rmse_max": 0.08,
+    "efficiency_ratio_min": 0.85,
+    "zero_order_excess_max": 0.01,
+}
+# Diagnosis settings: the window must stand this far above the noise; another
+# transform of the design must beat the design's own frame correlation by this
+# margin to be named; below this frame correlation the plate is another design.
+MIN_WINDOW_SNR = 30.0
+TRANSFORM_MARGIN = 0.10
+OTHER_DESIGN_MAX = 0.5
+
+# The design's order powers under each point symmetry a faulty plate can show.
+_TRANSFORMS = {
+    "design": lambda p: p,
+    "rot180": lambda p: np.roll(p[::-1, ::-1], 1, axis=(0, 1)),
+    "mirror-x": lambda p: np.roll(p[:, ::-1], 1, axis=1),
+    "mirror-y": lambda p: np.roll(p[::-1, :], 1, axis=0),
+}
+
+
+def resolve_thresholds(acceptance, design_efficiency, design_zero_order):
+    """Return absolute thresholds from the manifest's "acceptance" or the defaults.
+
+    Returns
+    -------
+    dict
+        correlation_min, rmse_max, efficiency_min, zero_order_max, min_window_snr, source.
+    """
+    if acceptance:
+        missing = {"correlation_min", "rmse_max", "efficiency_min", "zero_order_max"} - set(
+            acceptance
+        )
+        if missing:
+            raise ValueError(f"acceptance lacks {sorted(missing)}")
+        out = {
+            k: float(acceptance[k])
+            for k in ("correlation_min", "rmse_max", "efficiency_min", "zero_order_max")
+        }
+        out["source"] = "fab_manifest.json acceptance"
+    else:
+        d = DEFAULT_ACCEPTANCE
+        out = {
+            "correlation_min": d["correlation_min"],
+            "rmse_max": d["rmse_max"],
+            "efficiency_min": d["efficiency_ratio_min"] * design_efficiency,
+            "zero_order_max": float(design_zero_order) + d["zero_order_excess_max"],
+            "source": "defaults (fab.verify.DEFAULT_ACCEPTANCE)",
+        }
+    out["min_window_snr"] = MIN_WINDOW_SNR
+    return out
+
+
+def to_design_frame(array, orientation):
+    """Re-index a camera-lattice grid [u, v] into the design's order frame [m, n].
+
+    ``orientation`` says how the camera sees the design: "rot90" means the image
+    is the design rotated 90 degrees counter-clockwise, "mirror-x" flipped left
+    to right, and so on; this undoes it.
+    """
+    if orientation not in ORIENTATIONS:
+        raise ValueError(f"orientation must be one of {ORIENTATIONS}, got {orientation!r}")
+    a = np.asarray(array)
+    return {
+        "as-designed": lambda x: x,
+        "rot90": lambda x: np.rot90(x, -1),
+        "rot180": lambda x: x[::-1, ::-1],
+        "rot270": lambda x: np.rot90(x, 1),
+        "mirror-x": lambda x: x[:, ::-1],
+        "mirror-y": lambda x: x[::-1, :],
+    }[orientation](a)
+
+
+def design_order_power(levels, n_levels):
+    """Return the (N, N) order powers |DFT|^2 of the design tile (FFT index order, sum 1)."""
+    return np.abs(order_amplitudes(level_phase(levels, n_levels))) ** 2
+
+
+def pixel_envelope(orders, n):
+    """Return sinc^2(m / N): the power envelope of square mask pixels at order m."""
+    return np.sinc(np.asarray(orders) / n) ** 2
+
+
+def _model(period_power, m0, n0, shape):
+    """Return the model's order powers on a grid whose element [m0, n0] is the zero order."""
+    n = period_power.shape[0]
+    m = np.arange(shape[0]) - m0
+    k = np.arange(shape[1]) - n0
+    env = pixel_envelope(m, n)[:, None] * pixel_envelope(k, n)[None, :]
+    return period_power[np.ix_(m % n, k % n)] * env
+
+
+def _pearson(a, b):
+    a, b = a - a.mean(), b - b.mean()
+    den = np.sqrt((a * a).sum() * (b * b).sum())
+    return float((a * b).sum() / den) if den > 0 else 0.0
+
+
+def locate_zero_order(measured, valid, period_power, top=3):
+    """Find where the zero order sits in a measured grid by matching the design's far field.
+
+    Scores are Pearson correlations of square-rooted powers (so the many weak
+    orders count, not only the brightest), leaving out the candidate zero order
+    itself (a depth error changes it most). Offsets modulo N come from one FFT
+    cross-correlation of the grid folded modulo N; which period holds the zero
+    order follows from the pixel envelope.
+
+    Parameters
+    ----------
+    measured : (nu, nv) float array
+        Dot powers in the design frame (NaN or anything where not ``valid``).
+    valid : (nu, nv) bool array
+    period_power : (N, N) float array
+        Order powers of the tile, FFT index order.
+    top : int
+        Offsets modulo N tried with the envelope.
+
+    Returns
+    -------
+    (m0, n0, score)
+        Grid indices of the zero order and the frame correlation there (of
+        square-rooted powers, the pixel envelope divided out).
+    """
+    n = period_power.shape[0]
+    nu, nv = measured.shape
+    amp = np.sqrt(np.clip(np.where(valid, measured, 0.0), 0, None))
+    mean = amp[valid].mean()
+    centred = np.where(valid, amp - mean, 0.0)
+    fold = np.zeros((n, n))
+    np.add.at(fold, (np.arange(nu)[:, None] % n, np.arange(nv)[None, :] % n), centred)
+    ref = np.sqrt(period_power)
+    score = np.real(np.fft.ifft2(np.fft.fft2(fold) * np.conj(np.fft.fft2(ref - ref.mean()))))
+    best, tried = None, 0
+    for flat in np.argsort(score, axis=None)[::-1]:
+        s, t = np.unravel_index(flat, score.shape)
+        cands = [
+            (m0, n0) for m0 in range(int(s), nu, n) for n0 in range(int(t), nv, n) if valid[m0, n0]
+        ]
+        tried += bool(cands)
+        if tried > top:
+            break
+        for m0, n0 in cands:
+            model = np.sqrt(_model(period_power, m0, n0, (nu, nv)))
+            use = valid.copy()
+            use[m0, n0] = False
+            r = _pearson(amp[use], model[use])
+            if best is None or r > best[2]:
+                best = (m0, n0, r, model, use)
+    if best is None:
+        raise ValueError("no valid dot where the zero order could sit")
+    m0, n0, _, model, use = best
+    # Report the match with the sinc envelope divided out: two unrelated plates
+    # share that envelope, which would lift their correlation.
+    env = np.sqrt(_model(np.ones_like(period_power), m0, n0, (nu, nv)))
+    flat = env[use] > 0.2
+    return m0, n0, _pearson(amp[use][flat] / env[use][flat], model[use][flat] / env[use][flat])
+
+
+def _deep_mask_fields(levels, n_levels):
+    """Return the far-field amplitudes (N, N) of the pixels the deepest mask leaves and etches."""
+    deep = masks_from_levels(levels, n_levels, level_step=1.0)[0].bitmap
+    field = np.exp(1j * level_phase(levels, n_levels))
+    return (
+        np.fft.fft2(np.where(deep, 0, field)) / deep.size,
+        np.fft.fft2(np.where(deep, field, 0)) / deep.size,
+    )
+
+
+def fit_deep_etch_error(window, levels, n_levels, search=0.5, step=1e-3):
+    """Fit the signed deep-etch depth error that best explains the measured window.
+
+    An error eps adds the phase -pi eps to the pixels the deepest mask etches,
+    so order (m, n) carries ``|U_mn + C_mn exp(-i pi eps)|^2`` (U, C: far fields
+    of the pixels left and etched). Unlike the zero order alone, the window's
+    orders tell a too deep etch from a too shallow one (unless the design is
+    point-symmetric). Least squares over eps with a free overall scale.
+
+    Parameters
+    ----------
+    window : (K, K) float array
+        Measured order powers in the design frame (any units).
+
+    Returns
+    -------
+    float
+        eps (+0.1: the deepest etch is 10 % too deep).
+    """
+    k = window.shape[0]
+    n = levels.shape[0]
+    idx = (np.arange(k) - k // 2) % n
+    env = pixel_envelope(np.arange(k) - k // 2, n)
+    env = env[:, None] * env[None, :]
+    u_amp, c_amp = (f[np.ix_(idx, idx)].ravel() for f in _deep_mask_fields(levels, n_levels))
+    eps = np.arange(-search, search + step / 2, step)
+    model = np.abs(u_amp[None, :] + c_amp[None, :] * np.exp(-1j * np.pi * eps)[:, None]) ** 2
+    model *= env.ravel()[None, :]
+    meas = np.asarray(window, float).ravel()
+    scale = (model @ meas) / np.einsum("ij,ij->i", model, model)
+    resid = ((model * scale[:, None] - meas[None, :]) ** 2).sum(axis=1)
+    return float(eps[int(np.argmin(resid))])
+
+
+def implied_deep_etch_error(levels, n_levels, zero_order_power, sign_hint=None):
+    """Invert the zero-order power for the fractional depth error of the deepest etch.
+
+    With U and C the zero-order amplitudes of the pixels the deepest mask leaves
+    and etches, an extra phase delta on the etched pixels gives
+    ``|U + C exp(i delta)|^2 = |U|^2 + |C|^2 + 2 |U| |C| cos(delta + arg C - arg U)``;
+    the deepest mask's phase is pi, so delta = -pi eps. The zero order alone has
+    two solutions (too deep, too shallow): the one nearer ``sign_hint`` (e.g.
+    from ``fit_deep_etch_error``) is returned, otherwise the smaller |eps|.
+    Returns None when the design makes the zero order insensitive.
+    """
+    u_amp, c_amp = (f[0, 0] for f in _deep_mask_fields(levels, n_levels))
+    a = abs(u_amp) ** 2 + abs(c_amp) ** 2
+    b = 2 * abs(u_amp) * abs(c_amp)
+    if b < 1e-12:
+        return None
+    psi = np.angle(c_amp) - np.angle(u_amp)
+    alpha = np.arccos(np.clip((zero_order_power - a) / b, -1, 1))
+    deltas = np.angle(np.exp(1j * np.array([-psi + alpha, -psi - alpha])))
+    eps = -deltas / np.pi
+    if sign_hint is not None:
+        return float(eps[np.argmin(np.abs(eps - sign_hint))])
+    return float(eps[np.argmin(np.abs(eps))])
+
+
+def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
+    """Measure the PSF in a registered order grid, compare it with the design and diagnose.
+
+    Parameters
+    ----------
+    grid : fab.lattice.OrderGrid
+        Photometry of the capture (camera frame).
+    levels : (N, N) uint8 array
+        The design tile.
+    n_levels : int
+    kernel_size : int
+        K.
+    orientation : str
+        Camera orientation (see ``to_design_frame``).
+    thresholds : dict
+        From ``resolve_thresholds``.
+
+    Returns
+    -------
+    (result, measured_psf)
+        ``result`` the JSON-ready figures and diagnosis; ``measured_psf`` (K, K)
+        float64, >= 0, sum 1, or None when the window runs off the frame
+        (``result["window_in_frame"]`` False).
+    """
+    power = to_design_frame(grid.power, orientation)
+    valid = to_design_frame(grid.valid, orientation)
+    rows, cols = to_design_frame(grid.rows, orientation), to_design_frame(grid.cols, orientation)
+    sat = to_design_frame(grid.saturated, orientation)
+    period = design_order_power(levels, n_levels)
+    scores = {}
+    for name, transform in _TRANSFORMS.items():
+        scores[name] = locate_zero_order(power, valid, transform(period))
+    m0, n0, _frame_corr = scores["design"]
+    k, half = kernel_size, kernel_size // 2
+    design_psf, design_eff = simulate_levels(levels, n_levels, k)
+    result = {
+        "zero_order_px": [float(rows[m0, n0]), float(cols[m0, n0])],
+        "frame_correlation": {name: s[2] for name, s in scores.items()},
+        "design_efficiency": design_eff,
+        "design_zero_order": float(period[0, 0]),
+    }
+    sl = (slice(m0 - half, m0 + half + 1), slice(n0 - half, n0 + half + 1))
+    in_frame = (
+        m0 - half >= 0
+        and n0 - half >= 0
+        and m0 + half < power.shape[0]
+        and n0 + half < power.shape[1]
+        and bool(valid[sl].all())
+    )
+    result["window_in_frame"] = in_frame
+    if not in_frame:
+        return result, None
+    window = power[sl]
+    model = _model(period, m0, n0, power.shape)
+    measured_total = float(power[valid].sum())
+    model_in_frame = float(model[valid].sum())
+    total = measured_total / model_in_frame  # the whole beam's power, DN
+    window_sum = float(window.sum())
+    measured_psf = np.clip(window, 0, None)
+    measured_psf = measured_psf / measured_psf.sum()
+    zero_order = float(power[m0, n0]) / total
+    etch_fit = fit_deep_etch_error(window, levels, n_levels)
+    snr = window_sum / (grid.noise_px * np.sqrt(grid.aperture_pixels * k * k) + 1e-30)
+    result.update(
+        {
+            "correlation": correlation(measured_psf, design_psf),
+            "rmse": rmse(measured_psf, design_psf),
+            "efficiency": window_sum / total,
+            "zero_order": zero_order,
+            "zero_order_excess": zero_order - float(period[0, 0]),
+            "implied_deep_etch_error": implied_deep_etch_error(
+                levels, n_levels, zero_order, sign_hint=etch_fit
+            ),
+            "deep_etch_error_fit": etch_fit,
+            "power_outside_window": 1 - window_sum / measured_total,
+            "expected_power_outside_window": 1 - float(model[sl].sum()) / model_in_frame,
+            "model_power_in_frame": model_in_frame,
+            "window_snr": float(snr),
+            "saturated_dots": int(sat[valid].sum()),
+            "saturated_in_window": int(sat[sl].sum()),
+            "orders_measured": int(valid.sum()),
+        }
+    )
+    result["diagnosis"] = diagnose(result, thresholds)
+    result["pass"] = result["diagnosis"] == ["ok"]
+    return result, measured_psf
+
+
+def diagnose(result, thresholds):
+    """Return the list of short diagnosis codes (["ok"] when every check holds)."""
+    codes = []
+    if result["saturated_dots"]:
+        codes.append("saturated")
+    if result["window_snr"] < thresholds["min_window_snr"]:
+        codes.append("low_signal")
+    frame = result["frame_correlation"]
+    best_other = max(("rot180", "mirror-x", "mirror-y"), key=lambda t: frame[t])
+    if frame[best_other] > frame["design"] + TRANSFORM_MARGIN:
+        codes.append("conjugate_plate" if best_other == "rot180" else "mirrored")
+    elif max(frame.values()) < OTHER_DESIGN_MAX and "low_signal" not in codes:
+        codes.append("other_design")
+    if result["zero_order"] > thresholds["zero_order_max"]:
+        codes.append("zero_order_excess")
+    if not codes or codes == ["zero_order_excess"]:
+        if (
+            result["correlation"] < thresholds["correlation_min"]
+            or result["rmse"] > thresholds["rmse_max"]
+        ):
+            codes.append("psf_mismatch")
+        if result["efficiency"] < thresholds["efficiency_min"]:
+            codes.append("low_efficiency")
+    return codes or ["ok"]

@@ -1,0 +1,206 @@
+"""Figures and the HTML report of ``doefab verify`` and the plot of ``doefab mtf``.
+
+matplotlib (Agg) is imported inside the functions; PNG metadata is pinned so
+the bytes depend only on the data.
+"""
+
+import html
+
+import numpy as np
+
+_PNG_META = {"Software": None}
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def write_verify_report(stage, report, image, grid, lattice, measured_psf, design_psf, orientation):
+    """Write ``verify.png`` and ``verify_report.html`` into ``stage``.
+
+    Parameters
+    ----------
+    stage : Path
+        Output folder.
+    report : dict
+        The verify.json content.
+    image : (H, W) float array
+        Conditioned capture (DN).
+    grid : fab.lattice.OrderGrid
+    lattice : fab.lattice.Lattice
+    measured_psf, design_psf : (K, K) float arrays
+    orientation : str
+    """
+    plt = _pyplot()
+    k = measured_psf.shape[0]
+    fig, axes = plt.subplots(2, 2, figsize=(10, 9))
+    r0, c0 = report["zero_order_px"]
+    half = (k // 2 + 2) * lattice.pitch_px
+    h, w = image.shape
+    top, bottom = int(max(0, r0 - half)), int(min(h, r0 + half + 1))
+    left, right = int(max(0, c0 - half)), int(min(w, c0 + half + 1))
+    crop = image[top:bottom, left:right]
+    ax = axes[0, 0]
+    ax.imshow(
+        np.sqrt(np.clip(crop, 0, None)),
+        cmap="gray",
+        extent=(left - 0.5, right - 0.5, bottom - 0.5, top - 0.5),
+    )
+    inside = (
+        (grid.rows >= top)
+        & (grid.rows < bottom)
+        & (grid.cols >= left)
+        & (grid.cols < right)
+        & grid.valid
+    )
+    ax.plot(grid.cols[inside], grid.rows[inside], "+", color="tab:cyan", ms=4, mew=0.6)
+    ax.plot([c0], [r0], "o", mfc="none", mec="tab:red", ms=10, label="zero order")
+    ax.set_title("capture around the zero order (sqrt), lattice fit")
+    ax.legend(loc="upper right", fontsize=8)
+    vmax = max(measured_psf.max(), design_psf.max())
+    for ax, data, title in (
+        (axes[0, 1], measured_psf, "measured PSF"),
+        (axes[1, 0], design_psf, "design PSF (simulate_levels)"),
+    ):
+        im = ax.imshow(data, cmap="magma", vmin=0, vmax=vmax)
+        ax.set_title(title)
+        fig.colorbar(im, ax=ax, fraction=0.046)
+    diff = measured_psf / measured_psf.max() - design_psf / design_psf.max()
+    lim = max(float(np.abs(diff).max()), 1e-9)
+    im = axes[1, 1].imshow(diff, cmap="RdBu_r", vmin=-lim, vmax=lim)
+    axes[1, 1].set_title("difference (each / its peak)")
+    fig.colorbar(im, ax=axes[1, 1], fraction=0.046)
+    verdict = "PASS" if report["pass"] else "FAIL"
+    fig.suptitle(
+        f"{verdict}: {', '.join(report['diagnosis'])}   correlation "
+        f"{report['correlation']:.4f}, rmse {report['rmse']:.4f}, orientation "
+        f"{orientation}"
+    )
+    fig.tight_layout()
+    fig.savefig(stage / "verify.png", dpi=90, metadata=_PNG_META)
+    plt.close(fig)
+    (stage / "verify_report.html").write_text(_html(report))
+
+
+def _html(report):
+    t = report["thresholds"]
+    lat = report["lattice"]
+    checks = [
+        (
+            "correlation",
+            report["correlation"],
+            f">= {t['correlation_min']:.4g}",
+            report["correlation"] >= t["correlation_min"],
+        ),
+        ("rmse", report["rmse"], f"<= {t['rmse_max']:.4g}", report["rmse"] <= t["rmse_max"]),
+        (
+            "efficiency",
+            report["efficiency"],
+            f">= {t['efficiency_min']:.4g}",
+            report["efficiency"] >= t["efficiency_min"],
+        ),
+        (
+            "zero order (fraction of the beam)",
+            report["zero_order"],
+            f"<= {t['zero_order_max']:.4g}",
+            report["zero_order"] <= t["zero_order_max"],
+        ),
+        (
+            "window SNR",
+            report["window_snr"],
+            f">= {t['min_window_snr']:.4g}",
+            report["window_snr"] >= t["min_window_snr"],
+        ),
+        ("saturated dots", report["saturated_dots"], "0", report["saturated_dots"] == 0),
+    ]
+    rows = "\n".join(
+        f"<tr><td>{html.escape(n)}</td><td>{v:.5g}</td><td>{html.escape(lim)}</td>"
+        f"<td>{'ok' if ok else '<b>FAIL</b>'}</td></tr>"
+        for n, v, lim, ok in checks
+    )
+    info = [
+        ("zero-order excess over the design", f"{report['zero_order_excess']:.4g}"),
+        (
+            "implied deep-etch depth error (from the zero order; sign from the window fit)",
+            _fmt(report.get("implied_deep_etch_error"))
+            + (
+                f" ({report['implied_deep_etch_error_nm']:.1f} nm)"
+                if "implied_deep_etch_error_nm" in report
+                else ""
+            ),
+        ),
+        ("deep-etch error fitted to the window", _fmt(report["deep_etch_error_fit"])),
+        (
+            "power outside the window (of the power on the camera)",
+            f"{report['power_outside_window']:.4g} (design: "
+            f"{report['expected_power_outside_window']:.4g})",
+        ),
+        (
+            "frame correlation with design / rot180 / mirror-x / mirror-y",
+            " / ".join(
+                f"{report['frame_correlation'][k]:.3f}"
+                for k in ("design", "rot180", "mirror-x", "mirror-y")
+            ),
+        ),
+        (
+            "lattice pitch (px), rotation (deg), zero order (row, col px)",
+            f"{lat['pitch_px']:.4f} (nominal {lat['nominal_pitch_px']:.4f}), "
+            f"{lat['rotation_deg']:.3f}, ({report['zero_order_px'][0]:.2f}, "
+            f"{report['zero_order_px'][1]:.2f})",
+        ),
+        ("orientation", report["orientation"]),
+        ("thresholds from", t["source"]),
+        ("capture / dark", f"{report['inputs']['capture']} / {report['inputs']['dark']}"),
+    ]
+    info_rows = "\n".join(
+        f"<tr><td>{html.escape(a)}</td><td>{html.escape(str(b))}</td></tr>" for a, b in info
+    )
+    notes = "".join(f"<li>{html.escape(n)}</li>" for n in report["notes"])
+    verdict = "PASS" if report["pass"] else "FAIL"
+    return f"""<!DOCTYPE html>
+<html><head><meta charset="utf-8"><title>doefab verify: {verdict}</title>
+<style>body{{font-family:sans-serif;max-width:60em;margin:2em auto}}
+td,th{{border:1px solid #ccc;padding:2px 8px}}table{{border-collapse:collapse}}</style>
+</head><body>
+<h1>Plate verification: {verdict}</h1>
+<p>Diagnosis: <b>{html.escape(", ".join(report["diagnosis"]))}</b></p>
+<h2>Acceptance checks</h2>
+<table><tr><th>figure</th><th>measured</th><th>threshold</th><th></th></tr>
+{rows}</table>
+<h2>Measurement</h2>
+<table>{info_rows}</table>
+<h2>Notes</h2><ul>{notes or "<li>none</li>"}</ul>
+<p>Correlation and rmse follow CONVENTIONS.md against the design's simulated PSF; the
+efficiency is the window's share of the whole beam, the beam's power estimated from every
+order measured in the frame and the design's far field outside it.</p>
+<img src="verify.png" alt="capture, measured and design PSF">
+</body></html>
+"""
+
+
+def _fmt(v):
+    return "n/a" if v is None else f"{v:+.4f}"
+
+
+def write_mtf_plot(path, result):
+    """Plot the MTF of ``result`` (from ``fab.mtf.slanted_edge_mtf``) to a PNG."""
+    plt = _pyplot()
+    f = np.asarray(result["frequencies_cycles_per_pixel"])
+    m = np.asarray(result["mtf"])
+    fig, ax = plt.subplots(figsize=(6, 4))
+    keep = f <= 1.0
+    ax.plot(f[keep], m[keep], "-", color="tab:blue")
+    ax.axhline(0.5, color="gray", lw=0.6)
+    ax.axvline(0.5, color="gray", lw=0.6, ls=":")
+    ax.set_xlabel("spatial frequency (cycles/pixel)")
+    ax.set_ylabel("MTF")
+    ax.set_ylim(0, 1.05)
+    ax.set_title(f"slanted-edge MTF, MTF50 = {result['mtf50_cycles_per_pixel']:.4f} cycles/pixel")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90, metadata=_PNG_META)
+    plt.close(fig)

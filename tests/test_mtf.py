@@ -1,0 +1,79 @@
+"""Slanted-edge MTF against the analytic MTF of a Gaussian-blurred edge."""
+
+import json
+
+import numpy as np
+import pytest
+from scipy.special import erf
+
+from doe.cli import main
+from fab.capture import write_image
+from fab.mtf import EdgeNotFound, slanted_edge_mtf
+
+
+def gaussian_edge(sigma, angle_deg, shape=(200, 160), low=20.0, high=220.0, noise=0.0, seed=0):
+    """An edge blurred by a Gaussian of ``sigma`` px, sampled at pixel centres.
+
+    Its MTF across the edge is exp(-2 pi^2 sigma^2 f^2) (f in cycles/pixel).
+    """
+    h, w = shape
+    y, x = np.mgrid[0:h, 0:w].astype(float)
+    t = np.tan(np.radians(angle_deg))
+    d = (x - (w / 2 + 0.3) - t * (y - h / 2)) / np.hypot(1, t)
+    img = low + (high - low) * 0.5 * (1 + erf(d / (np.sqrt(2) * sigma)))
+    return img + np.random.default_rng(seed).normal(0, noise, img.shape)
+
+
+def analytic_mtf(f, sigma):
+    return np.exp(-2 * np.pi**2 * sigma**2 * f**2)
+
+
+@pytest.mark.parametrize(
+    "sigma, angle, transpose",
+    [(1.0, 5.0, False), (2.0, -4.0, False), (0.7, 6.0, True), (1.5, 3.5, True)],
+)
+def test_mtf_of_gaussian_edge_matches_analytic(sigma, angle, transpose):
+    img = gaussian_edge(sigma, angle, noise=0.3)
+    if transpose:
+        img = img.T[::-1]  # horizontal edge, dark side below
+    r = slanted_edge_mtf(img, oversample=4)
+    f = np.array(r["frequencies_cycles_per_pixel"])
+    m = np.array(r["mtf"])
+    sel = f <= 0.5
+    assert np.max(np.abs(m[sel] - analytic_mtf(f[sel], sigma))) < 0.02
+    mtf50 = np.sqrt(np.log(2) / (2 * np.pi**2)) / sigma
+    assert r["mtf50_cycles_per_pixel"] == pytest.approx(mtf50, rel=0.03)
+    assert r["edge_orientation"] == ("horizontal" if transpose else "vertical")
+    assert abs(r["edge_angle_deg"]) == pytest.approx(abs(angle), abs=0.1)
+
+
+def test_sharper_edge_has_higher_mtf50():
+    a = slanted_edge_mtf(gaussian_edge(0.8, 5))["mtf50_cycles_per_pixel"]
+    b = slanted_edge_mtf(gaussian_edge(1.6, 5))["mtf50_cycles_per_pixel"]
+    assert a == pytest.approx(2 * b, rel=0.05)
+
+
+def test_flat_image_has_no_edge():
+    with pytest.raises(EdgeNotFound):
+        slanted_edge_mtf(np.full((50, 50), 7.0))
+
+
+def test_mtf_cli_writes_json_and_plot(tmp_path):
+    img = np.clip(gaussian_edge(1.2, 5, high=3000, noise=2.0), 0, 65535).astype(np.uint16)
+    write_image(tmp_path / "edge.png", img)
+    assert main(["mtf", str(tmp_path / "edge.png"), "--out", str(tmp_path / "o")]) == 0
+    result = json.loads((tmp_path / "o" / "mtf.json").read_text())
+    assert result["mtf"][0] == pytest.approx(1.0)
+    assert result["mtf50_cycles_per_pixel"] == pytest.approx(
+        np.sqrt(np.log(2) / (2 * np.pi**2)) / 1.2, rel=0.05
+    )
+    assert (tmp_path / "o" / "mtf.png").stat().st_size > 0
+    # Refuses to overwrite without --force.
+    assert main(["mtf", str(tmp_path / "edge.png"), "--out", str(tmp_path / "o")]) == 2
+
+
+def test_mtf_cli_flat_image_exits_2(tmp_path, capsys):
+    write_image(tmp_path / "flat.tif", np.full((40, 40), 100, np.uint16))
+    assert main(["mtf", str(tmp_path / "flat.tif"), "--out", str(tmp_path / "o")]) == 2
+    assert "flat.tif" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()

@@ -1,0 +1,370 @@
+"""Tests of hardware verification: captures made by fab.capture_sim, verified by `doefab verify`."""
+
+import json
+
+import numpy as np
+import pytest
+
+from doe.cli import main
+from doe.files import read_psf, save_npy, write_json
+from doe.fraunhofer import simulate_levels
+from fab.capture import RawImage, condition_capture, repair_pixels, write_image
+from fab.capture_sim import PlateFaults, plate_far_field, plate_phase, simulate_capture
+from fab.lattice import measure_orders, register_lattice
+from fab.verify import (
+    analyse,
+    design_order_power,
+    fit_deep_etch_error,
+    implied_deep_etch_error,
+    resolve_thresholds,
+)
+
+N, K, L = 35, 11, 8
+PITCH_UM, CAMERA_UM = 37.504, 3.45
+PITCH_PX = PITCH_UM / CAMERA_UM
+
+
+@pytest.fixture(scope="module")
+def levels():
+    return np.random.default_rng(7).integers(0, L, (N, N)).astype(np.uint8)
+
+
+def make_design_dir(path, levels, acceptance=None):
+    """A minimal fab folder: manifest with the keys verify reads, levels, target PSF."""
+    path.mkdir(parents=True, exist_ok=True)
+    save_npy(path / "levels.npy", levels)
+    save_npy(path / "target_psf.npy", simulate_levels(levels, L, K)[0])
+    manifest = {
+        "levels": L,
+        "kernel_size": K,
+        "lattice_pitch_um": PITCH_UM,
+        "levels_file": "levels.npy",
+        "target_psf_file": "target_psf.npy",
+        "masks": [{"name": "M1_deep", "etch_depth_nm": 717.6, "exposure_order": 1}],
+    }
+    if acceptance is not None:
+        manifest["acceptance"] = acceptance
+    write_json(path / "fab_manifest.json", manifest)
+    return path
+
+
+def run_verify(
+    tmp_path, levels, sim_kwargs, name="capture.png", flags=(), dark=True, design_levels=None
+):
+    design = make_design_dir(
+        tmp_path / "design", levels if design_levels is None else design_levels
+    )
+    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, **sim_kwargs)
+    write_image(tmp_path / name, sim["capture"], exposure=0.01)
+    args = ["verify", str(design), str(tmp_path / name), "--out", str(tmp_path / "out"), *flags]
+    if dark:
+        write_image(tmp_path / ("dark" + name[name.index(".") :]), sim["dark"], exposure=0.01)
+        args += ["--dark", str(tmp_path / ("dark" + name[name.index(".") :]))]
+    code = main(args)
+    report = None
+    if (tmp_path / "out" / "verify.json").exists():
+        report = json.loads((tmp_path / "out" / "verify.json").read_text())
+    return code, report, sim
+
+
+@pytest.mark.parametrize(
+    "kwargs, name",
+    [
+        (dict(seed=1), "capture.png"),
+        (
+            dict(seed=2, rotation_deg=3.0, centre=(251.3, 347.8), scale=1.04, hot_pixels=30),
+            "capture.png",
+        ),
+        (
+            dict(
+                seed=3,
+                rotation_deg=-2.0,
+                centre=(330.6, 260.2),
+                scale=0.97,
+                bits=16,
+                blur_sigma_px=0.8,
+            ),
+            "capture.tif",
+        ),
+    ],
+)
+def test_good_plate_passes_and_registers_the_lattice(tmp_path, levels, kwargs, name):
+    code, report, sim = run_verify(tmp_path, levels, kwargs, name)
+    assert code == 0, report["diagnosis"]
+    assert report["pass"] is True and report["diagnosis"] == ["ok"]
+    lat = report["lattice"]
+    assert lat["pitch_px"] == pytest.approx(PITCH_PX * kwargs.get("scale", 1.0), rel=1e-3)
+    assert lat["rotation_deg"] == pytest.approx(kwargs.get("rotation_deg", 0.0), abs=0.05)
+    assert np.allclose(report["zero_order_px"], sim["zero_order_px"], atol=0.3)
+    assert report["correlation"] > 0.98
+    psf = read_psf(tmp_path / "out" / "measured_psf.npy")  # the contract reader accepts it
+    assert psf.shape == (K, K) and psf.dtype == np.float64
+    for key in (
+        "correlation",
+        "rmse",
+        "efficiency",
+        "zero_order_excess",
+        "implied_deep_etch_error",
+        "power_outside_window",
+        "thresholds",
+    ):
+        assert key in report
+    assert (tmp_path / "out" / "verify_report.html").exists()
+    assert (tmp_path / "out" / "verify.png").exists()
+
+
+def test_12bit_msb_png_is_detected(tmp_path, levels):
+    code, report, _ = run_verify(tmp_path, levels, dict(seed=4, bits=12), dark=False)
+    assert code == 0
+    assert any("MSB-aligned" in n for n in report["notes"])
+
+
+def test_deep_etch_error_fails_on_zero_order_with_implied_error(tmp_path, levels):
+    code, report, sim = run_verify(
+        tmp_path, levels, dict(seed=5, faults=PlateFaults(deep_etch_error=0.15))
+    )
+    assert code == 1 and report["pass"] is False
+    assert "zero_order_excess" in report["diagnosis"]
+    assert report["zero_order"] == pytest.approx(float(sim["order_power"](0, 0)), rel=0.1)
+    assert report["implied_deep_etch_error"] == pytest.approx(0.15, abs=0.02)
+    assert report["implied_deep_etch_error_nm"] == pytest.approx(0.15 * 717.6, abs=15)
+
+
+def test_zero_order_check_catches_what_correlation_misses(levels):
+    """With a lenient correlation threshold the zero order alone must fail the plate."""
+    sim = simulate_capture(
+        levels, L, pitch_px=PITCH_PX, seed=6, faults=PlateFaults(deep_etch_error=0.15)
+    )
+    grid = _grid(sim)
+    _psf, eff = simulate_levels(levels, L, K)
+    thresholds = resolve_thresholds(
+        {"correlation_min": 0.0, "rmse_max": 1.0, "efficiency_min": 0.0, "zero_order_max": 0.005},
+        eff,
+        0,
+    )
+    result, _ = analyse(grid, levels, L, K, "as-designed", thresholds)
+    assert result["diagnosis"] == ["zero_order_excess"]
+
+
+def test_conjugate_plate_fails_as_point_reflection(tmp_path, levels):
+    code, report, _ = run_verify(tmp_path, levels, dict(seed=7, faults=PlateFaults(conjugate=True)))
+    assert code == 1
+    assert "conjugate_plate" in report["diagnosis"]
+    fc = report["frame_correlation"]
+    assert fc["rot180"] > fc["design"] + 0.3
+
+
+def test_other_design_fails(tmp_path, levels):
+    other = np.random.default_rng(99).integers(0, L, (N, N)).astype(np.uint8)
+    code, report, _ = run_verify(
+        tmp_path, levels, dict(seed=8, faults=PlateFaults(other_levels=other))
+    )
+    assert code == 1
+    assert report["diagnosis"] == ["other_design"]
+    assert report["correlation"] < 0.5
+
+
+def test_mirrored_plate_fails(tmp_path, levels):
+    # The plate's pattern arrives left-right flipped while the flag says as-designed.
+    code, report, _ = run_verify(tmp_path, levels, dict(seed=9, orientation="mirror-x"))
+    assert code == 1 and "mirrored" in report["diagnosis"]
+
+
+@pytest.mark.parametrize("orientation", ["rot90", "rot180", "mirror-y"])
+def test_orientation_flag_is_applied_never_guessed(tmp_path, levels, orientation):
+    kwargs = dict(seed=10, orientation=orientation)
+    code, report, _ = run_verify(
+        tmp_path / "flag", levels, kwargs, flags=("--orientation", orientation)
+    )
+    assert code == 0, report["diagnosis"]
+    code, report, _ = run_verify(tmp_path / "noflag", levels, kwargs)
+    assert code == 1
+
+
+def test_overlay_error_within_budget_passes_and_reports_outside_power(tmp_path, levels):
+    faults = PlateFaults(overlay_mask=2, overlay_shift=(0.5e-6, -0.5e-6))
+    code, report, _ = run_verify(tmp_path, levels, dict(seed=11, faults=faults, supersample=10))
+    assert code == 0, report["diagnosis"]
+    # Power on the camera outside the window, and what the design puts there.
+    assert report["power_outside_window"] == pytest.approx(
+        report["expected_power_outside_window"], abs=0.02
+    )
+
+
+def test_saturated_capture_fails_with_that_reason(tmp_path, levels):
+    code, report, _ = run_verify(tmp_path, levels, dict(seed=12, peak_fraction=4.0))
+    assert code == 1 and report["pass"] is False
+    assert "saturated" in report["diagnosis"]
+    assert report["saturated_dots"] > 0
+
+
+def test_low_signal_fails(tmp_path, levels):
+    code, report, _ = run_verify(
+        tmp_path, levels, dict(seed=13, peak_fraction=0.01, read_noise_dn=3.0)
+    )
+    assert code == 1 and "low_signal" in report["diagnosis"]
+
+
+def test_truncated_capture_exits_2_naming_the_file(tmp_path, levels, capsys):
+    design = make_design_dir(tmp_path / "design", levels)
+    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, shape=(200, 200), seed=14)
+    write_image(tmp_path / "cap.png", sim["capture"])
+    data = (tmp_path / "cap.png").read_bytes()
+    (tmp_path / "cut.png").write_bytes(data[: len(data) // 2])
+    code = main(["verify", str(design), str(tmp_path / "cut.png"), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2
+    assert "cut.png" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "o").exists()
+
+
+def test_dark_frame_of_another_size_or_exposure_exits_2(tmp_path, levels, capsys):
+    design = make_design_dir(tmp_path / "design", levels)
+    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, shape=(300, 300), seed=15)
+    write_image(tmp_path / "cap.png", sim["capture"], exposure=0.01)
+    write_image(tmp_path / "small.png", sim["dark"][:200], exposure=0.01)
+    write_image(tmp_path / "long.png", sim["dark"], exposure=0.5)
+    for dark in ("small.png", "long.png"):
+        code = main(
+            [
+                "verify",
+                str(design),
+                str(tmp_path / "cap.png"),
+                "--dark",
+                str(tmp_path / dark),
+                "--out",
+                str(tmp_path / "o"),
+            ]
+        )
+        err = capsys.readouterr().err
+        assert code == 2 and dark in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_blank_capture_exits_2(tmp_path, levels, capsys):
+    design = make_design_dir(tmp_path / "design", levels)
+    rng = np.random.default_rng(16)
+    write_image(tmp_path / "blank.tif", rng.normal(100, 2, (300, 300)).astype(np.float32))
+    code = main(["verify", str(design), str(tmp_path / "blank.tif"), "--out", str(tmp_path / "o")])
+    assert code == 2 and "blank.tif" in capsys.readouterr().err
+
+
+def test_manifest_acceptance_is_used(tmp_path, levels):
+    acc = {
+        "correlation_min": 0.999999,
+        "rmse_max": 0.5,
+        "efficiency_min": 0.0,
+        "zero_order_max": 1.0,
+    }
+    design = make_design_dir(tmp_path / "design", levels, acceptance=acc)
+    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, seed=17)
+    write_image(tmp_path / "cap.png", sim["capture"])
+    code = main(["verify", str(design), str(tmp_path / "cap.png"), "--out", str(tmp_path / "o")])
+    report = json.loads((tmp_path / "o" / "verify.json").read_text())
+    assert code == 1 and report["diagnosis"] == ["psf_mismatch"]
+    assert report["thresholds"]["correlation_min"] == acc["correlation_min"]
+
+
+def test_retrieve_folder_is_accepted(tmp_path, levels):
+    from doe.design import design_summary, load_design
+
+    folder = tmp_path / "ret"
+    folder.mkdir()
+    save_npy(folder / "levels.npy", levels)
+    save_npy(folder / "target_psf.npy", simulate_levels(levels, L, K)[0])
+    write_json(
+        folder / "retrieval.json",
+        {"levels": L, "kernel_size": K, "design": design_summary(load_design())},
+    )
+    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, seed=18)
+    write_image(tmp_path / "cap.png", sim["capture"])
+    # N = 35 snaps the mask pitch to 24.95 um: the same 873.25 um tile, the same lattice.
+    code = main(["verify", str(folder), str(tmp_path / "cap.png"), "--out", str(tmp_path / "o")])
+    assert code == 0
+
+
+def test_implied_deep_etch_error_inverts_the_simulated_plate(levels):
+    for eps in (-0.2, -0.1, 0.05, 0.15):
+        far = plate_far_field(plate_phase(levels, L, PlateFaults(deep_etch_error=eps)))
+        window = far(*np.meshgrid(np.arange(K) - K // 2, np.arange(K) - K // 2, indexing="ij"))
+        fit = fit_deep_etch_error(window, levels, L)
+        assert fit == pytest.approx(eps, abs=2e-3)
+        assert implied_deep_etch_error(levels, L, float(far(0, 0)), fit) == pytest.approx(
+            eps, abs=1e-6
+        )
+
+
+def test_zero_order_follows_the_analytic_deep_etch_law():
+    """A balanced random 8-level tile has no zero order; the deep mask etches the pixels
+    of levels 0..3 (a quarter of the tile each... half in all), so an error eps leaves
+    |C|^2 |exp(-i pi eps) - 1|^2 = 4 |C|^2 sin^2(pi eps / 2) with
+    |C| = |sum_{l<4} exp(i pi l / 4)| / 8, i.e. about 1.05 eps^2."""
+    n = 64
+    lv = np.random.default_rng(3).permutation(np.arange(n * n) % L).reshape(n, n)
+    lv = lv.astype(np.uint8)
+    c = abs(np.exp(1j * np.pi * np.arange(4) / 4).sum()) / 8
+    assert design_order_power(lv, L)[0, 0] == pytest.approx(0, abs=1e-20)
+    for eps in (0.02, 0.05, 0.15):
+        far = plate_far_field(plate_phase(lv, L, PlateFaults(deep_etch_error=eps)))
+        z = float(far(0, 0))
+        assert z == pytest.approx(4 * c**2 * np.sin(np.pi * eps / 2) ** 2, rel=1e-9)
+        # The zero order alone cannot tell too deep from too shallow here.
+        assert abs(implied_deep_etch_error(lv, L, z)) == pytest.approx(eps, rel=1e-6)
+    assert c**2 * np.pi**2 == pytest.approx(1.05, abs=0.01)
+
+
+def test_plate_far_field_conserves_power_and_matches_the_contract(levels):
+    # sum_k sinc^2(x + k) = 1: all orders together carry the whole beam; a sum
+    # truncated at |m|, |n| <= M n misses about 2 / (pi^2 M) of it (sin^2 averages 1/2).
+    small = np.random.default_rng(8).integers(0, L, (8, 8)).astype(np.uint8)
+    far = plate_far_field(plate_phase(small, L))
+    for reach in (40, 80):
+        m = np.arange(-reach * 8, reach * 8 + 1)
+        total = far(m[:, None], m[None, :]).sum()
+        assert 1 - total == pytest.approx(2 / (np.pi**2 * reach), rel=0.05)
+    psf, _ = simulate_levels(levels, L, K)
+    far = plate_far_field(plate_phase(levels, L))
+    window = far(*np.meshgrid(np.arange(K) - K // 2, np.arange(K) - K // 2, indexing="ij"))
+    env = np.sinc((np.arange(K) - K // 2) / N) ** 2
+    flat = window / np.outer(env, env)
+    assert np.allclose(flat / flat.sum(), psf)
+
+
+def test_repair_pixels_uses_the_neighbour_median():
+    img = np.arange(25, dtype=np.float32).reshape(5, 5)
+    bad = np.zeros((5, 5), bool)
+    bad[2, 2] = True
+    img2 = img.copy()
+    img2[2, 2] = 1e6
+    out = repair_pixels(img2, bad)
+    assert out[2, 2] == np.median(np.delete(img[1:4, 1:4].ravel(), 4))
+    assert img2[2, 2] == 1e6  # the argument is not modified
+
+
+def test_hot_pixels_flagged_from_the_dark_are_repaired(levels):
+    sim = simulate_capture(
+        levels, L, pitch_px=PITCH_PX, shape=(300, 300), seed=19, hot_pixels=25, bits=16
+    )
+    cap = condition_capture(
+        RawImage(sim["capture"], 65535.0, None), RawImage(sim["dark"], 65535.0, None)
+    )
+    assert cap.hot.sum() >= 20
+    assert not cap.saturated[cap.hot].any()
+
+
+@pytest.mark.slow
+def test_full_size_tile_n175(tmp_path):
+    """The contract's N = 175 tile: the frame holds less than one period of orders."""
+    lv = np.random.default_rng(175).integers(0, L, (175, 175)).astype(np.uint8)
+    code, report, sim = run_verify(
+        tmp_path, lv, dict(seed=20, shape=(700, 700), rotation_deg=1.5, centre=(320.4, 371.1))
+    )
+    assert code == 0, report["diagnosis"]
+    assert np.allclose(report["zero_order_px"], sim["zero_order_px"], atol=0.3)
+
+
+def _grid(sim):
+    raw = RawImage(sim["capture"] >> 4, 4095.0, None)
+    cap = condition_capture(raw, RawImage(sim["dark"] >> 4, 4095.0, None))
+    lattice = register_lattice(cap.image, PITCH_PX)
+    return measure_orders(cap.image, lattice, cap.saturated)
