@@ -1,0 +1,123 @@
+"""Tests of the STEP solid and assembly (fab.step) and ``doefab mesh --formats step``."""
+
+import json
+
+import numpy as np
+import pytest
+
+pytest.importorskip("build123d")
+
+from doe.cli import main
+from fab import step
+from fab.mesh import Relief, instance_offsets_mm
+
+L, STEP_M, PITCH, THICK = 8, 179.4e-9, 4990e-9, 0.5e-3
+
+
+def relief_of(n, seed):
+    levels = np.random.default_rng(seed).integers(0, L, (n, n)).astype(np.uint8)
+    return Relief(levels, L, STEP_M, PITCH, THICK)
+
+
+def analytic_mm3(relief):
+    tops = THICK - (L - 1 - relief.levels.astype(float)) * STEP_M
+    return PITCH**2 * tops.sum() * 1e9
+
+
+def test_step_tile_reimports_as_one_closed_solid_with_exact_volume(tmp_path):
+    relief = relief_of(8, seed=1)
+    solid = step.tile_solid(relief)
+    assert len(solid.faces()) == step.step_face_count(relief.levels)
+    data = step.step_bytes(solid)
+    path = tmp_path / "tile.step"
+    path.write_bytes(data)
+    back = step.check_solid(step.read_step(path), validate=True)
+    assert back["solids"] == 1 and back["closed"] and back["valid"]
+    assert back["volume_mm3"] == pytest.approx(analytic_mm3(relief), rel=1e-6)
+    assert abs(back["volume_mm3"] / analytic_mm3(relief) - 1) < 1e-9
+    head = data[:2000].decode()
+    assert step.STEP_TIMESTAMP in head and "'tile'" in head
+    assert step.step_bytes(step.tile_solid(relief)) == data, "rerun must give equal bytes"
+
+
+def test_step_checkerboard_corners_give_a_closed_solid(tmp_path):
+    levels = np.tile(np.array([[7, 0], [0, 7]], np.uint8), (2, 2))
+    relief = Relief(levels, L, STEP_M, PITCH, THICK)
+    path = tmp_path / "c.step"
+    path.write_bytes(step.step_bytes(step.tile_solid(relief)))
+    back = step.check_solid(step.read_step(path), validate=True)
+    assert back["solids"] == 1 and back["closed"] and back["valid"]
+    assert back["volume_mm3"] == pytest.approx(analytic_mm3(relief), rel=1e-9)
+
+
+def test_open_shell_is_reported_not_closed():
+    from build123d import Shell, Solid
+
+    solid = step.tile_solid(relief_of(3, seed=2))
+    open_shell = Shell(solid.faces()[1:])  # one face missing
+    check = step.check_solid(Solid(open_shell))
+    assert not check["closed"]
+
+
+def test_step_aperture_is_an_assembly_of_located_instances(tmp_path):
+    relief = relief_of(5, seed=3)
+    solid = step.tile_solid(relief)
+    offsets = instance_offsets_mm(relief, (3, 2), origin_mm=(1.0, 2.0))
+    data = step.step_bytes(solid, offsets)
+    assert data.count(b"MANIFOLD_SOLID_BREP") == 1, "the tile is stored once"
+    assert data.count(b"NEXT_ASSEMBLY_USAGE_OCCURRENCE") == 6
+    path = tmp_path / "aperture.step"
+    path.write_bytes(data)
+    shape = step.read_step(path)
+    back = step.check_solid(shape)
+    assert back["solids"] == 6 and back["closed"]
+    assert back["volume_mm3"] == pytest.approx(6 * analytic_mm3(relief), rel=1e-9)
+    lows = sorted(
+        tuple(np.round((s.bounding_box().min.X, s.bounding_box().min.Y), 6)) for s in shape.solids()
+    )
+    want = sorted(tuple(np.round(o[:2], 6)) for o in offsets)
+    assert lows == want
+
+
+def write_fab_dir(path, levels):
+    path.mkdir(parents=True)
+    np.save(path / "levels.npy", levels)
+    manifest = {
+        "levels": L,
+        "level_step_nm": STEP_M * 1e9,
+        "pixel_pitch_nm": PITCH * 1e9,
+        "tile_pixels": levels.shape[0],
+        "tiles": [2, 2],
+        "array_origin_nm": [0, 0],
+        "levels_file": "levels.npy",
+        "substrate_thickness_mm": THICK * 1e3,
+    }
+    (path / "fab_manifest.json").write_text(json.dumps(manifest))
+    return path
+
+
+def test_cli_step_writes_checked_solid_and_assembly(tmp_path):
+    relief = relief_of(6, seed=4)
+    fab = write_fab_dir(tmp_path / "fab", relief.levels)
+    out = tmp_path / "out"
+    assert main(["mesh", str(fab), "--out", str(out), "--formats", "step"]) == 0
+    report = json.loads((out / "mesh_report.json").read_text())
+    assert report["step"]["ok"] and report["step"]["solids"] == 1
+    assert abs(report["step"]["volume_rel_err"]) < 1e-9
+    assert sorted(p.name for p in out.iterdir()) == [
+        "aperture.step",
+        "mesh_report.json",
+        "preview.png",
+        "tile.step",
+    ]
+
+
+def test_cli_refuses_too_complex_step(tmp_path, capsys, monkeypatch):
+    relief = relief_of(6, seed=5)
+    fab = write_fab_dir(tmp_path / "fab", relief.levels)
+    monkeypatch.setattr(step, "MAX_STEP_FACES", 10)
+    out = tmp_path / "out"
+    assert main(["mesh", str(fab), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "STEP" in err and "ply" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
