@@ -23,8 +23,9 @@ the Fourier weight of sub-cell interval j of a pixel. Two samplings:
   interval of exp(-2 pi i m s / (N S)) / S. Identical to the FFT of the
   upsampled tile; S = 1 with no error is exactly ``doe.fraunhofer.simulate_levels``.
 
-Only the K x K window is evaluated (K x N DFT matrices, built once per tile), so
-a full table for N = 175 takes a fraction of a second.
+Only the K x K window is evaluated (a K x N DFT matrix built once per tile, FFTs
+along rows), so a nominal plate costs ~1 ms and the whole analysis of an N = 175
+tile about 2 s on two shared cores (bench/tolerance.py).
 
 Error models (stated once, used everywhere):
 
