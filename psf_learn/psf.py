@@ -38,8 +38,7 @@ def box_psf(k, factor=4, sample_cell=(2, 2)):
     lo = [k // 2 + s - factor + 1 for s in sample_cell]
     if min(lo) < 0 or max(lo) + factor > k:
         raise ValueError(
-            f"a {factor} x {factor} box for sample cell {sample_cell} needs K >= "
-            f"{2 * factor - 1}, got {k}"
+            f"a {factor} x {factor} box for sample cell {sample_cell} does not fit in K = {k}"
         )
     psf[lo[0] : lo[0] + factor, lo[1] : lo[1] + factor] = 1.0 / factor**2
     return psf
@@ -69,7 +68,7 @@ class LearnedPSF(nn.Module):
     Parameters
     ----------
     init : (K, K) array
-        Initial PSF (>= 0, sum 1); its log (floored at 1e-4 of the peak, so no
+        Initial PSF (>= 0, sum 1); its log (floored at 1e-6 of the peak, so no
         logit starts where the softmax gradient vanishes) gives the logits.
     trainable : bool
         False freezes the PSF (a fixed baseline or a calibrated plate).
@@ -78,7 +77,7 @@ class LearnedPSF(nn.Module):
     def __init__(self, init, trainable=True):
         super().__init__()
         init = np.asarray(init, dtype=np.float64)
-        floor = 1e-4 * init.max() if trainable else 0.0
+        floor = 1e-6 * init.max() if trainable else 0.0
         with np.errstate(divide="ignore"):
             logits = np.log(np.maximum(init, floor))
         # -inf logits (exact zeros of a frozen PSF) become a large negative number

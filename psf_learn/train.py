@@ -233,19 +233,20 @@ def train(
                 },
             )
 
-    budget = None if config.steps is not None else 60.0 * (config.minutes or 0)
+    by_steps = config.steps is not None
+    budget = None if by_steps else 60.0 * (config.minutes or 0)
     show = sys.stderr.isatty() if progress is None else progress
     bar = tqdm(
-        total=config.steps or round(budget),
-        initial=step if config.steps else 0,
+        total=config.steps if by_steps else round(budget),
+        initial=step if by_steps else 0,
         disable=not show or rank != 0,
-        unit="step" if config.steps else "s",
+        unit="step" if by_steps else "s",
         file=sys.stderr,
         dynamic_ncols=True,
     )
     last_save = time.monotonic()
     while True:
-        done = step >= config.steps if config.steps is not None else elapsed >= budget
+        done = step >= config.steps if by_steps else elapsed >= budget
         if world > 1:  # rank 0 decides, so every rank runs the same number of steps
             flag = torch.tensor([int(done)], device=device)
             torch.distributed.broadcast(flag, 0)
@@ -253,7 +254,7 @@ def train(
         if done or (stop_at_step is not None and step >= stop_at_step):
             break
         t0 = time.monotonic()
-        frac = step / config.steps if config.steps is not None else elapsed / budget
+        frac = step / max(config.steps, 1) if by_steps else elapsed / max(budget, 1e-9)
         for g in opt.param_groups:
             g["lr"] = g["base"] * lr_factor(frac)
         ids = range(rank * local, (rank + 1) * local)
@@ -275,7 +276,7 @@ def train(
                 loss=f"{np.mean([h[0] for h in recent]):.4f}",
                 psnr=f"{np.mean([h[1] for h in recent]):.2f}",
             )
-            bar.update(1 if config.steps else min(dt, max(budget - bar.n, 0)))
+            bar.update(1 if by_steps else min(dt, max(budget - bar.n, 0)))
         if time.monotonic() - last_save > config.checkpoint_seconds:
             save()
             last_save = time.monotonic()

@@ -1,0 +1,384 @@
+"""PSF parametrisation, SR network, training (resume, DDP), and the learn/evaluate/sr commands."""
+
+import json
+import os
+import socket
+
+import numpy as np
+import pytest
+import torch
+from skimage import io
+
+from doe.cli import main
+from doe.files import check_psf
+from psf_learn.evaluate import evaluate, evaluate_image
+from psf_learn.images import dead_leaves
+from psf_learn.network import SRNet
+from psf_learn.psf import LearnedPSF, box_psf, delta_psf, gaussian_psf
+from psf_learn.sensor import SensorModel
+from psf_learn.sr import SRModel, load_model, super_resolve
+from psf_learn.train import TrainConfig, make_batch, train
+
+K = 11
+POINT = tuple(map(tuple, np.eye(4)[[2]].T @ np.eye(4)[[2]]))
+TINY = TrainConfig(steps=6, minutes=0.0, batch=4, patch=16, features=6, stages=1, lr=3e-3)
+
+
+def _images(n=3, size=48, seed=0):
+    rng = np.random.default_rng(seed)
+    return [dead_leaves(size, rng, n_disks=300) for _ in range(n)]
+
+
+def _params(camera):
+    return torch.cat([p.detach().reshape(-1) for p in camera.parameters()])
+
+
+# --- PSF -----------------------------------------------------------------------------------
+
+
+def test_learned_psf_is_normalised_for_any_logits():
+    psf = LearnedPSF(delta_psf(K))
+    psf.logits.data = torch.randn(K, K, generator=torch.Generator().manual_seed(0)) * 5
+    p = psf()
+    assert (p >= 0).all()
+    assert p.sum().item() == pytest.approx(1, abs=1e-6)
+    exact = psf.numpy()
+    assert exact.dtype == np.float64 and exact.shape == (K, K)
+    assert exact.sum() == pytest.approx(1, abs=1e-14)
+    check_psf(exact, "learned")  # the psf.npy contract
+
+
+def test_learned_psf_starts_at_its_initial_psf_and_frozen_keeps_zeros():
+    g = gaussian_psf(K)
+    np.testing.assert_allclose(LearnedPSF(g).numpy(), g, atol=K * K * 1e-6 * g.max())
+    frozen = LearnedPSF(box_psf(K), trainable=False)
+    assert not frozen.logits.requires_grad
+    np.testing.assert_allclose(frozen.numpy(), box_psf(K), atol=1e-12)
+
+
+def test_baseline_psfs():
+    g = gaussian_psf(K)
+    assert g.sum() == pytest.approx(1) and np.argmax(g) == (K // 2) * K + K // 2
+    np.testing.assert_allclose(g, g.T)
+    np.testing.assert_allclose(g, g[::-1, ::-1])
+    b = box_psf(K)
+    assert np.count_nonzero(b) == 16 and b.sum() == pytest.approx(1)
+    # default sample cell (2, 2): offsets -1 .. +2 from the axis
+    assert np.argwhere(b > 0).min(axis=0).tolist() == [K // 2 - 1] * 2
+    assert np.argwhere(b > 0).max(axis=0).tolist() == [K // 2 + 2] * 2
+    assert np.count_nonzero(box_psf(5)) == 16  # offsets -1 .. +2 fit in K = 5
+    with pytest.raises(ValueError):
+        box_psf(5, sample_cell=(0, 0))  # offsets -3 .. 0 do not
+
+
+# --- network --------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("arch", ["resnet", "dbpn"])
+def test_network_upsamples_by_the_factor(arch):
+    net = SRNet(4, features=4, stages=2, arch=arch)
+    assert net(torch.rand(2, 1, 5, 7)).shape == (2, 1, 20, 28)
+
+
+# --- training -------------------------------------------------------------------------------
+
+
+def test_make_batch_is_keyed_and_in_range():
+    imgs = _images()
+    a = make_batch(imgs, [(0, 1, i, 0) for i in range(3)], 20)
+    b = make_batch(imgs, [(0, 1, i, 0) for i in range(3)], 20)
+    assert a.shape == (3, 1, 20, 20) and torch.equal(a, b)
+    assert not torch.equal(a, make_batch(imgs, [(0, 2, i, 0) for i in range(3)], 20))
+
+
+def _fixed_batch_loss(camera, images):
+    scenes = make_batch(images, [(99, 0, i, 0) for i in range(8)], 16 + K - 1)
+    target = scenes[..., K // 2 : K // 2 + 16, K // 2 : K // 2 + 16]
+    with torch.no_grad():
+        return float((camera(scenes, [(99, 0, i, 1) for i in range(8)]) - target).abs().mean())
+
+
+def test_short_training_lowers_the_loss():
+    torch.set_num_threads(1)
+    images = _images()
+    sensor = SensorModel(POINT, 1000.0)
+    start = train(TrainConfig(**{**TINY.__dict__, "steps": 0}), images, sensor, gaussian_psf(K))
+    end = train(TrainConfig(**{**TINY.__dict__, "steps": 60}), images, sensor, gaussian_psf(K))
+    before = _fixed_batch_loss(start.camera, images)
+    after = _fixed_batch_loss(end.camera, images)
+    assert after < 0.8 * before
+    assert end.steps == 60 and len(end.history) == 60
+    # the PSF moved, and is still a PSF
+    assert not np.allclose(end.camera.psf.numpy(), start.camera.psf.numpy())
+    check_psf(end.camera.psf.numpy(), "trained")
+
+
+def test_resume_from_checkpoint_equals_uninterrupted_run(tmp_path):
+    torch.set_num_threads(1)
+    images = _images()
+    sensor = SensorModel(POINT, 200.0)
+    full = train(TINY, images, sensor, gaussian_psf(K))
+    ckpt = tmp_path / "ckpt.pt"
+    part = train(TINY, images, sensor, gaussian_psf(K), checkpoint=ckpt, stop_at_step=3)
+    assert part.steps == 3 and ckpt.exists()
+    resumed = train(TINY, images, sensor, gaussian_psf(K), checkpoint=ckpt)
+    assert resumed.steps == 6
+    assert torch.equal(_params(resumed.camera), _params(full.camera))
+    assert resumed.history == full.history
+    # the checkpoint holds only tensors and plain types
+    torch.load(ckpt, weights_only=True)
+
+
+def _ddp_worker(rank, world, port, out):
+    os.environ.update(
+        MASTER_ADDR="127.0.0.1",
+        MASTER_PORT=str(port),
+        RANK=str(rank),
+        WORLD_SIZE=str(world),
+        LOCAL_RANK=str(rank),
+    )
+    torch.set_num_threads(1)
+    result = train(TINY, _images(), SensorModel(POINT, 200.0), gaussian_psf(K))
+    torch.save(_params(result.camera), out / f"rank{rank}.pt")
+    torch.distributed.destroy_process_group()
+
+
+def test_ddp_with_gloo_on_two_processes_matches_one_process(tmp_path):
+    import torch.multiprocessing as mp
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    mp.spawn(_ddp_worker, args=(2, port, tmp_path), nprocs=2, join=True)
+    r0, r1 = torch.load(tmp_path / "rank0.pt"), torch.load(tmp_path / "rank1.pt")
+    assert torch.equal(r0, r1)  # DDP keeps the replicas identical
+    single = train(TINY, _images(), SensorModel(POINT, 200.0), gaussian_psf(K))
+    # each rank took half of the same global batch: same run up to summation order
+    torch.testing.assert_close(r0, _params(single.camera), atol=2e-5, rtol=1e-4)
+    assert not torch.allclose(
+        r0,
+        _params(
+            train(
+                TrainConfig(**{**TINY.__dict__, "steps": 0}),
+                _images(),
+                SensorModel(POINT, 200.0),
+                gaussian_psf(K),
+            ).camera
+        ),
+    )
+
+
+# --- evaluation and super-resolution ---------------------------------------------------------
+
+
+def _flat_model(photons=0.0):
+    """A network whose residual is zero: it returns the bilinear upsampling of the frame."""
+    net = SRNet(4, features=4, stages=1)
+    for p in net.tail.parameters():
+        torch.nn.init.zeros_(p)
+    return SRModel(net.eval(), delta_psf(K), SensorModel(POINT, photons), None)
+
+
+def test_evaluation_of_a_constant_image_is_perfect():
+    psnr, ssim, est = evaluate_image(_flat_model(), np.full((30, 41), 0.3))
+    assert est.shape == (28, 40)
+    assert psnr > 100 and ssim == pytest.approx(1)
+
+
+def test_evaluation_is_deterministic_and_noisy():
+    img = [dead_leaves(64, np.random.default_rng(0), n_disks=200)]
+    a = evaluate(_flat_model(100.0), ["x"], img)
+    b = evaluate(_flat_model(100.0), ["x"], img)
+    assert a == b
+    assert evaluate(_flat_model(0.0), ["x"], img)["psnr"] > a["psnr"]
+
+
+def test_super_resolve_shapes_and_photon_scaling():
+    model = _flat_model(100.0)
+    frames = np.random.default_rng(0).poisson(50, size=(2, 3, 6, 5)).astype(float)
+    hr = super_resolve(model, frames)
+    assert hr.shape == (2, 3, 24, 20)
+    torch.manual_seed(0)
+    model.net.tail[0].weight.data.normal_()  # a non-trivial network
+    np.testing.assert_allclose(
+        super_resolve(model, 3 * frames, photons=300),
+        3 * super_resolve(model, frames),
+        rtol=1e-5,
+        atol=1e-6,
+    )
+
+
+# --- command line ----------------------------------------------------------------------------
+
+SMALL = ["--steps", "3", "--features", "4", "--stages", "1", "--batch", "2", "--patch", "16"]
+
+
+def _image_folder(path, n=2):
+    path.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(n):
+        img = (dead_leaves(40, rng, n_disks=100) * 255).astype(np.uint8)
+        io.imsave(path / f"img{i}.png", img, check_contrast=False)
+    return path
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    root = tmp_path_factory.mktemp("learn")
+    images = _image_folder(root / "images")
+    out = root / "model"
+    assert main(["learn", "--out", str(out), "--images", str(images), *SMALL]) == 0
+    return out, images
+
+
+def test_learn_writes_the_contract_files(trained):
+    out, _ = trained
+    assert sorted(p.name for p in out.iterdir()) == ["learn.json", "model.pt", "psf.npy"]
+    psf = np.load(out / "psf.npy")
+    assert psf.dtype == np.float64 and psf.shape == (K, K)
+    check_psf(psf, "psf.npy")
+    info = json.loads((out / "learn.json").read_text())
+    assert info["steps"] == 3 and info["seed"] == 0 and info["config"]["psf"] == "learned"
+    assert {"final_loss", "final_psnr_db", "seconds", "versions"} <= set(info)
+    torch.load(out / "model.pt", weights_only=True)
+
+
+def test_learn_refuses_to_overwrite_without_force(trained, capsys):
+    out, images = trained
+    before = (out / "psf.npy").read_bytes()
+    assert main(["learn", "--out", str(out), "--images", str(images), *SMALL]) == 2
+    assert "--force" in capsys.readouterr().err
+    assert (out / "psf.npy").read_bytes() == before
+
+
+def test_learn_with_fixed_psf_file_and_fine_tuning(trained, tmp_path):
+    out, images = trained
+    psf_file = tmp_path / "plate.npy"
+    np.save(psf_file, gaussian_psf(K, 1.0))
+    tuned = tmp_path / "tuned"
+    argv = [
+        "learn",
+        "--out",
+        str(tuned),
+        "--images",
+        str(images),
+        "--init",
+        str(out),
+        "--psf",
+        str(psf_file),
+        "--freeze-psf",
+        *SMALL[:2],
+        "--batch",
+        "2",
+        "--patch",
+        "16",
+    ]
+    assert main(argv) == 0
+    np.testing.assert_allclose(np.load(tuned / "psf.npy"), gaussian_psf(K, 1.0), atol=1e-6)
+    assert json.loads((tuned / "learn.json").read_text())["config"]["features"] == 4
+
+
+def test_evaluate_writes_json(trained, tmp_path, capsys):
+    out, images = trained
+    res = tmp_path / "eval.json"
+    assert main(["evaluate", str(out), "--images", str(images), "--out", str(res)]) == 0
+    data = json.loads(res.read_text())
+    assert set(data["images"]) == {"img0.png", "img1.png"}
+    assert data["psnr"] == pytest.approx(np.mean([v["psnr"] for v in data["images"].values()]))
+    assert 0 < data["ssim"] <= 1
+    assert "PSNR" in capsys.readouterr().out
+    # deterministic
+    again = tmp_path / "again.json"
+    main(["evaluate", str(out), "--images", str(images), "--out", str(again)])
+    assert again.read_text() == res.read_text()
+
+
+def test_sr_on_npy_stack_and_16_bit_image(trained, tmp_path):
+    out, _ = trained
+    rng = np.random.default_rng(1)
+    np.save(tmp_path / "stack.npy", rng.poisson(300, size=(3, 8, 6)).astype(np.uint16))
+    io.imsave(
+        tmp_path / "frame.png",
+        rng.integers(0, 4000, size=(5, 7)).astype(np.uint16),
+        check_contrast=False,
+    )
+    dest = tmp_path / "sr"
+    assert (
+        main(
+            [
+                "sr",
+                str(out),
+                str(tmp_path / "stack.npy"),
+                str(tmp_path / "frame.png"),
+                "--out",
+                str(dest),
+            ]
+        )
+        == 0
+    )
+    assert np.load(dest / "stack_sr.npy").shape == (3, 32, 24)
+    hr = np.load(dest / "frame_sr.npy")
+    assert hr.shape == (20, 28)
+    np.testing.assert_allclose(
+        hr, super_resolve(load_model(out), io.imread(tmp_path / "frame.png").astype(float))
+    )
+
+
+def _bad_input(tmp_path, kind):
+    folder = tmp_path / "imgs"
+    if kind == "empty":
+        folder.mkdir()
+        (folder / "notes.txt").write_text("no images here")
+        return ["--images", str(folder)], folder
+    if kind == "corrupt":
+        _image_folder(folder)
+        (folder / "broken.png").write_bytes(b"\x89PNG\r\n\x1a\n garbage")
+        return ["--images", str(folder)], folder / "broken.png"
+    psf_file = tmp_path / "bad_psf.npy"
+    bad = {
+        "negative": gaussian_psf(K) - 0.01,
+        "unnormalised": 2 * gaussian_psf(K),
+        "even": np.full((4, 4), 1 / 16),
+    }[kind]
+    np.save(psf_file, bad)
+    return ["--psf", str(psf_file)], psf_file
+
+
+@pytest.mark.parametrize("kind", ["empty", "corrupt", "negative", "unnormalised", "even"])
+def test_learn_refuses_bad_inputs_with_exit_2(tmp_path, capsys, kind):
+    extra, culprit = _bad_input(tmp_path, kind)
+    out = tmp_path / "out"
+    assert main(["learn", "--out", str(out), *extra, *SMALL]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(culprit) in err
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_evaluate_and_sr_refuse_bad_inputs(trained, tmp_path, capsys):
+    out, images = trained
+    psf_file = tmp_path / "bad.npy"
+    np.save(psf_file, -gaussian_psf(K))
+    res = tmp_path / "e.json"
+    assert (
+        main(
+            [
+                "evaluate",
+                str(out),
+                "--images",
+                str(images),
+                "--psf-file",
+                str(psf_file),
+                "--out",
+                str(res),
+            ]
+        )
+        == 2
+    )
+    assert str(psf_file) in capsys.readouterr().err and not res.exists()
+    assert main(["evaluate", str(tmp_path), "--images", str(images)]) == 2
+    assert "model.pt" in capsys.readouterr().err
+    bad = tmp_path / "raw.npy"
+    np.save(bad, np.zeros((2, 3, 4, 5)))
+    assert main(["sr", str(out), str(bad), "--out", str(tmp_path / "sr")]) == 2
+    assert str(bad) in capsys.readouterr().err
+    assert not (tmp_path / "sr").exists()

@@ -1,0 +1,201 @@
+"""Sensor model: convolution orientation, SPAD sampling, photon noise, gradients."""
+
+import numpy as np
+import pytest
+import torch
+from scipy.signal import convolve2d
+
+from doe.design import load_design
+from psf_learn.psf import LearnedPSF, box_psf, delta_psf, gaussian_psf
+from psf_learn.sensor import (
+    SensorModel,
+    active_area_weights,
+    convolve_psf,
+    photon_noise,
+    sensor_from_design,
+    simulate_capture,
+    spad_sample,
+)
+
+K = 11
+
+
+def _t(a):
+    return torch.from_numpy(np.asarray(a, dtype=np.float64))
+
+
+def _design(tmp_path, sensor_toml):
+    path = tmp_path / "d.toml"
+    path.write_text("[sensor]\n" + sensor_toml)
+    return load_design(path)
+
+
+def _noise_free(weights):
+    return SensorModel(tuple(map(tuple, np.asarray(weights).tolist())), photons=0.0)
+
+
+def test_default_sensor_point_samples_cell_2_2():
+    # a 30 um disc centred in a 150 um pixel is smaller than a 37.5 um sub-pixel; its
+    # centre sits on the corner of cells 1 and 2, ties go to the lower-right cell
+    sensor = sensor_from_design(load_design())
+    expected = np.zeros((4, 4))
+    expected[2, 2] = 1
+    np.testing.assert_array_equal(np.asarray(sensor.weights), expected)
+    assert sensor.sample_cell == (2, 2)
+    assert sensor.photons == load_design().learning.photons_per_pixel
+
+
+def test_offset_active_area_moves_the_sample_cell(tmp_path):
+    # +40 um in x: centre at 115 um -> column 3; +40 um in y (up) -> centre at 35 um -> row 0
+    d = _design(tmp_path, "active_offset_um = [40.0, 40.0]\n")
+    w = active_area_weights(d)
+    assert np.argwhere(w == 1).tolist() == [[0, 3]]
+
+
+def test_full_fill_factor_is_the_block_mean(tmp_path):
+    d = _design(tmp_path, 'active_area_um = 150.0\nactive_area_shape = "square"\n')
+    w = active_area_weights(d)
+    np.testing.assert_allclose(w, np.full((4, 4), 1 / 16), atol=1e-12)
+    img = np.random.default_rng(0).uniform(size=(16, 24))
+    out = spad_sample(_t(img)[None, None], w)[0, 0].numpy()
+    np.testing.assert_allclose(out, img.reshape(4, 4, 6, 4).mean(axis=(1, 3)), atol=1e-12)
+
+
+def test_large_circle_weights_are_symmetric_and_cover_the_centre_most(tmp_path):
+    d = _design(tmp_path, "active_area_um = 100.0\n")
+    w = active_area_weights(d)
+    np.testing.assert_allclose(w, w.T, atol=1e-12)
+    np.testing.assert_allclose(w, w[::-1, ::-1], atol=1e-12)
+    assert w.sum() == pytest.approx(1)
+    assert w[1, 1] > w[0, 1] > w[0, 0]
+
+
+def test_delta_psf_is_a_point_sample():
+    img = np.random.default_rng(1).uniform(size=(20, 28))
+    frame = simulate_capture(
+        _t(img)[None, None], _t(delta_psf(K)), _noise_free(np.eye(4)[2:3].T @ np.eye(4)[2:3])
+    )
+    np.testing.assert_array_equal(frame[0, 0].numpy(), img[2::4, 2::4])
+
+
+def test_box_psf_with_point_sample_is_the_block_mean():
+    img = np.random.default_rng(2).uniform(size=(24, 32))
+    w = np.zeros((4, 4))
+    w[2, 2] = 1
+    frame = simulate_capture(_t(img)[None, None], _t(box_psf(K)), _noise_free(w))
+    np.testing.assert_allclose(
+        frame[0, 0].numpy(), img.reshape(6, 4, 8, 4).mean(axis=(1, 3)), atol=1e-12
+    )
+
+
+@pytest.mark.parametrize("cell", [(0, 0), (1, 3), (3, 2)])
+def test_box_psf_matches_any_sample_cell(cell):
+    img = np.random.default_rng(3).uniform(size=(16, 16))
+    w = np.zeros((4, 4))
+    w[cell] = 1
+    frame = simulate_capture(_t(img)[None, None], _t(box_psf(K, 4, cell)), _noise_free(w))
+    np.testing.assert_allclose(
+        frame[0, 0].numpy(), img.reshape(4, 4, 4, 4).mean(axis=(1, 3)), atol=1e-12
+    )
+
+
+def test_convolution_orientation_with_an_asymmetric_kernel():
+    # a single PSF element at (axis + (2, -3)) moves a point 2 rows down and 3 columns left
+    psf = np.zeros((K, K))
+    psf[K // 2 + 2, K // 2 - 3] = 1
+    img = np.zeros((21, 21))
+    img[10, 10] = 1
+    out = convolve_psf(_t(img)[None, None], _t(psf))[0, 0].numpy()
+    assert np.argwhere(out == 1).tolist() == [[12, 7]]
+
+
+def test_convolution_equals_scipy_true_convolution():
+    rng = np.random.default_rng(4)
+    psf = rng.uniform(size=(5, 5))
+    psf /= psf.sum()
+    img = rng.uniform(size=(17, 23))
+    out = convolve_psf(_t(img)[None, None], _t(psf), padding="valid")[0, 0].numpy()
+    np.testing.assert_allclose(out, convolve2d(img, psf, mode="valid"), atol=1e-12)
+
+
+def test_convolution_conserves_energy():
+    rng = np.random.default_rng(5)
+    psf = rng.uniform(size=(K, K))
+    psf /= psf.sum()
+    img = np.zeros((40, 40))
+    img[12:28, 14:26] = rng.uniform(size=(16, 12))  # light far from the borders
+    out = convolve_psf(_t(img)[None, None], _t(psf))[0, 0].numpy()
+    assert out.sum() == pytest.approx(img.sum(), rel=1e-12)
+    assert out.min() >= 0
+
+
+def test_convolution_gradcheck():
+    rng = np.random.default_rng(6)
+    img = _t(rng.uniform(size=(1, 1, 9, 9))).requires_grad_()
+    psf = _t(rng.uniform(size=(3, 3))).requires_grad_()
+    assert torch.autograd.gradcheck(lambda a, b: convolve_psf(a, b), (img, psf))
+
+
+def test_poisson_noise_statistics_and_determinism():
+    photons = 50.0
+    signal = torch.full((2000, 1, 4, 4), 0.4, dtype=torch.float64)
+    noisy = photon_noise(signal, photons, seed=7)
+    counts = noisy.numpy() * photons
+    np.testing.assert_allclose(counts, np.round(counts), atol=1e-9)  # integer counts
+    mean, var = counts.mean(), counts.var()
+    n = counts.size
+    assert abs(mean - 20.0) < 5 * np.sqrt(20.0 / n)
+    assert abs(var - 20.0) < 5 * 20.0 * np.sqrt(2 / n)
+    again = photon_noise(signal, photons, seed=7)
+    assert torch.equal(noisy, again)
+    assert not torch.equal(noisy, photon_noise(signal, photons, seed=8))
+    assert torch.equal(photon_noise(signal, 0.0), signal)
+
+
+def test_noise_of_a_sample_does_not_depend_on_the_batch_split():
+    signal = torch.rand(4, 1, 3, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    seeds = [(1, i) for i in range(4)]
+    whole = photon_noise(signal, 100.0, seeds=seeds)
+    halves = torch.cat(
+        [
+            photon_noise(signal[:2], 100.0, seeds=seeds[:2]),
+            photon_noise(signal[2:], 100.0, seeds=seeds[2:]),
+        ]
+    )
+    assert torch.equal(whole, halves)
+
+
+def test_dark_counts_are_subtracted_on_average():
+    signal = torch.full((4000, 1, 2, 2), 0.2, dtype=torch.float64)
+    noisy = photon_noise(signal, 100.0, dark_counts=30.0, seed=3)
+    # mean stays 0.2; variance is (20 + 30) / 100^2
+    n = noisy.numel()
+    assert abs(noisy.mean().item() - 0.2) < 5 * np.sqrt(50 / n) / 100
+    assert noisy.var().item() == pytest.approx(50 / 100**2, rel=0.1)
+
+
+def test_straight_through_gradient_is_identity():
+    signal = torch.rand(3, 1, 4, 4, dtype=torch.float64).requires_grad_()
+    weights = torch.rand(3, 1, 4, 4, dtype=torch.float64)
+    (photon_noise(signal, 20.0, seed=1) * weights).sum().backward()
+    assert torch.equal(signal.grad, weights)
+
+
+def test_psf_gradient_flows_through_the_noise():
+    # for a loss linear in the frame, the straight-through gradient equals the
+    # gradient of the noise-free capture exactly, and it is not zero
+    rng = np.random.default_rng(8)
+    img = torch.from_numpy(rng.uniform(size=(2, 1, 26, 26)))
+    weights = torch.from_numpy(rng.normal(size=(2, 1, 4, 4)))
+    grads = []
+    for photons in (30.0, 0.0):
+        psf = LearnedPSF(gaussian_psf(K, 1.5))
+        psf.logits.data = psf.logits.data.double()
+        sensor = SensorModel(tuple(map(tuple, np.eye(4)[[2]].T @ np.eye(4)[[2]])), photons)
+        frame = simulate_capture(img, psf(), sensor, padding="valid", seed=2)
+        (frame * weights).sum().backward()
+        grads.append(psf.logits.grad.clone())
+    noisy, clean = grads
+    assert torch.isfinite(noisy).all()
+    assert noisy.abs().max() > 1e-6
+    torch.testing.assert_close(noisy, clean)
