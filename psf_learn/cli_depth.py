@@ -244,11 +244,11 @@ def _fit_and_write(folder, cube, shift, response, threshold, save_npy):
         for r, c, _ in picks
     ]
     labels = [
-        f"{why} ({r}, {c}): "
+        f"{why} ({r}, {c})"
         + (
-            f"mu {fit.timing[r, c] / 1e-12:.1f} ps, A {fit.amplitude[r, c]:.3g}"
+            f": mu {fit.timing[r, c] / 1e-12:.1f} ps, A {fit.amplitude[r, c]:.3g}"
             if fit.valid[r, c]
-            else "no return"
+            else ""
         )
         for r, c, why in picks
     ]
