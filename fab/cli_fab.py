@@ -136,6 +136,13 @@ def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=Tru
     levels, target = load_design_dir(design_dir, n_levels)
     n = levels.shape[0]
     der = tile_derived(design, n)
+    pitch_nm = round(der.mask_pixel_pitch * 1e9)
+    if pitch_nm <= 0:
+        raise InputError(
+            Path(design_dir) / "levels.npy",
+            f"N = {n} pixels per tile gives a pixel pitch below the "
+            f"{design.fabrication.grid * 1e9:.0f} nm grid",
+        )
     k = target.shape[0] if target is not None else design.kernel_size
     if k > n:
         raise InputError(
@@ -152,7 +159,6 @@ def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=Tru
             "levels.npy as the target",
             file=sys.stderr,
         )
-    pitch_nm = round(der.mask_pixel_pitch * 1e9)
     tiles = (der.tiles, der.tiles)
     aperture_nm = round(design.fabrication.aperture * 1e9)
     masks = masks_from_levels(levels, n_levels, der.level_step)
