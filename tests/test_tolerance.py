@@ -343,3 +343,30 @@ def test_full_size_tile_nominal_row_is_the_enveloped_contract_model():
     assert nominal["efficiency"] == pytest.approx(power.sum(), rel=1e-9)
     assert nominal["zero_order"] == pytest.approx(power[k // 2, k // 2], rel=1e-9, abs=1e-15)
     assert len(result["rows"]) == 39
+
+
+def test_acceptance_compares_with_the_levels_psf_like_verification():
+    # With negligible errors every Monte Carlo plate is the nominal one, so the thresholds
+    # are the continuous nominal plate against simulate_levels' PSF, plus the margins.
+    levels = random_levels(24, seed=9)
+    masks = masks_from_levels(levels, L, STEP)
+    target = np.random.default_rng(2).uniform(0.5, 1.0, (5, 5))
+    target /= target.sum()
+    spec = ToleranceSpec(etch_fractions=(1e-12,), overlay=(1e-15,), cd_bias=(1e-15,),
+                         monte_carlo_plates=3)  # fmt: skip
+    result = tolerance_analysis(levels, L, target, masks, PITCH, STEP, WAVELENGTH, N_INDEX,
+                                spec=spec)  # fmt: skip
+    model = plate_model(masks, PITCH, STEP, L, WAVELENGTH, N_INDEX, 5)
+    design_psf = simulate_levels(levels, L, 5)[0]
+    nominal = plate_quality(model, target, reference=design_psf)
+    acc = result["acceptance"]
+    assert acc["rmse_max"] == pytest.approx(nominal["rmse_vs_reference"] + spec.rmse_margin)
+    assert acc["correlation_min"] == pytest.approx(
+        nominal["correlation_vs_reference"] - spec.correlation_margin
+    )
+    assert acc["efficiency_min"] == pytest.approx(
+        nominal["efficiency"] * (1 - spec.efficiency_margin)
+    )
+    assert acc["zero_order_max"] == pytest.approx(nominal["zero_order"] + spec.zero_order_margin)
+    # ... and not against the (here unrelated) target.
+    assert nominal["rmse"] > 10 * nominal["rmse_vs_reference"]
