@@ -5,6 +5,8 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy import ndimage
 
 from doe.fraunhofer import level_phase, simulate_levels, window_power
@@ -370,3 +372,22 @@ def test_acceptance_compares_with_the_levels_psf_like_verification():
     assert acc["zero_order_max"] == pytest.approx(nominal["zero_order"] + spec.zero_order_margin)
     # ... and not against the (here unrelated) target.
     assert nominal["rmse"] > 10 * nominal["rmse_vs_reference"]
+
+
+@settings(max_examples=15, deadline=None)
+@given(
+    dx=st.floats(-3 * PITCH, 3 * PITCH),
+    dy=st.floats(-3 * PITCH, 3 * PITCH),
+    bias=st.floats(-0.4 * PITCH, 0.4 * PITCH),
+)
+def test_shifting_every_mask_alike_only_adds_a_phase_ramp(dx, dy, bias):
+    # Translating the whole plate by (dx, dy) multiplies order (m, n) by
+    # exp(-2 pi i (n dx - m dy) / T) (rows grow towards -y), for any sub-pixel shift.
+    n, k = 12, 5
+    model, _ = model_of(random_levels(n, seed=13), k)
+    base = window_amplitudes(model, PlateErrors(cd_bias=bias))
+    moved = window_amplitudes(model, PlateErrors(shift=((dx, dy),) * 3, cd_bias=bias))
+    m = np.arange(k) - k // 2
+    tile = n * PITCH
+    ramp = np.exp(-2j * np.pi * (m[None, :] * dx - m[:, None] * dy) / tile)
+    np.testing.assert_allclose(moved, base * ramp, rtol=0, atol=1e-13)
