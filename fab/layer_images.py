@@ -50,11 +50,10 @@ def plate_preview(bitmap, tiles, pitch_nm, plate_half_nm, aperture_half_nm, max_
     nx, ny = tiles
     f = max(1, math.ceil(2 * plate_half_nm / pitch_nm / max_px))
     s = f * pitch_nm  # preview pixel size, nm
-    full = np.tile(b, (ny, nx)).astype(np.float64)
-    hp, wp = -(-full.shape[0] // f) * f, -(-full.shape[1] // f) * f
-    padded = np.zeros((hp, wp))
-    padded[: full.shape[0], : full.shape[1]] = full
-    small = padded.reshape(hp // f, f, wp // f, f).mean(axis=(1, 3))
+    hp, wp = -(-ny * n // f) * f, -(-nx * n // f) * f
+    padded = np.zeros((hp, wp), dtype=np.uint8)
+    padded[: ny * n, : nx * n] = np.tile(b, (ny, nx))
+    small = padded.reshape(hp // f, f, wp // f, f).sum(axis=(1, 3), dtype=np.int32) / f**2
     size = math.ceil(2 * plate_half_nm / s)
     canvas = np.zeros((size, size))
     centre = size / 2
