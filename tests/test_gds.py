@@ -1,9 +1,15 @@
 """GDS: golden geometry (KLayout XOR against an independent reference), orientation, AREF,
 grid, byte-identical files, marks outside the aperture, layer images read back with OIIO."""
 
+import tempfile
+from pathlib import Path
+
 import klayout.db as kdb
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
 
 from fab.layer_images import plate_preview, read_image, tile_image, write_image
 from fab.masks import masks_from_levels
@@ -260,3 +266,32 @@ def test_full_plate_raster_matches_tiled_levels(tmp_path, tiles):
         depth += (np.array(probe) > 0) * mk.steps
     rebuilt = (L - 1) - np.flipud(depth).astype(int)
     assert np.array_equal(rebuilt, np.tile(levels, (tiles[1], tiles[0])))
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    arrays(np.uint8, st.tuples(st.integers(1, 8)).map(lambda t: (t[0], t[0])),
+           elements=st.integers(0, L - 1)),
+    st.tuples(st.integers(1, 3), st.integers(1, 3)),
+)  # fmt: skip
+def test_any_tile_reads_back_exactly(levels, tiles):
+    with tempfile.TemporaryDirectory() as tmp:
+        path, masks, info = write_plate(Path(tmp), levels, tiles, marks=False)
+        assert check_written_gds(path, info, masks) == []
+        layout = read_layout(path)
+        n = levels.shape[0]
+        x0, y0 = info.array_origin_nm
+        depth = np.zeros((tiles[1] * n, tiles[0] * n))
+        for mk in masks:
+            li = layout.find_layer(mk.gds_layer, 0)
+            if li is None:  # a mask with nothing to etch has no shapes
+                assert not mk.bitmap.any()
+                continue
+            region = kdb.Region(layout.cell(info.top_cell).begin_shapes_rec(li))
+            probe = region.rasterize(
+                kdb.Point(x0 + PITCH // 2 - 1, y0 + PITCH // 2 - 1), kdb.Vector(PITCH, PITCH),
+                kdb.Vector(2, 2), tiles[0] * n, tiles[1] * n,
+            )  # fmt: skip
+            depth += (np.array(probe) > 0) * mk.steps
+        rebuilt = (L - 1) - np.flipud(depth).astype(int)
+        assert np.array_equal(rebuilt, np.tile(levels, (tiles[1], tiles[0])))
