@@ -58,12 +58,20 @@ def rmse(err):
     return float(np.sqrt(np.mean(err**2))) if np.all(np.isfinite(err)) else float("inf")
 
 
+def show(value, err):
+    """Format an RMSE; where no-returns make it inf, show the RMSE of the detected pixels + '*'."""
+    if np.isfinite(value):
+        return f"{value:8.2f} "
+    err = np.asarray(err)
+    return f"{np.sqrt(np.mean(err[np.isfinite(err)] ** 2)):8.2f}*"
+
+
 def accuracy(response, subset, seed):
     t_ps = scan_times(T, SHIFT) / PS
     rng = np.random.default_rng(seed)
     print(f"timing error, 32 x 64 cubes, T = {T}, shift 20 ps, default gate, Poisson noise")
     print(f"(reference LS on {subset} random pixels per cube; RMSE in ps)")
-    head = (f"{'counts':>9s} {'A':>6s} {'b':>5s} | {'fit(all)':>8s} {'fit(sub)':>8s} "
+    head = (f"{'counts':>9s} {'A':>6s} {'b':>5s} | {'fit(all)':>8s}  {'fit(sub)':>8s}  "
             f"{'LS argmax0':>10s} {'LS true0':>8s} {'argmax':>8s} | {'fit/LS':>6s} "
             f"{'fit/argmax':>10s} {'no return':>9s}")  # fmt: skip
     print(head)
@@ -88,7 +96,8 @@ def accuracy(response, subset, seed):
         argmax = rmse(t_ps[np.argmax(cube, axis=-1)] - response.peak_time / PS - mu / PS)
         ours_all, ours_sub = rmse(err), rmse(err.ravel()[idx])
         best_ref = min(ref_a, ref_t)
-        print(f"{name:>9s} {amp:6.0f} {bg:5.1f} | {ours_all:8.2f} {ours_sub:8.2f} "
+        cols = show(ours_all, err) + show(ours_sub, err.ravel()[idx])
+        print(f"{name:>9s} {amp:6.0f} {bg:5.1f} | {cols}"
               f"{ref_a:10.2f} {ref_t:8.2f} {argmax:8.2f} | {ours_sub / best_ref:6.3f} "
               f"{ours_all / argmax:10.3f} {int((~fit.valid).sum()):9d}")  # fmt: skip
     print(
