@@ -16,6 +16,9 @@ import numpy as np
 
 from doe.errors import InputError
 
+_UMASK = os.umask(0)
+os.umask(_UMASK)
+
 
 def load_npy(path):
     """Load a .npy array without pickles, raising InputError if unreadable."""
@@ -118,6 +121,7 @@ def atomic_write_bytes(path, data):
     path = Path(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
     try:
+        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600; give the usual file mode
         with os.fdopen(fd, "wb") as f:
             f.write(data)
         os.replace(tmp, path)
