@@ -94,6 +94,26 @@ def tile_derived(design, n):
     return der if der.tile_pixels == n else derive(design, tile_pixels=n)
 
 
+def tile_summary(design, der):
+    """Return design_summary(design) with its derived optics for the tile actually fabricated."""
+    from doe.design import design_summary
+
+    summary = design_summary(design)
+    summary["derived"].update(
+        {
+            "tile_pixels": der.tile_pixels,
+            "mask_pixel_pitch_nm": round(der.mask_pixel_pitch * 1e9),
+            "tile_size_um": der.tile_size * 1e6,
+            "lattice_pitch_um": der.lattice_pitch * 1e6,
+            "lattice_mismatch_um": der.lattice_mismatch * 1e6,
+            "lattice_drift_at_edge_um": der.lattice_drift_at_edge * 1e6,
+            "tiles_across_aperture": der.tiles,
+            "tiled_size_mm": der.tiled_size * 1e3,
+        }
+    )
+    return summary
+
+
 def mask_table(masks, counts, pitch_nm):
     """Return the per-mask dicts of the report (depth, fill, polygon count, min feature...)."""
     from fab.masks import min_feature_pixels
@@ -121,7 +141,7 @@ def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=Tru
     """
     from tqdm import tqdm
 
-    from doe.design import design_summary, load_design
+    from doe.design import load_design
     from doe.files import staged_output
     from doe.fraunhofer import simulate_levels
     from fab import manifest as fm
@@ -211,7 +231,7 @@ def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=Tru
         written = sorted(str(p.relative_to(stage)) for p in stage.rglob("*") if p.is_file())
         files = fm.file_records(stage, written)
         context = {
-            "design": design_summary(design),
+            "design": tile_summary(design, der),
             "manifest": manifest,
             "masks": mask_table(masks, layout.polygon_counts, pitch_nm),
             "levels": levels,

@@ -238,3 +238,13 @@ def test_kernel_larger_than_tile_exit_2(tmp_path, capsys):
     assert main(["fab", str(d), "--out", str(tmp_path / "out")]) == 2
     assert "exceeds" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_report_summary_describes_the_fabricated_tile():
+    from fab.cli_fab import tile_derived, tile_summary
+
+    design = load_design()
+    summary = tile_summary(design, tile_derived(design, 35))["derived"]
+    assert summary["tile_pixels"] == 35
+    assert summary["mask_pixel_pitch_nm"] == round(derive(design).tile_size_nominal / 35 * 1e9)
+    assert abs(summary["tile_size_um"] - 35 * summary["mask_pixel_pitch_nm"] / 1000) < 1e-6
