@@ -289,6 +289,46 @@ def test_frame_folder_is_read_as_uint16_in_name_order(tmp_path):
     np.testing.assert_array_equal(read_cube(folder), cube.astype(np.float64))
 
 
+def write_frame(path, array, fmt):
+    import OpenImageIO as oiio
+
+    spec = oiio.ImageSpec(array.shape[1], array.shape[0], array.shape[2], fmt)
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), spec) and out.write_image(array)
+    out.close()
+
+
+def test_frame_folder_8bit_tiff_and_bad_folders(tmp_path):
+    import OpenImageIO as oiio
+
+    cube = np.random.default_rng(14).integers(0, 256, size=(3, 4, 5)).astype(np.uint8)
+    good = tmp_path / "good"
+    good.mkdir()
+    for k in range(5):
+        write_frame(good / f"{k}.tif", cube[..., k][:, :, None], oiio.UINT8)
+    np.testing.assert_array_equal(read_cube(good), cube)
+    # An RGB frame, a frame of another size, an empty folder: exit 2 naming the file.
+    rgb = tmp_path / "rgb"
+    rgb.mkdir()
+    for k in range(4):
+        write_frame(rgb / f"{k}.png", np.zeros((3, 4, 3), np.uint8), oiio.UINT8)
+    sizes = tmp_path / "sizes"
+    sizes.mkdir()
+    for k in range(4):
+        write_frame(sizes / f"{k}.png", np.zeros((3, 4 + (k == 2), 1), np.uint8), oiio.UINT8)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    for folder, culprit in ((rgb, "0.png"), (sizes, "2.png"), (empty, "empty")):
+        proc = subprocess.run(
+            [sys.executable, "-m", "doe.cli", "depth", str(folder), "--out", str(tmp_path / "o")],
+            capture_output=True,
+            text=True,
+        )
+        assert proc.returncode == 2 and culprit in proc.stderr
+        assert len(proc.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "o").exists()
+
+
 def test_cli_transient(tmp_path, response):
     path, _ = write_scene_cube(tmp_path, response, shape=(4, 6))
     out = tmp_path / "out"
