@@ -31,11 +31,15 @@ The fidelity terms are 1 where the rmse or the correlation reaches its goal, so
 30 trades one percent of efficiency against 0.3 of that budget.
 """
 
-CD_WEIGHTS = (100.0, 30.0, 10.0, 3.0)
+CD_WEIGHTS = (100.0, 60.0, 40.0, 30.0, 20.0, 15.0, 10.0, 5.0, 2.0)
 """Efficiency weights of the coordinate-descent sweeps, most efficient first."""
 
-DONE = 0.4
-"""Fidelity (see :func:`fidelity`) at which coordinate descent stops trading efficiency."""
+CAP = 0.6
+"""Fidelity (see :func:`fidelity`) the discrete finish aims at: each quality figure
+within 60 % of its goal's error budget (rmse <= 0.0039, 1 - correlation <= 6e-5)."""
+
+MIN_GAIN = 0.002
+"""Efficiency gain below which a coordinate-descent sweep within :data:`CAP` ends the finish."""
 
 
 @dataclass(frozen=True)
@@ -134,8 +138,12 @@ class _Goal:
         )
 
 
-def _values(power, goal, weight):
-    """Return J for window powers ``power`` (..., K, K), broadcasting over leading axes."""
+def _values(power, goal, weight, cap=0.0):
+    """Return J for window powers ``power`` (..., K, K), broadcasting over leading axes.
+
+    With ``cap`` > 0 a fidelity below ``cap`` counts as ``cap``: the efficiency is
+    then maximised subject to the fidelity staying within ``cap``.
+    """
     axes = (-2, -1)
     eff = power.sum(axis=axes)
     centred = power - eff[..., None, None] / goal.target.size
@@ -144,7 +152,8 @@ def _values(power, goal, weight):
     )
     p0 = (power * goal.peak).sum(axis=axes) / goal.peak.sum()
     u = power / p0[..., None, None] - goal.scaled
-    return goal.c_rmse * (u * u).sum(axis=axes) + goal.c_corr * (1.0 - corr) - weight * eff
+    fid = goal.c_rmse * (u * u).sum(axis=axes) + goal.c_corr * (1.0 - corr)
+    return np.maximum(fid, cap) - weight * eff
 
 
 def _fidelity_terms(power, goal, weight):
@@ -318,7 +327,15 @@ def round_levels(phase, n_levels):
 
 # --------------------------------------------------------------------------- discrete
 def coordinate_descent(
-    levels, target, n_levels, weight=DEFAULT_WEIGHT, sweeps=1, chunk=512, rng=None, shifts=(1, -1)
+    levels,
+    target,
+    n_levels,
+    weight=DEFAULT_WEIGHT,
+    sweeps=1,
+    chunk=512,
+    rng=None,
+    shifts=(1, -1),
+    cap=0.0,
 ):
     """Return a level map improved by greedy single-pixel level changes.
 
@@ -360,7 +377,7 @@ def coordinate_descent(
     a = window_matrix(n, k)
     phasors = np.exp(1j * level_step(n_levels) * np.arange(n_levels))
     w = _window_fft(phasors[q], fraunhofer.window_indices(n, k))
-    value = float(_values(np.abs(w) ** 2, goal, weight))
+    value = float(_values(np.abs(w) ** 2, goal, weight, cap))
     shifts = np.arange(1, n_levels) if shifts is None else np.asarray(shifts) % n_levels
     for _ in range(sweeps):
         changed = 0
@@ -373,14 +390,14 @@ def coordinate_descent(
             delta = (phasors[cand] - phasors[cur][:, None]) / (n * n)  # (B, L-1)
             basis = a[:, r].T[:, :, None] * a[:, c].T[:, None, :]  # (B, K, K)
             trial = w + delta[:, :, None, None] * basis[:, None]  # (B, L-1, K, K)
-            vals = _values(trial.real**2 + trial.imag**2, goal, weight)
+            vals = _values(trial.real**2 + trial.imag**2, goal, weight, cap)
             best = np.argmin(vals, axis=1)
             gain = vals[np.arange(pix.size), best] - value
             for i in np.argsort(gain, kind="stable"):
                 if gain[i] >= 0:
                     break
                 new_w = w + delta[i, best[i]] * basis[i]
-                new_value = float(_values(new_w.real**2 + new_w.imag**2, goal, weight))
+                new_value = float(_values(new_w.real**2 + new_w.imag**2, goal, weight, cap))
                 if new_value < value:
                     w, value = new_w, new_value
                     q[r[i], c[i]] = cand[i, best[i]]
@@ -401,14 +418,15 @@ def retrieve_phase(
     lbfgs_evals=40,
     quantised_iterations=100,
     cd_weights=CD_WEIGHTS,
-    done=DONE,
+    cap=CAP,
 ):
     """Design an L-level phase tile whose K x K window of orders forms ``target``.
 
     Weighted GS, L-BFGS refinement of the continuous phase, quantised weighted GS
-    from it, then coordinate descent on the level map with the efficiency weights
-    ``cd_weights`` in turn (one sweep each), stopping once the fidelity part of the
-    objective is at most ``done``.
+    from it, then coordinate descent on the level map: one sweep for each of the
+    efficiency weights ``cd_weights`` in turn, with the fidelity capped at ``cap``
+    (below it only the efficiency counts), until the fidelity is within ``cap`` and
+    a sweep gains less than :data:`MIN_GAIN` of efficiency.
 
     Parameters
     ----------
@@ -426,9 +444,9 @@ def retrieve_phase(
         Effort of the three continuous/quantised stages.
     cd_weights : sequence of float
         Efficiency weights of the coordinate-descent sweeps, most efficient first.
-    done : float
-        Fidelity (rmse and correlation terms of :func:`objective`) at which the
-        sweeps stop.
+    cap : float
+        Fidelity (rmse and correlation terms of :func:`objective`, 1 = a goal
+        just met) the finish aims at.
 
     Returns
     -------
@@ -452,10 +470,14 @@ def retrieve_phase(
         target, n_pixels, quantised_iterations, phase=phase, n_levels=n_levels, gains=gains
     )
     levels = round_levels(soft, n_levels)
+    eff = fraunhofer.simulate_levels(levels, n_levels, k)[1]
     for w in cd_weights:
-        if fidelity(fraunhofer.level_phase(levels, n_levels), target) <= done:
+        levels = coordinate_descent(levels, target, n_levels, w, sweeps=1, rng=rng, cap=cap)
+        new_eff = fraunhofer.simulate_levels(levels, n_levels, k)[1]
+        fid = fidelity(fraunhofer.level_phase(levels, n_levels), target)
+        if fid <= cap and new_eff - eff < MIN_GAIN:
             break
-        levels = coordinate_descent(levels, target, n_levels, w, sweeps=1, rng=rng)
+        eff = new_eff
     seconds = time.perf_counter() - t0
     quality_q = fraunhofer.quality(fraunhofer.level_phase(levels, n_levels), target)
     return Retrieval(
