@@ -142,7 +142,7 @@ def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=Tru
     from tqdm import tqdm
 
     from doe.design import load_design
-    from doe.files import staged_output
+    from doe.files import save_npy, staged_output
     from doe.fraunhofer import simulate_levels
     from fab import manifest as fm
     from fab.layer_images import layer_image_names, write_layer_images
@@ -216,12 +216,10 @@ def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=Tru
             extra["tolerance_note"] = "fab.tolerance not available in this build"
         bar.update()
         bar.set_postfix_str("manifest")
-        shutil.copyfile(Path(design_dir) / "levels.npy", stage / fm.LEVELS_FILE)
+        save_npy(stage / fm.LEVELS_FILE, levels)  # exactly the array that was drawn
         if (Path(design_dir) / "target_psf.npy").exists():
             shutil.copyfile(Path(design_dir) / "target_psf.npy", stage / fm.TARGET_PSF_FILE)
         else:
-            from doe.files import save_npy
-
             save_npy(stage / fm.TARGET_PSF_FILE, target)
         acceptance = tolerance.get("acceptance") if tolerance else None
         manifest = fm.build_manifest(design, der, layout, masks, acceptance, extra)
