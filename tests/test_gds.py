@@ -295,3 +295,13 @@ def test_any_tile_reads_back_exactly(levels, tiles):
             depth += (np.array(probe) > 0) * mk.steps
         rebuilt = (L - 1) - np.flipud(depth).astype(int)
         assert np.array_equal(rebuilt, np.tile(levels, (tiles[1], tiles[0])))
+
+
+def test_worst_case_n175_design_stays_under_5_mb(tmp_path):
+    """A checkerboard of levels 0 / L-1 makes every mask a checkerboard: the most rectangles
+    row-run merging can produce (N^2 / 2 per mask)."""
+    n = 175
+    levels = ((np.add.outer(np.arange(n), np.arange(n)) % 2) * (L - 1)).astype(np.uint8)
+    path, _, info = write_plate(tmp_path, levels, tiles=(16, 16))
+    assert all(count == (n * n + 1) // 2 for count in info.polygon_counts.values())
+    assert path.stat().st_size <= 5 * 10**6
