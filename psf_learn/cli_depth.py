@@ -16,12 +16,12 @@ DEPTH_ARRAYS = (
     "valid",
 )
 DEPTH_FIGURES = ("intensity.png", "depth.png", "pixel_fits.png")
-GATE_FLAGS = {  # flag attribute -> (default, GateModel field)
-    "gate_width_ps": (200.0, "width"),
-    "rise_ps": (40.0, "rise"),
-    "fall_ps": (60.0, "fall"),
-    "band_sigma_ps": (100.0, "band_sigma"),
-    "pulse_fwhm_ps": (80.0, "pulse_fwhm"),
+GATE_FLAGS = {  # flag attribute -> (default, GateModel field, help)
+    "gate_width_ps": (200.0, "width", "length of the undistorted gate rectangle [0, width]"),
+    "rise_ps": (40.0, "rise", "RC rise constant inside the gate, 1 - exp(-t / rise)"),
+    "fall_ps": (60.0, "fall", "RC decay constant after the gate"),
+    "band_sigma_ps": (100.0, "band_sigma", "std of the Gaussian band limit of the gate"),
+    "pulse_fwhm_ps": (80.0, "pulse_fwhm", "FWHM of the Gaussian laser pulse"),
 }
 
 
@@ -31,14 +31,14 @@ def register(sub):
         help="fit arrival time (depth), amplitude and background per pixel of a gated SPAD cube",
     )
     _common(p)
-    g = p.add_argument_group("gate model (ignored with --irf)")
-    for attr, (default, _) in GATE_FLAGS.items():
+    g = p.add_argument_group("gate model (in ps; not together with --irf)")
+    for attr, (default, _, text) in GATE_FLAGS.items():
         g.add_argument(
             "--" + attr.replace("_", "-"),
             dest=attr,
             type=float,
             default=None,
-            help=f"(default {default:g})",
+            help=f"{text} (default {default:g})",
         )
     g.add_argument(
         "--pulse",
@@ -125,7 +125,7 @@ def _response(args):
             "irf_t0_ps": args.irf_t0_ps,
         }
     params = {}
-    for attr, (default, name) in GATE_FLAGS.items():
+    for attr, (default, name, _) in GATE_FLAGS.items():
         value = default if getattr(args, attr) is None else getattr(args, attr)
         flag = "--" + attr.replace("_", "-")
         if name in ("width", "pulse_fwhm"):
@@ -209,7 +209,7 @@ def _fit_and_write(folder, cube, shift, response, threshold, save_npy):
     from psf_learn.depth import expected_counts, fit_profiles, scan_times
     from psf_learn.depth_plots import save_map, save_pixel_fits
 
-    fit = fit_profiles(cube, shift, response, threshold=threshold)
+    fit = fit_profiles(cube, shift, response, threshold=threshold, progress=True)
     arrays = {
         "timing_ps": fit.timing / 1e-12,
         "depth_m": fit.depth,

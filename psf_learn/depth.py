@@ -376,7 +376,9 @@ def scan_times(n_samples, shift):
     return np.arange(n_samples) * float(shift)
 
 
-def fit_profiles(cube, shift, response, threshold=20.0, max_iter=60, grid_step=None, chunk=4096):
+def fit_profiles(
+    cube, shift, response, threshold=20.0, max_iter=60, grid_step=None, chunk=4096, progress=False
+):
     """Fit amplitude, arrival time and background of every pixel of a gated cube.
 
     Maximises the Poisson likelihood of ``A h(t_k - mu) + b`` for all pixels at
@@ -403,6 +405,8 @@ def fit_profiles(cube, shift, response, threshold=20.0, max_iter=60, grid_step=N
         Spacing of the initial mu grid (s); default a 1/25 of h's FWHM.
     chunk : int
         Pixels fitted together (memory: about 100 * chunk * T bytes).
+    progress : bool
+        Show a tqdm bar over the chunks on stderr (when it is a terminal).
 
     Returns
     -------
@@ -423,9 +427,13 @@ def fit_profiles(cube, shift, response, threshold=20.0, max_iter=60, grid_step=N
     grid = grid_step / _PS if grid_step else max(response.fwhm / _PS / 25, step)
     floor = 1e-9 * max(1.0, float(y.max(initial=0.0)))
     # Chunks of pixels bound the (pixels, T, 3) work arrays of a super-resolved cube.
+    starts = range(0, y.shape[0], chunk)
+    if progress and len(starts) > 1:
+        from tqdm import tqdm
+
+        starts = tqdm(starts, desc="fit", unit="chunk", disable=None)
     parts = [
-        _fit_chunk(y[i : i + chunk], t, table, lo_mu, hi_mu, grid, floor, max_iter)
-        for i in range(0, y.shape[0], chunk)
+        _fit_chunk(y[i : i + chunk], t, table, lo_mu, hi_mu, grid, floor, max_iter) for i in starts
     ]
     a, mu, b, significance, deviance, mean = (np.concatenate(p) for p in zip(*parts, strict=True))
     valid = (significance >= threshold) & (a > 0) & np.isfinite(mu)
