@@ -351,7 +351,8 @@ class ProfileFit:
     background : float64 array
         Background counts per sample b.
     fit_quality : float64 array
-        Poisson deviance per degree of freedom (about 1 for a good fit).
+        Poisson deviance per degree of freedom (about 1 for a good fit) of the
+        reported model (the constant background where there is no return).
     significance : float64 array
         Likelihood-ratio statistic 2 (log L_fit - log L_background-only).
     valid : bool array
@@ -438,6 +439,11 @@ def fit_profiles(
     a, mu, b, significance, deviance, mean = (np.concatenate(p) for p in zip(*parts, strict=True))
     valid = (significance >= threshold) & (a > 0) & np.isfinite(mu)
 
+    # A no-return pixel is reported as the constant background, so its quality is that
+    # model's: its deviance exceeds the full fit's by exactly the likelihood ratio.
+    quality = np.where(
+        valid, deviance / max(n_t - 3, 1), (deviance + significance) / max(n_t - 1, 1)
+    )
     timing = np.where(valid, mu * _PS, np.nan)
     amplitude = np.where(valid, a, 0.0)
     background = np.where(valid, b, mean)
@@ -445,7 +451,7 @@ def fit_profiles(
         timing=timing.reshape(shape),
         amplitude=amplitude.reshape(shape),
         background=background.reshape(shape),
-        fit_quality=(deviance / max(n_t - 3, 1)).reshape(shape),
+        fit_quality=quality.reshape(shape),
         significance=significance.reshape(shape),
         valid=valid.reshape(shape),
     )

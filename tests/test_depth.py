@@ -158,6 +158,11 @@ def test_background_only_pixels_are_no_return(response):
     assert np.isnan(fit.timing[:8]).all() and np.isnan(fit.depth[:8]).all()
     assert (fit.amplitude[:8] == 0).all()
     np.testing.assert_allclose(fit.background[:8], cube[:8].mean(axis=-1))
+    # Their fit quality is the Poisson deviance per dof of that constant background.
+    y, m = cube[:8].astype(float), cube[:8].mean(axis=-1, keepdims=True)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dev = 2 * np.sum(np.where(y > 0, y * np.log(y / m), 0.0) - (y - m), axis=-1)
+    np.testing.assert_allclose(fit.fit_quality[:8], dev / (T - 1), rtol=1e-6)
     assert fit.valid[8:].all()
     assert np.isfinite(fit.depth[8:]).all()
 
