@@ -169,7 +169,7 @@ def _verify(args):
     nominal_px = lattice_pitch / (args.pixel_pitch_um * 1e-6)
     capture = read_capture(args.capture, args.dark)
     try:
-        lattice = register_lattice(capture.image, nominal_px)
+        lattice, lattice_notes = register_lattice(capture.image, nominal_px)
     except LatticeNotFound as e:
         extra = (
             f"; {int(capture.saturated.sum())} saturated pixels" if capture.saturated.any() else ""
@@ -207,7 +207,7 @@ def _verify(args):
             "capture": Path(args.capture).name,
             "dark": Path(args.dark).name if args.dark else None,
         },
-        "notes": capture.notes + _notes(result, capture, design),
+        "notes": capture.notes + lattice_notes + _notes(result, capture, design),
     }
     if result["implied_deep_etch_error"] is not None and design.deep_etch_depth:
         report["implied_deep_etch_error_nm"] = (

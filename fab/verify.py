@@ -39,8 +39,19 @@ DEFAULT_ACCEPTANCE = {
 # transform of the design must beat the design's own frame correlation by this
 # margin to be named; below this frame correlation the plate is another design.
 MIN_WINDOW_SNR = 30.0
+# An order carries signal when measured this many sigma above the noise (one false
+# detection in ~3 million orders), or predicted by the design above PREDICTED_SIGMAS.
+SIGNAL_SIGMAS = 5.0
+PREDICTED_SIGMAS = 3.0
+# Photometric error of every order besides the background noise (shot noise of the
+# bright dots, flat field), as a fraction of its power; used for significance only.
+PHOTOMETRIC_FLOOR = 0.01
+# A fitted deep-etch depth error beyond this (fraction) fails the plate.
+DEEP_ETCH_TOLERANCE = 0.10
+# Failing checks must be this many sigma beyond their threshold (noise is not a fault).
+SIGNIFICANCE = 2.0
 TRANSFORM_MARGIN = 0.10
-OTHER_DESIGN_MAX = 0.5
+OTHER_DESIGN_MAX = 0.8
 
 # The design's order powers under each point symmetry a faulty plate can show.
 _TRANSFORMS = {
@@ -57,7 +68,8 @@ def resolve_thresholds(acceptance, design_efficiency, design_zero_order):
     Returns
     -------
     dict
-        correlation_min, rmse_max, efficiency_min, zero_order_max, min_window_snr, source.
+        correlation_min, rmse_max, efficiency_min, zero_order_max, min_window_snr,
+        deep_etch_error_max, significance_sigmas, source.
     """
     if acceptance:
         missing = {"correlation_min", "rmse_max", "efficiency_min", "zero_order_max"} - set(
@@ -80,6 +92,10 @@ def resolve_thresholds(acceptance, design_efficiency, design_zero_order):
             "source": "defaults (fab.verify.DEFAULT_ACCEPTANCE)",
         }
     out["min_window_snr"] = MIN_WINDOW_SNR
+    out["deep_etch_error_max"] = float(
+        (acceptance or {}).get("deep_etch_error_max", DEEP_ETCH_TOLERANCE)
+    )
+    out["significance_sigmas"] = SIGNIFICANCE
     return out
 
 
@@ -128,20 +144,24 @@ def _pearson(a, b):
     return float((a * b).sum() / den) if den > 0 else 0.0
 
 
-def locate_zero_order(measured, valid, period_power, top=3):
+def locate_zero_order(measured, valid, sigma, period_power, top=3):
     """Find where the zero order sits in a measured grid by matching the design's far field.
 
-    Scores are Pearson correlations of square-rooted powers (so the many weak
-    orders count, not only the brightest), leaving out the candidate zero order
-    itself (a depth error changes it most). Offsets modulo N come from one FFT
-    cross-correlation of the grid folded modulo N; which period holds the zero
-    order follows from the pixel envelope.
+    Offsets modulo N come from one FFT cross-correlation of the grid folded
+    modulo N; which period holds the zero order follows from the pixel
+    envelope. Candidates are scored by the Pearson correlation of
+    square-rooted powers (so weak orders count, not only the brightest) over
+    the orders that carry signal: measured above ``SIGNAL_SIGMAS`` sigma, or
+    predicted so by the design. Noise-only orders would only dilute the score;
+    the candidate zero order itself is left out (a depth error changes it most).
 
     Parameters
     ----------
     measured : (nu, nv) float array
-        Dot powers in the design frame (NaN or anything where not ``valid``).
+        Dot powers in the design frame (anything where not ``valid``).
     valid : (nu, nv) bool array
+    sigma : (nu, nv) float array
+        1-sigma noise of ``measured``.
     period_power : (N, N) float array
         Order powers of the tile, FFT index order.
     top : int
@@ -150,19 +170,24 @@ def locate_zero_order(measured, valid, period_power, top=3):
     Returns
     -------
     (m0, n0, score)
-        Grid indices of the zero order and the frame correlation there (of
-        square-rooted powers, the pixel envelope divided out).
+        Grid indices of the zero order and the correlation there (the pixel
+        envelope divided out, so that two unrelated plates do not correlate
+        through their common envelope).
     """
     n = period_power.shape[0]
     nu, nv = measured.shape
-    amp = np.sqrt(np.clip(np.where(valid, measured, 0.0), 0, None))
+    meas = np.where(valid, measured, 0.0)
+    amp = np.sqrt(np.clip(meas, 0, None))
     mean = amp[valid].mean()
     centred = np.where(valid, amp - mean, 0.0)
     fold = np.zeros((n, n))
     np.add.at(fold, (np.arange(nu)[:, None] % n, np.arange(nv)[None, :] % n), centred)
     ref = np.sqrt(period_power)
     score = np.real(np.fft.ifft2(np.fft.fft2(fold) * np.conj(np.fft.fft2(ref - ref.mean()))))
-    best, tried = None, 0
+    sig = np.where(valid, sigma, np.inf)
+    detected = valid & (meas > SIGNAL_SIGMAS * sig)
+    total = max(float(meas[valid].sum()), 1e-30)
+    best, tried, fallback = None, 0, None
     for flat in np.argsort(score, axis=None)[::-1]:
         s, t = np.unravel_index(flat, score.shape)
         cands = [
@@ -171,21 +196,24 @@ def locate_zero_order(measured, valid, period_power, top=3):
         tried += bool(cands)
         if tried > top:
             break
+        fallback = fallback or (cands[0] if cands else None)
         for m0, n0 in cands:
-            model = np.sqrt(_model(period_power, m0, n0, (nu, nv)))
-            use = valid.copy()
+            model = _model(period_power, m0, n0, (nu, nv))
+            scale = total / max(float(model[valid].sum()), 1e-30)
+            use = detected | (valid & (model * scale > PREDICTED_SIGMAS * sig))
             use[m0, n0] = False
-            r = _pearson(amp[use], model[use])
+            if use.sum() < 3:
+                continue
+            env = np.sqrt(_model(np.ones_like(period_power), m0, n0, (nu, nv)))[use]
+            env = np.maximum(env, 0.05)
+            r = _pearson(amp[use] / env, np.sqrt(model[use]) / env)
             if best is None or r > best[2]:
-                best = (m0, n0, r, model, use)
+                best = (m0, n0, r)
     if best is None:
-        raise ValueError("no valid dot where the zero order could sit")
-    m0, n0, _, model, use = best
-    # Report the match with the sinc envelope divided out: two unrelated plates
-    # share that envelope, which would lift their correlation.
-    env = np.sqrt(_model(np.ones_like(period_power), m0, n0, (nu, nv)))
-    flat = env[use] > 0.2
-    return m0, n0, _pearson(amp[use][flat] / env[use][flat], model[use][flat] / env[use][flat])
+        if fallback is None:
+            raise ValueError("no valid dot where the zero order could sit")
+        return (*fallback, 0.0)  # nothing above the noise: the FFT's best guess
+    return best
 
 
 def _deep_mask_fields(levels, n_levels):
@@ -198,25 +226,33 @@ def _deep_mask_fields(levels, n_levels):
     )
 
 
-def fit_deep_etch_error(window, levels, n_levels, search=0.5, step=1e-3):
+def fit_deep_etch_error(window, sigma, levels, n_levels, search=0.5, step=1e-3):
     """Fit the signed deep-etch depth error that best explains the measured window.
 
     An error eps adds the phase -pi eps to the pixels the deepest mask etches,
     so order (m, n) carries ``|U_mn + C_mn exp(-i pi eps)|^2`` (U, C: far fields
     of the pixels left and etched). Unlike the zero order alone, the window's
     orders tell a too deep etch from a too shallow one (unless the design is
-    point-symmetric). Least squares over eps with a free overall scale.
+    point-symmetric). Weighted least squares over eps with a free overall scale.
 
     Parameters
     ----------
     window : (K, K) float array
         Measured order powers in the design frame (any units).
+    sigma : (K, K) float array or None
+        Their 1-sigma errors (None: equal weights).
 
     Returns
     -------
-    float
-        eps (+0.1: the deepest etch is 10 % too deep).
+    dict or None
+        "eps" (+0.1: the deepest etch is 10 % too deep) and "chi2_drop" (how much
+        better the fit explains the window than eps = 0, in chi-square units
+        when ``sigma`` is given); None when the design does not use the deepest
+        mask on some pixels and not on others (the error leaves no trace).
     """
+    deep = masks_from_levels(levels, n_levels, level_step=1.0)[0].bitmap
+    if deep.all() or not deep.any():
+        return None
     k = window.shape[0]
     n = levels.shape[0]
     idx = (np.arange(k) - k // 2) % n
@@ -226,10 +262,14 @@ def fit_deep_etch_error(window, levels, n_levels, search=0.5, step=1e-3):
     eps = np.arange(-search, search + step / 2, step)
     model = np.abs(u_amp[None, :] + c_amp[None, :] * np.exp(-1j * np.pi * eps)[:, None]) ** 2
     model *= env.ravel()[None, :]
-    meas = np.asarray(window, float).ravel()
+    wts = np.ones(k * k) if sigma is None else 1 / np.maximum(np.ravel(sigma), 1e-30)
+    meas = np.asarray(window, float).ravel() * wts
+    model = model * wts[None, :]
     scale = (model @ meas) / np.einsum("ij,ij->i", model, model)
-    resid = ((model * scale[:, None] - meas[None, :]) ** 2).sum(axis=1)
-    return float(eps[int(np.argmin(resid))])
+    chi2 = ((model * scale[:, None] - meas[None, :]) ** 2).sum(axis=1)
+    best = int(np.argmin(chi2))
+    zero = int(np.argmin(np.abs(eps)))
+    return {"eps": float(eps[best]), "chi2_drop": float(chi2[zero] - chi2[best])}
 
 
 def implied_deep_etch_error(levels, n_levels, zero_order_power, sign_hint=None):
@@ -286,9 +326,11 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
     rows, cols = to_design_frame(grid.rows, orientation), to_design_frame(grid.cols, orientation)
     sat = to_design_frame(grid.saturated, orientation)
     period = design_order_power(levels, n_levels)
+    sigma = to_design_frame(grid.sigma, orientation)
+    sigma = np.sqrt(sigma**2 + (PHOTOMETRIC_FLOOR * np.nan_to_num(power)) ** 2)
     scores = {}
     for name, transform in _TRANSFORMS.items():
-        scores[name] = locate_zero_order(power, valid, transform(period))
+        scores[name] = locate_zero_order(power, valid, sigma, transform(period))
     m0, n0, _frame_corr = scores["design"]
     k, half = kernel_size, kernel_size // 2
     design_psf, design_eff = simulate_levels(levels, n_levels, k)
@@ -309,35 +351,55 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
     result["window_in_frame"] = in_frame
     if not in_frame:
         return result, None
-    window = power[sl]
+    meas = np.where(valid, power, 0.0)
     model = _model(period, m0, n0, power.shape)
-    measured_total = float(power[valid].sum())
-    model_in_frame = float(model[valid].sum())
-    total = measured_total / model_in_frame  # the whole beam's power, DN
-    window_sum = float(window.sum())
+    beam = beam_power(meas, sigma, valid, model, sl)
+    window = power[sl]
     measured_psf = np.clip(window, 0, None)
     measured_psf = measured_psf / measured_psf.sum()
-    zero_order = float(power[m0, n0]) / total
-    etch_fit = fit_deep_etch_error(window, levels, n_levels)
-    snr = window_sum / (grid.noise_px * np.sqrt(grid.aperture_pixels * k * k) + 1e-30)
+    w_sum, w_var = float(window.sum()), float((sigma[sl] ** 2).sum())
+    rest, rest_var = beam["signal"] - w_sum, beam["signal_var"] - w_var
+    # efficiency = (W / (W + R)) * model share of the orders used: propagate W and R.
+    efficiency = w_sum / beam["power"]
+    eff_sigma = (
+        beam["model_share"]
+        * np.hypot(rest * np.sqrt(w_var), w_sum * np.sqrt(max(rest_var, 0)))
+        / max(beam["signal"], 1e-30) ** 2
+    )
+    zero = float(power[m0, n0]) / beam["power"]
+    zero_sigma = zero * np.hypot(
+        sigma[m0, n0] / max(abs(power[m0, n0]), 1e-30),
+        np.sqrt(beam["signal_var"]) / max(beam["signal"], 1e-30),
+    )
+    on_camera = float(meas[valid].sum())
+    etch_fit = fit_deep_etch_error(window, sigma[sl], levels, n_levels)
+    snr = w_sum / np.sqrt(np.nansum(to_design_frame(grid.sigma, orientation)[sl] ** 2))
     result.update(
         {
             "correlation": correlation(measured_psf, design_psf),
             "rmse": rmse(measured_psf, design_psf),
-            "efficiency": window_sum / total,
-            "zero_order": zero_order,
-            "zero_order_excess": zero_order - float(period[0, 0]),
+            "efficiency": efficiency,
+            "efficiency_sigma": float(eff_sigma),
+            "zero_order": zero,
+            "zero_order_sigma": float(zero_sigma),
+            "zero_order_excess": zero - float(period[0, 0]),
             "implied_deep_etch_error": implied_deep_etch_error(
-                levels, n_levels, zero_order, sign_hint=etch_fit
+                levels, n_levels, zero, sign_hint=None if etch_fit is None else etch_fit["eps"]
             ),
-            "deep_etch_error_fit": etch_fit,
-            "power_outside_window": 1 - window_sum / measured_total,
-            "expected_power_outside_window": 1 - float(model[sl].sum()) / model_in_frame,
-            "model_power_in_frame": model_in_frame,
+            "deep_etch_error_fit": None if etch_fit is None else etch_fit["eps"],
+            "deep_etch_error_fit_significance": None if etch_fit is None else etch_fit["chi2_drop"],
+            "power_outside_window": 1 - w_sum / on_camera,
+            "power_outside_window_sigma": float(
+                np.sqrt(max(float((sigma[valid] ** 2).sum()) - w_var, 0)) / on_camera
+            ),
+            "expected_power_outside_window": 1 - float(model[sl].sum()) / float(model[valid].sum()),
+            "beam_power_dn": beam["power"],
+            "orders_with_signal": beam["orders"],
             "window_snr": float(snr),
             "saturated_dots": int(sat[valid].sum()),
             "saturated_in_window": int(sat[sl].sum()),
             "orders_measured": int(valid.sum()),
+            "aperture_radius_px": grid.aperture_radius_px,
         }
     )
     result["diagnosis"] = diagnose(result, thresholds)
@@ -345,8 +407,44 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
     return result, measured_psf
 
 
+def beam_power(meas, sigma, valid, model, window):
+    """Estimate the whole beam's power (DN) from the orders that carry signal.
+
+    Summing every order in the frame adds the noise of thousands of empty
+    apertures; instead the orders of the window, those measured above
+    ``SIGNAL_SIGMAS`` sigma and those the design puts above it are summed, and
+    divided by the design's share of the beam in those orders (the design's
+    far field sums to 1 over all orders).
+
+    Returns
+    -------
+    dict
+        "power" (DN), "signal" (DN in the orders used), "signal_var", "model_share",
+        "orders" (count).
+    """
+    total = max(float(meas[valid].sum()), 1e-30)
+    scale = total / max(float(model[valid].sum()), 1e-30)
+    use = valid & ((meas > SIGNAL_SIGMAS * sigma) | (model * scale > PREDICTED_SIGMAS * sigma))
+    use[window] = True
+    signal = float(meas[use].sum())
+    share = float(model[use].sum())
+    return {
+        "power": signal / share,
+        "signal": signal,
+        "signal_var": float((sigma[use] ** 2).sum()),
+        "model_share": share,
+        "orders": int(use.sum()),
+    }
+
+
 def diagnose(result, thresholds):
-    """Return the list of short diagnosis codes (["ok"] when every check holds)."""
+    """Return the list of short diagnosis codes (["ok"] when every check holds).
+
+    Codes: "saturated", "low_signal", "conjugate_plate", "mirrored",
+    "other_design", "zero_order_excess", "deep_etch_error", "psf_mismatch",
+    "low_efficiency". A check on a noisy figure (zero order, efficiency) fails
+    only when it misses its threshold by ``SIGNIFICANCE`` sigma.
+    """
     codes = []
     if result["saturated_dots"]:
         codes.append("saturated")
@@ -354,18 +452,38 @@ def diagnose(result, thresholds):
         codes.append("low_signal")
     frame = result["frame_correlation"]
     best_other = max(("rot180", "mirror-x", "mirror-y"), key=lambda t: frame[t])
-    if frame[best_other] > frame["design"] + TRANSFORM_MARGIN:
+    if (
+        frame[best_other] > frame["design"] + TRANSFORM_MARGIN
+        and frame[best_other] >= OTHER_DESIGN_MAX
+    ):
         codes.append("conjugate_plate" if best_other == "rot180" else "mirrored")
     elif max(frame.values()) < OTHER_DESIGN_MAX and "low_signal" not in codes:
         codes.append("other_design")
-    if result["zero_order"] > thresholds["zero_order_max"]:
-        codes.append("zero_order_excess")
-    if not codes or codes == ["zero_order_excess"]:
+    process = []
+    if codes:  # a plate that is not this design: its process figures mean nothing
+        return codes
+    if (
+        result["zero_order"] - thresholds["zero_order_max"]
+        > SIGNIFICANCE * result["zero_order_sigma"]
+    ):
+        process.append("zero_order_excess")
+    fit = result["deep_etch_error_fit"]
+    if (
+        fit is not None
+        and abs(fit) > thresholds["deep_etch_error_max"]
+        and result["deep_etch_error_fit_significance"] > (SIGNIFICANCE + 1) ** 2
+    ):
+        process.append("deep_etch_error")
+    codes += process
+    if not codes or codes == process:
         if (
             result["correlation"] < thresholds["correlation_min"]
             or result["rmse"] > thresholds["rmse_max"]
         ):
             codes.append("psf_mismatch")
-        if result["efficiency"] < thresholds["efficiency_min"]:
+        if (
+            result["efficiency"] + SIGNIFICANCE * result["efficiency_sigma"]
+            < thresholds["efficiency_min"]
+        ):
             codes.append("low_efficiency")
     return codes or ["ok"]

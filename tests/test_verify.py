@@ -138,7 +138,13 @@ def test_zero_order_check_catches_what_correlation_misses(levels):
     grid = _grid(sim)
     _psf, eff = simulate_levels(levels, L, K)
     thresholds = resolve_thresholds(
-        {"correlation_min": 0.0, "rmse_max": 1.0, "efficiency_min": 0.0, "zero_order_max": 0.005},
+        {
+            "correlation_min": 0.0,
+            "rmse_max": 1.0,
+            "efficiency_min": 0.0,
+            "zero_order_max": 0.005,
+            "deep_etch_error_max": 1.0,
+        },
         eff,
         0,
     )
@@ -287,11 +293,16 @@ def test_implied_deep_etch_error_inverts_the_simulated_plate(levels):
     for eps in (-0.2, -0.1, 0.05, 0.15):
         far = plate_far_field(plate_phase(levels, L, PlateFaults(deep_etch_error=eps)))
         window = far(*np.meshgrid(np.arange(K) - K // 2, np.arange(K) - K // 2, indexing="ij"))
-        fit = fit_deep_etch_error(window, levels, L)
-        assert fit == pytest.approx(eps, abs=2e-3)
-        assert implied_deep_etch_error(levels, L, float(far(0, 0)), fit) == pytest.approx(
+        fit = fit_deep_etch_error(window, None, levels, L)
+        assert fit["eps"] == pytest.approx(eps, abs=2e-3)
+        assert implied_deep_etch_error(levels, L, float(far(0, 0)), fit["eps"]) == pytest.approx(
             eps, abs=1e-6
         )
+
+
+def test_deep_etch_fit_is_none_when_the_deep_mask_is_unused():
+    upper = np.random.default_rng(4).integers(L // 2, L, (N, N)).astype(np.uint8)
+    assert fit_deep_etch_error(np.ones((K, K)), None, upper, L) is None
 
 
 def test_zero_order_follows_the_analytic_deep_etch_law():
@@ -366,5 +377,5 @@ def test_full_size_tile_n175(tmp_path):
 def _grid(sim):
     raw = RawImage(sim["capture"] >> 4, 4095.0, None)
     cap = condition_capture(raw, RawImage(sim["dark"] >> 4, 4095.0, None))
-    lattice = register_lattice(cap.image, PITCH_PX)
+    lattice, _ = register_lattice(cap.image, PITCH_PX)
     return measure_orders(cap.image, lattice, cap.saturated)

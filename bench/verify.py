@@ -1,0 +1,117 @@
+"""Benchmark: verify a 5-megapixel capture (2592 x 1944) of an N = 175 plate.
+
+Prints the median wall time over a few runs of the whole ``doefab verify``
+command (reading the 16-bit PNG and its dark frame, registration, photometry,
+diagnosis, report) and of its stages. Target: <= 5 s on a 2-core machine.
+"""
+
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+RUNS = 5
+SHAPE = (1944, 2592)
+CAMERA_PITCH = 3.45e-6
+
+
+def main_bench():
+    # Run as a script, bench/ comes first on sys.path and bench/fab.py would shadow
+    # the fab package: put the repository root there before importing.
+    sys.path[0] = str(Path(__file__).resolve().parents[1])
+    from doe.cli import main
+    from doe.design import derive, load_design
+    from doe.files import save_npy, write_json
+    from doe.fraunhofer import simulate_levels
+    from fab.capture import read_capture, write_image
+    from fab.capture_sim import simulate_capture
+    from fab.lattice import measure_orders, register_lattice
+    from fab.verify import analyse, design_order_power, resolve_thresholds
+
+    design = load_design()
+    der = derive(design)
+    n, k, n_levels = der.tile_pixels, design.kernel_size, design.fabrication.levels
+    levels = np.random.default_rng(0).integers(0, n_levels, (n, n)).astype(np.uint8)
+    pitch_px = der.lattice_pitch / CAMERA_PITCH
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        d = tmp / "design"
+        d.mkdir()
+        save_npy(d / "levels.npy", levels)
+        save_npy(d / "target_psf.npy", simulate_levels(levels, n_levels, k)[0])
+        write_json(
+            d / "fab_manifest.json",
+            {
+                "levels": n_levels,
+                "kernel_size": k,
+                "lattice_pitch_um": der.lattice_pitch * 1e6,
+                "masks": [
+                    {
+                        "name": "M1_deep",
+                        "etch_depth_nm": der.etch_depths[0] * 1e9,
+                        "exposure_order": 1,
+                    }
+                ],
+            },
+        )
+        t0 = time.perf_counter()
+        sim = simulate_capture(
+            levels,
+            n_levels,
+            shape=SHAPE,
+            pitch_px=pitch_px,
+            centre=(1001.3, 1247.8),
+            rotation_deg=1.2,
+            hot_pixels=200,
+            seed=1,
+        )
+        print(f"simulated a {SHAPE[1]}x{SHAPE[0]} capture in {time.perf_counter() - t0:.2f} s")
+        write_image(tmp / "capture.png", sim["capture"], exposure=0.01)
+        write_image(tmp / "dark.png", sim["dark"], exposure=0.01)
+
+        stages = {"read+condition": [], "register": [], "photometry": [], "analyse": []}
+        for _ in range(RUNS):
+            t = time.perf_counter()
+            cap = read_capture(tmp / "capture.png", tmp / "dark.png")
+            t1 = time.perf_counter()
+            lattice, _ = register_lattice(cap.image, pitch_px)
+            t2 = time.perf_counter()
+            grid = measure_orders(cap.image, lattice, cap.saturated)
+            t3 = time.perf_counter()
+            _psf, eff = simulate_levels(levels, n_levels, k)
+            thr = resolve_thresholds(None, eff, design_order_power(levels, n_levels)[0, 0])
+            analyse(grid, levels, n_levels, k, "as-designed", thr)
+            t4 = time.perf_counter()
+            for key, dt in zip(stages, (t1 - t, t2 - t1, t3 - t2, t4 - t3), strict=True):
+                stages[key].append(dt)
+        for key, times in stages.items():
+            print(f"  {key:15s} median {statistics.median(times):.3f} s")
+
+        totals = []
+        for i in range(RUNS):
+            t = time.perf_counter()
+            code = main(
+                [
+                    "verify",
+                    str(d),
+                    str(tmp / "capture.png"),
+                    "--dark",
+                    str(tmp / "dark.png"),
+                    "--out",
+                    str(tmp / f"out{i}"),
+                ]
+            )
+            totals.append(time.perf_counter() - t)
+            if code != 0:
+                print(f"verify returned {code}", file=sys.stderr)
+        print(
+            f"doefab verify, 5 MP 16-bit PNG + dark: median {statistics.median(totals):.2f} s "
+            f"over {RUNS} runs (min {min(totals):.2f}, max {max(totals):.2f}); target <= 5 s"
+        )
+
+
+if __name__ == "__main__":
+    main_bench()
