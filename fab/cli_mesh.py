@@ -267,11 +267,12 @@ def _write_step(relief, offsets, stage, seconds):
 
     t0 = time.perf_counter()
     solid = step.tile_solid(relief)
-    atomic_write_bytes(stage / "tile.step", step.step_bytes(solid))
-    seconds["step_tile"] = time.perf_counter() - t0
+    seconds["step_solid"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    atomic_write_bytes(stage / "aperture.step", step.step_bytes(solid, offsets))
-    seconds["step_aperture"] = time.perf_counter() - t0
+    tile_step = step.step_bytes(solid)
+    atomic_write_bytes(stage / "tile.step", tile_step)
+    seconds["step_write"] = time.perf_counter() - t0
+    atomic_write_bytes(stage / "aperture.step", step.assembly_step_bytes(tile_step, offsets))
     check = step.check_solid(solid)
     analytic = relief.analytic_volume() * 1e9
     rel = check["volume_mm3"] / analytic - 1

@@ -59,18 +59,22 @@ def test_open_shell_is_reported_not_closed():
     assert not check["closed"]
 
 
-def test_step_aperture_is_an_assembly_of_located_instances(tmp_path):
+@pytest.mark.parametrize("route", ["text", "xcaf"])
+def test_step_aperture_is_an_assembly_of_located_instances(tmp_path, route):
     relief = relief_of(5, seed=3)
     solid = step.tile_solid(relief)
     offsets = instance_offsets_mm(relief, (3, 2), origin_mm=(1.0, 2.0))
-    data = step.step_bytes(solid, offsets)
+    if route == "text":
+        data = step.assembly_step_bytes(step.step_bytes(solid), offsets)
+    else:
+        data = step.step_bytes(solid, offsets)
     assert data.count(b"MANIFOLD_SOLID_BREP") == 1, "the tile is stored once"
     assert data.count(b"NEXT_ASSEMBLY_USAGE_OCCURRENCE") == 6
     path = tmp_path / "aperture.step"
     path.write_bytes(data)
     shape = step.read_step(path)
-    back = step.check_solid(shape)
-    assert back["solids"] == 6 and back["closed"]
+    back = step.check_solid(shape, validate=True)
+    assert back["solids"] == 6 and back["closed"] and back["valid"]
     assert back["volume_mm3"] == pytest.approx(6 * analytic_mm3(relief), rel=1e-9)
     lows = sorted(
         tuple(np.round((s.bounding_box().min.X, s.bounding_box().min.Y), 6)) for s in shape.solids()
