@@ -65,12 +65,41 @@ def test_fidelity_terms_measure_the_quality_goals():
         1 - retrieval.CORRELATION_GOAL
     )
     assert retrieval.fidelity(phase, target) == pytest.approx(expect, rel=1e-6)
-    # and the batched evaluation used by coordinate descent agrees with it
+    # the batched evaluation of coordinate descent agrees with the objective's stand-in
     power = fraunhofer.window_power(phase, 7)
     goal = retrieval._Goal.of(target)
-    batch = retrieval._values(np.stack([power, power]), goal, 2.0)
+    batch = retrieval._values(np.stack([power, power]), goal, 2.0, mode="smooth")
     one = retrieval._fidelity_terms(power, goal, 2.0)[0]
     np.testing.assert_allclose(batch, [one, one], rtol=1e-12)
+    assert one == pytest.approx(retrieval.objective(phase, target, 2.0)[0], rel=1e-12)
+
+
+def test_exact_fidelity_uses_the_simulated_peak_on_flat_tops():
+    # a plateau whose simulated values differ: the rmse normalises by the highest
+    target = np.zeros((5, 5))
+    target[1:4, 1:4] = 1 / 9
+    power = target * np.linspace(0.9, 1.1, 25).reshape(5, 5)
+    psf = power / power.sum()
+    rmse = fraunhofer.rmse(psf, target)
+    goal = retrieval._Goal.of(target)
+    corr = fraunhofer.correlation(psf, target)
+    expect = (rmse / retrieval.RMSE_GOAL) ** 2 + (1 - corr) / (1 - retrieval.CORRELATION_GOAL)
+    assert float(retrieval._values(power, goal, 0.0)) == pytest.approx(expect, rel=1e-9)
+    # the smooth stand-in (mean over the plateau) reads lower here
+    assert float(retrieval._values(power, goal, 0.0, mode="smooth")) < expect
+
+
+def test_fidelity_cap_counts_only_slack_below_the_cap():
+    target = targets.compact_blob(5)
+    goal = retrieval._Goal.of(target)
+    power = 0.9 * target * (1 + 0.001 * np.arange(25).reshape(5, 5) / 25)
+    fid = float(retrieval._values(power, goal, 0.0))
+    eff = power.sum()
+    assert fid < 0.5
+    capped = float(retrieval._values(power, goal, 3.0, cap=0.5))
+    assert capped == pytest.approx(0.5 + retrieval.SLACK * fid - 3.0 * eff, rel=1e-12)
+    above = float(retrieval._values(power, goal, 3.0, cap=fid / 2))
+    assert above == pytest.approx(fid + retrieval.SLACK * fid / 2 - 3.0 * eff, rel=1e-12)
 
 
 def test_single_pixel_update_formula_matches_fft():
@@ -142,6 +171,22 @@ def test_retrieval_quality_small_tile(name):
     assert res.quality_quantised == pytest.approx(again, rel=1e-12)
     _check(res.quality_quantised, 0.85)
     _check(res.quality_continuous, 0.9)
+
+
+def test_delta_targets_give_a_flat_plate_and_a_blazed_grating():
+    k = 9
+    on_axis = np.zeros((k, k))
+    on_axis[k // 2, k // 2] = 1.0
+    res = retrieval.retrieve_phase(on_axis, 41, 8, seed=0)
+    assert res.quality_quantised["efficiency"] == pytest.approx(1.0, abs=1e-9)
+    # off axis, up and to the right (row 2 = -y is up): the light must land there
+    off = np.zeros((k, k))
+    off[2, 7] = 1.0
+    res = retrieval.retrieve_phase(off, 41, 8, seed=0)
+    psf, eff = fraunhofer.simulate_levels(res.levels, 8, k)
+    assert np.unravel_index(psf.argmax(), psf.shape) == (2, 7)
+    # an 8-level blazed grating: about sinc^2(1/8) = 0.950 of the light
+    assert 0.93 <= eff <= 0.97
 
 
 def test_rounding_alone_is_much_worse_than_the_finish():
