@@ -61,7 +61,7 @@ def run(args):
             "use a smaller PSF or a larger --tile-pixels",
         )
     with staged_output(args.out, args.force, names=OUTPUTS) as stage:
-        result = retrieve_phase(target, n, n_levels, seed=args.seed)
+        result = retrieve_phase(target, n, n_levels, seed=args.seed, progress=True)
         psf, _ = fraunhofer.simulate_levels(result.levels, n_levels, k)
         save_npy(stage / "levels.npy", result.levels)
         save_npy(stage / "phase.npy", result.phase.astype(np.float64))

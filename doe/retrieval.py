@@ -445,6 +445,15 @@ def coordinate_descent(
 
 
 # --------------------------------------------------------------------------- entry point
+def _progress_bar(enabled, total):
+    """Return a tqdm bar on stderr, silent unless ``enabled`` and stderr is a terminal."""
+    import sys
+
+    from tqdm import tqdm
+
+    return tqdm(total=total, disable=not (enabled and sys.stderr.isatty()), leave=False)
+
+
 def retrieve_phase(
     target,
     n_pixels,
@@ -456,14 +465,15 @@ def retrieve_phase(
     quantised_iterations=100,
     cd_weights=CD_WEIGHTS,
     cap=CAP,
+    progress=False,
 ):
     """Design an L-level phase tile whose K x K window of orders forms ``target``.
 
     Weighted GS, L-BFGS refinement of the continuous phase, quantised weighted GS
     from it, then coordinate descent on the level map: one sweep for each of the
     efficiency weights ``cd_weights`` in turn, with the fidelity capped at ``cap``
-    (below it only the efficiency counts), until the fidelity is within ``cap`` and
-    a sweep gains less than :data:`MIN_GAIN` of efficiency.
+    (below it only :data:`SLACK` of it counts), until the fidelity is within ``cap``
+    and a sweep gains less than :data:`MIN_GAIN` of efficiency.
 
     Parameters
     ----------
@@ -484,6 +494,8 @@ def retrieve_phase(
     cap : float
         Fidelity (rmse and correlation terms of :func:`objective`, 1 = a goal
         just met) the finish aims at.
+    progress : bool
+        Show a tqdm progress bar of the stages on stderr (when it is a terminal).
 
     Returns
     -------
@@ -499,13 +511,20 @@ def retrieve_phase(
         raise ValueError(f"need at least 2 levels, got {n_levels}")
     target = target / target.sum()
     t0 = time.perf_counter()
+    bar = _progress_bar(progress, 3 + len(cd_weights))
     rng = np.random.default_rng(seed)
+    bar.set_description("Gerchberg-Saxton")
     phase, gains = gerchberg_saxton(target, n_pixels, gs_iterations, rng)
+    bar.update()
+    bar.set_description("L-BFGS")
     phase = refine_continuous(phase, target, weight, lbfgs_evals)
     quality_cont = fraunhofer.quality(phase, target)
+    bar.update()
+    bar.set_description("quantised GS")
     soft, _ = gerchberg_saxton(
         target, n_pixels, quantised_iterations, phase=phase, n_levels=n_levels, gains=gains
     )
+    bar.update()
     # Quantised GS usually starts the discrete search best, but it can collapse a
     # nearly flat phase (near-delta targets) into a 0/pi grating; plain rounding with
     # the best global offset is the fallback.
@@ -526,7 +545,10 @@ def retrieve_phase(
     ]
     levels = starts[int(np.argmin(scores))]
     eff = fraunhofer.simulate_levels(levels, n_levels, k)[1]
+    fid = fidelity(fraunhofer.level_phase(levels, n_levels), target)
+    bar.set_description("coordinate descent")
     for w in cd_weights:
+        bar.update()
         levels = coordinate_descent(
             levels, target, n_levels, w, sweeps=1, rng=rng, cap=cap, mode="smooth"
         )
@@ -539,6 +561,7 @@ def retrieve_phase(
         # the smooth stand-in for the peak normalisation can disagree with the
         # exact rmse on flat-topped targets: polish on the exact figures
         levels = coordinate_descent(levels, target, n_levels, 0.0, sweeps=4, rng=rng, cap=cap)
+    bar.close()
     seconds = time.perf_counter() - t0
     quality_q = fraunhofer.quality(fraunhofer.level_phase(levels, n_levels), target)
     return Retrieval(
