@@ -187,7 +187,8 @@ def run_mesh(args):
     seconds = {}
     with staged_output(args.out, args.force, names) as stage:
         t0 = time.perf_counter()
-        vertices, faces = mesh.tile_mesh(relief)
+        surface = mesh.relief_surface(relief.levels)
+        vertices, faces = mesh.surface_points_mm(surface, relief), surface.triangles
         seconds["tile_mesh"] = time.perf_counter() - t0
         volume = mesh.mesh_volume(vertices, faces)
         analytic = relief.analytic_volume() * 1e9
@@ -242,7 +243,7 @@ def run_mesh(args):
                 "analytic_volume_mm3": analytic * c * c,
             }
         if "step" in formats:
-            report["step"] = _write_step(relief, offsets, stage, seconds)
+            report["step"] = _write_step(relief, surface, offsets, stage, seconds)
         atomic_write_bytes(stage / "preview.png", mesh_io.preview_png_bytes(relief))
         report["files"] = {
             p.name: p.stat().st_size
@@ -261,12 +262,12 @@ def run_mesh(args):
     return 0
 
 
-def _write_step(relief, offsets, stage, seconds):
+def _write_step(relief, surface, offsets, stage, seconds):
     from doe.files import atomic_write_bytes
     from fab import step
 
     t0 = time.perf_counter()
-    solid = step.tile_solid(relief)
+    solid = step.tile_solid(relief, surface)
     seconds["step_solid"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     tile_step = step.step_bytes(solid)

@@ -30,8 +30,11 @@ def step_face_count(levels):
     return lev.size + walls + 2 * (lev.shape[0] + lev.shape[1]) + 1
 
 
-def tile_solid(relief):
-    """Build the relief tile as one closed build123d ``Solid`` in millimetres."""
+def tile_solid(relief, surface=None):
+    """Build the relief tile as one closed build123d ``Solid`` in millimetres.
+
+    ``surface`` may pass ``relief_surface(relief.levels)`` when already built.
+    """
     from build123d import Solid
     from OCP.BRep import BRep_Builder
     from OCP.BRepBuilderAPI import (
@@ -43,7 +46,8 @@ def tile_solid(relief):
     from OCP.gp import gp_Dir, gp_Pln, gp_Pnt
     from OCP.TopoDS import TopoDS_Shell, TopoDS_Solid
 
-    surface = relief_surface(relief.levels)
+    if surface is None:
+        surface = relief_surface(relief.levels)
     pts = surface_points_mm(surface, relief).tolist()
     vertices = [BRepBuilderAPI_MakeVertex(gp_Pnt(*p)).Vertex() for p in pts]
     edges = {}
