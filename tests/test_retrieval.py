@@ -289,6 +289,10 @@ def _bad_inputs(tmp_path):
         "non-square": (_psf_file(tmp_path, np.full((5, 3), 1 / 15), "rect.npy"), [], "square"),
         "int dtype": (_psf_file(tmp_path, np.eye(3, dtype=np.int64), "int.npy"), [], "dtype"),
         "K > N": (_psf_file(tmp_path, good, "big.npy"), ["--tile-pixels", 3], "exceeds"),
+        "sum 2": (_psf_file(tmp_path, 2 * good, "sum2.npy"), [], "sum to 1"),
+        "inf": (_psf_file(tmp_path, np.where(good > 0.1, np.inf, good), "inf.npy"), [], "inf"),
+        "3-D": (_psf_file(tmp_path, np.full((3, 3, 3), 1 / 27), "cube.npy"), [], "square"),
+        "seed": (_psf_file(tmp_path, good, "s.npy"), ["--seed", -1], "--seed"),
         "unreadable": (garbage, [], "readable"),
         "missing": (tmp_path / "missing.npy", [], "no such file"),
         "levels 6": (_psf_file(tmp_path, good, "l6.npy"), ["--levels", 6], "--levels"),
@@ -316,6 +320,15 @@ def test_cli_bad_inputs_exit_2_naming_the_problem_and_leave_nothing(tmp_path, ca
             assert path.name in lines[0], (case, err)
         assert not out.exists(), case
         assert sorted(p.name for p in tmp_path.iterdir()) == ["in"], case
+
+
+def test_cli_refuses_an_output_path_that_is_a_file(tmp_path, capsys):
+    psf = _psf_file(tmp_path, targets.compact_blob(5))
+    out = tmp_path / "out"
+    out.write_text("a file")
+    code, err = _run([psf, "--out", out, "--tile-pixels", 15], capsys)
+    assert code == 2 and "out" in err and len(err.strip().splitlines()) == 1
+    assert out.read_text() == "a file"
 
 
 def test_cli_refuses_to_overwrite_without_force(tmp_path, capsys):
