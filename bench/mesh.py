@@ -11,14 +11,18 @@ Usage: python bench/mesh.py [--repeats 3] [--no-step] [--verify-step] [--seed 0]
 
 import argparse
 import statistics
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from doe.design import derive, load_design
-from fab import mesh, mesh_io
+# bench/ holds scripts named like packages (bench/fab.py): keep them off the import path
+sys.path = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
+
+from doe.design import derive, load_design  # noqa: E402
+from fab import mesh, mesh_io  # noqa: E402
 
 ENCODERS = {
     "ply": mesh_io.ply_bytes,

@@ -159,6 +159,10 @@ def run_mesh(args):
     relief, info = read_fab_dir(args.fab_dir, args.thickness_mm)
     tiles, origin = info["tiles"], info["origin_mm"]
     if args.crop is not None:
+        if formats == ["step"]:
+            raise InputError(
+                "--crop", "the merged crop is a mesh: add ply, glb, 3mf or stl to --formats"
+            )
         check_crop(relief, args.crop, tiles)
     if "step" in formats:
         from fab.step import MAX_STEP_FACES, step_face_count

@@ -363,3 +363,11 @@ def test_cli_refuses_overwrite_without_force(tmp_path, capsys):
     assert "--force" in capsys.readouterr().err
     assert main(["mesh", str(fab), "--out", str(out), "--formats", "ply", "--force"]) == 0
     assert (out / "tile.ply").read_bytes() == before
+
+
+def test_cli_crop_needs_a_mesh_format(tmp_path, capsys):
+    fab = write_fab_dir(tmp_path / "fab", random_levels(3, seed=16))
+    out = tmp_path / "out"
+    assert main(["mesh", str(fab), "--out", str(out), "--formats", "step", "--crop", "1"]) == 2
+    assert "--crop" in capsys.readouterr().err
+    assert not out.exists()
