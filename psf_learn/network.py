@@ -1,7 +1,7 @@
 """Compact 4x super-resolution networks that train in minutes on a CPU.
 
 Sun et al. 2020 use D-DBPN (10 M parameters, 40 GPU-hours). Two scaled-down
-designs are offered, both predicting a residual over a bilinear upsampling of
+designs are offered, both predicting a residual over a bicubic upsampling of
 the SPAD frame:
 
 - ``resnet`` (default): residual blocks at the SPAD resolution, then a
@@ -81,9 +81,13 @@ class SRNet(nn.Module):
             self.tail = nn.Conv2d(features * stages, 1, 3, padding=1)
         else:
             raise ValueError(f"arch must be 'resnet' or 'dbpn', got {arch!r}")
+        # start as plain bicubic upsampling: the residual branch learns from zero
+        last = self.tail[0] if arch == "resnet" else self.tail
+        nn.init.zeros_(last.weight)
+        nn.init.zeros_(last.bias)
 
     def forward(self, lr):
-        base = F.interpolate(lr, scale_factor=self.factor, mode="bilinear", align_corners=False)
+        base = F.interpolate(lr, scale_factor=self.factor, mode="bicubic", align_corners=False)
         x = self.head(lr)
         if self.arch == "resnet":
             return base + self.tail(x + self.body(x))

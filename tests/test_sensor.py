@@ -199,3 +199,18 @@ def test_psf_gradient_flows_through_the_noise():
     assert torch.isfinite(noisy).all()
     assert noisy.abs().max() > 1e-6
     torch.testing.assert_close(noisy, clean)
+
+
+@pytest.mark.parametrize("padding", ["reflect", "valid"])
+@pytest.mark.parametrize("cell", [(2, 2), (0, 3)])
+def test_point_sample_fast_path_equals_blur_then_sample(padding, cell):
+    rng = np.random.default_rng(9)
+    img = _t(rng.uniform(size=(2, 1, 26, 30) if padding == "valid" else (2, 1, 16, 20)))
+    psf = _t(rng.uniform(size=(K, K)))
+    psf = psf / psf.sum()
+    w = np.zeros((4, 4))
+    w[cell] = 1
+    fast = simulate_capture(img, psf, _noise_free(w), padding=padding)
+    slow = spad_sample(convolve_psf(img, psf, padding), w)
+    assert fast.shape == slow.shape
+    torch.testing.assert_close(fast, slow, atol=1e-12, rtol=0)

@@ -1,0 +1,207 @@
+"""Table 2 of Sun et al. 2020: the four sampling schemes under the same training budget.
+
+Trains low fill-factor (delta PSF), full fill-factor (4 x 4 box), Gaussian
+(sigma 0.459 sub-pixel) and learned-PSF models with ``doefab learn`` on the
+same images and the same budget, evaluates them on Set5, Set14 and any extra
+folders, and prints PSNR/SSIM beside the paper's numbers. The learned model is
+also evaluated with the PSF that its 8-level retrieved plate actually produces
+(``doe.retrieval.retrieve_phase`` then ``doe.fraunhofer.simulate_levels``), the
+as-fabricated figure.
+
+Models train as separate processes, ``--parallel`` at a time (one CPU thread
+each: on a shared 2-core machine this is faster than one 2-thread run after
+another). The budget is wall-clock minutes per model (or ``--steps``).
+
+    python bench/table2.py --minutes 6
+    python bench/table2.py --minutes 15 --extra held_back_images/
+"""
+
+import argparse
+import itertools
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data"
+MODELS = (  # (key, --psf, label)
+    ("low_ff", "delta", "low fill-factor"),
+    ("full_ff", "box", "full fill-factor"),
+    ("gaussian", "gaussian", "Gaussian PSF"),
+    ("learned", "learned", "learned PSF"),
+)
+PAPER = {  # PSNR dB on Set5 / Set14 / BSDS100, Sun et al. 2020, Table 2
+    "low_ff": (27.17, 23.97, 23.82),
+    "full_ff": (29.77, 26.13, 25.59),
+    "gaussian": (30.41, 26.68, 26.05),
+    "learned": (30.76, 26.91, 26.23),
+}
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--minutes", type=float, default=15.0, help="training budget per model")
+    p.add_argument("--steps", type=int, help="fixed step budget per model instead of minutes")
+    p.add_argument("--train", default=str(DATA / "sun_hays80"), help="training images")
+    p.add_argument("--extra", nargs="*", default=[], help="more evaluation folders")
+    p.add_argument("--out", default=str(ROOT / "bench" / "out" / "table2"), help="work folder")
+    p.add_argument("--parallel", type=int, default=2, help="models trained at once")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--reuse", action="store_true", help="evaluate existing models, no training")
+    p.add_argument("--no-fab", action="store_true", help="skip the as-fabricated evaluation")
+    p.add_argument("learn_args", nargs=argparse.REMAINDER, help="extra `doefab learn` flags")
+    args = p.parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if not args.reuse:
+        _train_all(args, out)
+    results = _evaluate_all(args, out)
+    (out / "table2.json").write_text(json.dumps(results, indent=2, sort_keys=True) + "\n")
+    _print_table(results, args)
+    return 0
+
+
+def _train_all(args, out):
+    budget = ["--steps", str(args.steps)] if args.steps else ["--minutes", str(args.minutes)]
+    queue = list(MODELS)
+    running = []
+    while queue or running:
+        while queue and len(running) < args.parallel:
+            key, psf, _ = queue.pop(0)
+            cmd = [
+                sys.executable,
+                "-m",
+                "doe.cli",
+                "learn",
+                "--out",
+                str(out / key),
+                "--images",
+                args.train,
+                "--psf",
+                psf,
+                "--seed",
+                str(args.seed),
+                "--force",
+                "--restart",
+                *budget,
+                *args.learn_args,
+            ]
+            log = open(out / f"{key}.log", "w")  # closed when the process ends
+            print(f"training {key}: {' '.join(cmd[2:])}", file=sys.stderr)
+            running.append((key, subprocess.Popen(cmd, stdout=log, stderr=log, cwd=ROOT), log))
+        time.sleep(2)
+        for item in list(running):
+            key, proc, log = item
+            if proc.poll() is not None:
+                log.close()
+                running.remove(item)
+                if proc.returncode:
+                    sys.exit(f"training {key} failed, see {out / (key + '.log')}")
+                print(f"trained {key}", file=sys.stderr)
+
+
+def _as_fabricated_psf(learned_psf):
+    """PSF of the 8-level plate retrieved for the learned PSF, or None without doe.retrieval."""
+    try:
+        from doe.retrieval import retrieve_phase
+    except ImportError:
+        return None, None
+    from doe.design import derive, load_design
+    from doe.fraunhofer import simulate_levels
+
+    design = load_design()
+    n = derive(design).tile_pixels
+    levels = design.fabrication.levels
+    ret = retrieve_phase(learned_psf, n, n_levels=levels, seed=0)
+    psf, efficiency = simulate_levels(ret.levels, levels, learned_psf.shape[0])
+    return psf, {"efficiency": efficiency, **ret.quality_quantised}
+
+
+def _evaluate_all(args, out):
+    import torch
+
+    from psf_learn.evaluate import evaluate
+    from psf_learn.images import read_folder
+    from psf_learn.sr import load_model
+
+    torch.set_num_threads(2)
+    sets = {"Set5": DATA / "set5", "Set14": DATA / "set14"}
+    sets.update({Path(e).name: Path(e) for e in args.extra})
+    data = {name: read_folder(folder) for name, folder in sets.items()}
+    results = {"sets": list(sets), "models": {}}
+    for key, _, label in MODELS:
+        model = load_model(out / key)
+        learn = json.loads((out / key / "learn.json").read_text())
+        row = {
+            "label": label,
+            "steps": learn["steps"],
+            "seconds": learn["seconds"],
+            "psf": model.psf.tolist(),
+        }
+        for name, (names, images) in data.items():
+            row[name] = evaluate(model, names, images)
+        results["models"][key] = row
+        print(f"evaluated {key}", file=sys.stderr)
+    if not args.no_fab:
+        learned = load_model(out / "learned")
+        t0 = time.perf_counter()
+        psf, quality = _as_fabricated_psf(learned.psf)
+        if psf is not None:
+            row = {
+                "label": "learned, as fabricated (8 levels)",
+                "quality": quality,
+                "retrieval_seconds": time.perf_counter() - t0,
+                "psf": psf.tolist(),
+            }
+            for name, (names, images) in data.items():
+                row[name] = evaluate(learned, names, images, psf=psf)
+            results["models"]["learned_fab"] = row
+    return results
+
+
+def _print_table(results, args):
+    sets = results["sets"]
+    budget = f"{args.steps} steps" if args.steps else f"{args.minutes:g} min"
+    print(
+        f"\nTable 2 (PSNR dB / SSIM, 4x SR, budget {budget} per model, "
+        f"{results['models']['learned']['steps']} steps for the learned model)"
+    )
+    head = f"{'model':36s}" + "".join(f"{s:>16s}" for s in sets)
+    print(head + f"{'paper Set5/Set14/B100':>26s}{'gap Set5/Set14':>18s}")
+    for key, row in results["models"].items():
+        cells = "".join(f"{row[s]['psnr']:8.2f}/{row[s]['ssim']:.4f}"[:16].rjust(16) for s in sets)
+        paper = PAPER.get(key)
+        ref = "/".join(f"{v:.2f}" for v in paper) if paper else ""
+        gap = (
+            f"{row['Set5']['psnr'] - paper[0]:+.2f}/{row['Set14']['psnr'] - paper[1]:+.2f}"
+            if paper
+            else ""
+        )
+        print(
+            f"{row['label'] + ' (' + str(row.get('steps', '-')) + ')':36s}{cells}"
+            f"{ref:>26s}{gap:>18s}"
+        )
+    m = results["models"]
+    for s in sets:
+        order = [m[k][s]["psnr"] for k in ("learned", "gaussian", "full_ff", "low_ff")]
+        holds = all(a > b for a, b in itertools.pairwise(order))
+        print(
+            f"{s}: learned > Gaussian > full FF > low FF: {'yes' if holds else 'NO'}; "
+            f"learned - low FF = {order[0] - order[3]:+.2f} dB"
+        )
+    if "learned_fab" in m:
+        q = m["learned_fab"]["quality"]
+        print(
+            f"as-fabricated plate: correlation {q['correlation']:.4f}, "
+            f"efficiency {q['efficiency']:.3f}; learned-PSF loss on Set5 "
+            f"{m['learned_fab']['Set5']['psnr'] - m['learned']['Set5']['psnr']:+.2f} dB"
+        )
+    print(f"learned PSF (x1000):\n{np.round(np.array(m['learned']['psf']) * 1000).astype(int)}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
