@@ -121,6 +121,9 @@ class _Goal:
     peak: np.ndarray  # (K, K) bool, where the target has its maximum
     c_rmse: float  # 1 / (K * RMSE_GOAL)^2
     c_corr: float  # 1 / (1 - CORRELATION_GOAL)
+    flat_centred: np.ndarray  # centred.ravel()
+    flat_scaled: np.ndarray  # scaled.ravel()
+    flat_peak: np.ndarray  # peak.ravel() / number of peak orders
 
     @classmethod
     def of(cls, target):
@@ -130,14 +133,18 @@ class _Goal:
         # a uniform target has no correlation to speak of (Pearson's is undefined):
         # the rmse term alone then measures the fit
         flat = norm <= 1e-12 * tmax
+        peak = target >= tmax * (1 - 1e-12)
         return cls(
             target=target,
             scaled=target / tmax,
             centred=centred,
             norm=1.0 if flat else norm,
-            peak=target >= tmax * (1 - 1e-12),
+            peak=peak,
             c_rmse=1.0 / (target.shape[0] * RMSE_GOAL) ** 2,
             c_corr=0.0 if flat else 1.0 / (1.0 - CORRELATION_GOAL),
+            flat_centred=centred.ravel(),
+            flat_scaled=(target / tmax).ravel(),
+            flat_peak=peak.ravel() / peak.sum(),
         )
 
 
@@ -171,6 +178,20 @@ def _values(power, goal, weight, cap=0.0, mode="exact"):
     if cap > 0:
         fid = np.maximum(fid, cap) + SLACK * np.minimum(fid, cap)
     return fid - weight * eff
+
+
+def _value_one(window, goal, weight, cap=0.0, mode="exact"):
+    """Return :func:`_values` of one complex (K, K) window, lean (the greedy inner loop)."""
+    p = window.real.ravel() ** 2 + window.imag.ravel() ** 2
+    eff = p.sum()
+    pc = p - eff / p.size
+    corr = np.dot(pc, goal.flat_centred) / (np.sqrt(np.dot(pc, pc)) * goal.norm)
+    p0 = p.max() if mode == "exact" else np.dot(p, goal.flat_peak)
+    u = p / p0 - goal.flat_scaled
+    fid = goal.c_rmse * np.dot(u, u) + goal.c_corr * (1.0 - corr)
+    if cap > 0:
+        fid = max(fid, cap) + SLACK * min(fid, cap)
+    return float(fid - weight * eff)
 
 
 def _fidelity_terms(power, goal, weight):
@@ -414,7 +435,7 @@ def coordinate_descent(
     a = window_matrix(n, k)
     phasors = np.exp(1j * level_step(n_levels) * np.arange(n_levels))
     w = _window_fft(phasors[q], fraunhofer.window_indices(n, k))
-    value = float(_values(np.abs(w) ** 2, goal, weight, cap, mode))
+    value = _value_one(w, goal, weight, cap, mode)
     shifts = np.arange(1, n_levels) if shifts is None else np.asarray(shifts) % n_levels
     for _ in range(sweeps):
         changed = 0
@@ -434,7 +455,7 @@ def coordinate_descent(
             ranked = ranked[gain[ranked] < 0]
             for i in ranked:
                 new_w = w + delta[i, best[i]] * basis[i]
-                new_value = float(_values(new_w.real**2 + new_w.imag**2, goal, weight, cap, mode))
+                new_value = _value_one(new_w, goal, weight, cap, mode)
                 if new_value < value:
                     w, value = new_w, new_value
                     q[r[i], c[i]] = cand[i, best[i]]

@@ -74,6 +74,18 @@ def test_fidelity_terms_measure_the_quality_goals():
     assert one == pytest.approx(retrieval.objective(phase, target, 2.0)[0], rel=1e-12)
 
 
+@pytest.mark.parametrize("mode", ["exact", "smooth"])
+@pytest.mark.parametrize("cap", [0.0, 0.6, 1e6])
+def test_lean_single_window_value_matches_the_batched_one(mode, cap):
+    rng = np.random.default_rng(11)
+    for name in ("flat_top", "sparse_dots", "anisotropic"):
+        target = targets.make_target(name, 7)
+        goal = retrieval._Goal.of(target)
+        w = (rng.normal(size=(7, 7)) + 1j * rng.normal(size=(7, 7))) * np.sqrt(target) + 1e-3
+        batched = float(retrieval._values(np.abs(w) ** 2, goal, 30.0, cap, mode))
+        assert retrieval._value_one(w, goal, 30.0, cap, mode) == pytest.approx(batched, rel=1e-12)
+
+
 def test_exact_fidelity_uses_the_simulated_peak_on_flat_tops():
     # a plateau whose simulated values differ: the rmse normalises by the highest
     target = np.zeros((5, 5))
