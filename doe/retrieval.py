@@ -2,18 +2,23 @@
 
 The pipeline, all on the forward model of :mod:`doe.fraunhofer`:
 
-1. :func:`gerchberg_saxton` -- a continuous phase whose K x K window of orders
-   has the target's shape; the orders outside the window are left free and act
-   as the light sink.
+1. :func:`gerchberg_saxton` (weighted) -- a continuous phase whose K x K window
+   of orders has the target's shape; the light that does not fit leaves into
+   the orders outside the window, the light sink.
 2. :func:`refine_continuous` -- nlopt L-BFGS on :func:`objective`, which trades
-   PSF fidelity against efficiency with an analytic (adjoint) gradient.
-3. :func:`quantise_progressive` -- the same objective plus a penalty pulling
-   every phase towards the L levels, tightened over stages, then rounding.
+   the two quality figures (rmse, correlation, each in units of its goal)
+   against efficiency, with an analytic (adjoint) gradient.
+3. :func:`gerchberg_saxton` with ``n_levels`` -- quantised GS from that phase;
+   it, or plain rounding at the best global offset, starts the discrete search.
 4. :func:`coordinate_descent` -- a direct search over the discrete levels on the
-   real quantised objective; this is what closes the gap left by rounding.
+   real quantised figures; with the fidelity capped it climbs efficiency while
+   both figures stay within budget. This is what closes the gap left by rounding.
 
 :func:`retrieve_phase` runs all four and reports the quality figures of
 :func:`doe.fraunhofer.quality` for the continuous and the quantised design.
+The loops use numpy element-wise work, small dot products and pocketfft, none
+of it threaded, so a seed gives bit-identical level maps on a given machine
+whatever its thread count.
 """
 
 import time
@@ -84,10 +89,6 @@ def window_matrix(n, k):
     """
     orders = np.arange(k) - k // 2
     return np.exp(-2j * np.pi * np.outer(orders, np.arange(n)) / n)
-
-
-def _window(field, a):
-    return a @ field @ a.T / field.size
 
 
 def _window_fft(field, idx):
