@@ -188,12 +188,14 @@ def _verify(args):
     )
     if measured is None:
         r, c = result["zero_order_px"]
-        raise InputError(
-            args.capture,
-            f"the {design.kernel_size}x{design.kernel_size} window "
-            f"around the zero order at row {r:.0f}, col {c:.0f} runs off the "
-            "frame; centre the zero order in the capture",
+        why = (
+            "too little signal to find the zero order: no order stands out of the noise; "
+            "lengthen the exposure"
+            if max(result["frame_correlation"].values()) < 0.5
+            else f"the {design.kernel_size}x{design.kernel_size} window around the zero order "
+            f"at row {r:.0f}, col {c:.0f} runs off the frame; centre the zero order"
         )
+        raise InputError(args.capture, why)
     report = {
         **result,
         "lattice": {**lattice.summary(), "nominal_pitch_px": nominal_px},

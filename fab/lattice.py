@@ -32,6 +32,8 @@ PITCH_TOLERANCE = 0.15
 DETECT_SIGMAS = 8.0
 # At most this many of the brightest dots are used to register the lattice.
 MAX_DOTS = 20000
+# One least-squares step may change a lattice vector by at most this fraction of the pitch.
+MAX_BASIS_STEP = 0.05
 # Aperture photometry radii as fractions of the pitch: dot aperture, background annulus.
 APERTURE_RADIUS = 0.30
 ANNULUS = (0.38, 0.50)
@@ -270,10 +272,13 @@ def _fit_dots(lattice, dots, weight, reach):
     sw = np.sqrt(weight[near])[:, None]
     coef_r, *_ = np.linalg.lstsq(design * sw, dots[near, 0] * sw[:, 0], rcond=None)
     coef_c, *_ = np.linalg.lstsq(design * sw, dots[near, 1] * sw[:, 0], rcond=None)
-    # Re-express the origin as the lattice point (0, 0) of the old indexing.
-    return Lattice(
-        np.array([coef_r[0], coef_c[0]]), np.array([[coef_r[1], coef_r[2]], [coef_c[1], coef_c[2]]])
-    )
+    basis = np.array([[coef_r[1], coef_r[2]], [coef_c[1], coef_c[2]]])
+    if np.abs(basis - lattice.basis).max() > MAX_BASIS_STEP * lattice.pitch_px:
+        # A jump this large comes from a stray dot, not from the lattice: keep the basis.
+        res = dots[near] - np.stack(lattice.positions(ku[near], kv[near]), axis=1)
+        return Lattice(lattice.origin + np.median(res, axis=0), lattice.basis)
+    # The origin is the lattice point (0, 0) of the old indexing.
+    return Lattice(np.array([coef_r[0], coef_c[0]]), basis)
 
 
 def _recentre(lattice, shape):

@@ -52,6 +52,9 @@ DEEP_ETCH_TOLERANCE = 0.10
 SIGNIFICANCE = 2.0
 TRANSFORM_MARGIN = 0.10
 OTHER_DESIGN_MAX = 0.8
+# ... or when neither the design nor the design with a fitted deep-etch error reaches
+# this PSF correlation.
+EXPLAINED_MIN = 0.95
 
 # The design's order powers under each point symmetry a faulty plate can show.
 _TRANSFORMS = {
@@ -138,22 +141,40 @@ def _model(period_power, m0, n0, shape):
     return period_power[np.ix_(m % n, k % n)] * env
 
 
+def _finite(x):
+    return float(x) if np.isfinite(x) else None
+
+
+def _scale(meas, model, detected, valid):
+    """Return DN per unit beam power: least squares of the model on the detected orders.
+
+    (The sum over every order in the frame would carry the noise of thousands of
+    empty apertures.)
+    """
+    if detected.any():
+        den = float((model[detected] ** 2).sum())
+        if den > 0:
+            return max(float((model[detected] * meas[detected]).sum()) / den, 0.0)
+    return max(float(meas[valid].sum()), 0.0) / max(float(model[valid].sum()), 1e-30)
+
+
 def _pearson(a, b):
     a, b = a - a.mean(), b - b.mean()
     den = np.sqrt((a * a).sum() * (b * b).sum())
     return float((a * b).sum() / den) if den > 0 else 0.0
 
 
-def locate_zero_order(measured, valid, sigma, period_power, top=3):
+def locate_zero_order(measured, valid, sigma, period_power, half=5, top=3):
     """Find where the zero order sits in a measured grid by matching the design's far field.
 
     Offsets modulo N come from one FFT cross-correlation of the grid folded
-    modulo N; which period holds the zero order follows from the pixel
-    envelope. Candidates are scored by the Pearson correlation of
-    square-rooted powers (so weak orders count, not only the brightest) over
-    the orders that carry signal: measured above ``SIGNAL_SIGMAS`` sigma, or
-    predicted so by the design. Noise-only orders would only dilute the score;
-    the candidate zero order itself is left out (a depth error changes it most).
+    modulo N (of square-rooted powers, so that weak orders count too); which
+    period holds the zero order follows from the pixel envelope. Candidates are
+    scored by the Pearson correlation of the powers over the orders of the
+    (2 half + 1)^2 window and those that carry signal:
+    measured above ``SIGNAL_SIGMAS`` sigma, or predicted so by the design.
+    Noise-only orders elsewhere would only dilute the score; the candidate zero
+    order itself is left out (a depth error changes it most).
 
     Parameters
     ----------
@@ -164,15 +185,18 @@ def locate_zero_order(measured, valid, sigma, period_power, top=3):
         1-sigma noise of ``measured``.
     period_power : (N, N) float array
         Order powers of the tile, FFT index order.
+    half : int
+        K // 2.
     top : int
         Offsets modulo N tried with the envelope.
 
     Returns
     -------
-    (m0, n0, score)
+    (m0, n0, score, outside_score, outside_orders)
         Grid indices of the zero order and the correlation there (the pixel
         envelope divided out, so that two unrelated plates do not correlate
-        through their common envelope).
+        through their common envelope); the correlation over the orders with
+        signal outside the window alone (NaN when fewer than 3) and their count.
     """
     n = period_power.shape[0]
     nu, nv = measured.shape
@@ -186,7 +210,6 @@ def locate_zero_order(measured, valid, sigma, period_power, top=3):
     score = np.real(np.fft.ifft2(np.fft.fft2(fold) * np.conj(np.fft.fft2(ref - ref.mean()))))
     sig = np.where(valid, sigma, np.inf)
     detected = valid & (meas > SIGNAL_SIGMAS * sig)
-    total = max(float(meas[valid].sum()), 1e-30)
     best, tried, fallback = None, 0, None
     for flat in np.argsort(score, axis=None)[::-1]:
         s, t = np.unravel_index(flat, score.shape)
@@ -199,20 +222,26 @@ def locate_zero_order(measured, valid, sigma, period_power, top=3):
         fallback = fallback or (cands[0] if cands else None)
         for m0, n0 in cands:
             model = _model(period_power, m0, n0, (nu, nv))
-            scale = total / max(float(model[valid].sum()), 1e-30)
+            scale = _scale(meas, model, detected, valid)
             use = detected | (valid & (model * scale > PREDICTED_SIGMAS * sig))
+            # The window always counts: its dark orders are as telling as its bright ones.
+            win = (slice(max(m0 - half, 0), m0 + half + 1), slice(max(n0 - half, 0), n0 + half + 1))
+            use[win] |= valid[win]
             use[m0, n0] = False
             if use.sum() < 3:
                 continue
-            env = np.sqrt(_model(np.ones_like(period_power), m0, n0, (nu, nv)))[use]
-            env = np.maximum(env, 0.05)
-            r = _pearson(amp[use] / env, np.sqrt(model[use]) / env)
+            env = _model(np.ones_like(period_power), m0, n0, (nu, nv))[use]
+            env = np.maximum(env, 0.0025)
+            r = _pearson(meas[use] / env, model[use] / env)
             if best is None or r > best[2]:
-                best = (m0, n0, r)
+                out = use.copy()
+                out[win] = False
+                r_out = _pearson(meas[out], model[out]) if out.sum() >= 3 else float("nan")
+                best = (m0, n0, r, r_out, int(out.sum()))
     if best is None:
         if fallback is None:
             raise ValueError("no valid dot where the zero order could sit")
-        return (*fallback, 0.0)  # nothing above the noise: the FFT's best guess
+        return (*fallback, 0.0, float("nan"), 0)  # nothing above the noise: the FFT's guess
     return best
 
 
@@ -245,10 +274,11 @@ def fit_deep_etch_error(window, sigma, levels, n_levels, search=0.5, step=1e-3):
     Returns
     -------
     dict or None
-        "eps" (+0.1: the deepest etch is 10 % too deep) and "chi2_drop" (how much
+        "eps" (+0.1: the deepest etch is 10 % too deep), "chi2_drop" (how much
         better the fit explains the window than eps = 0, in chi-square units
-        when ``sigma`` is given); None when the design does not use the deepest
-        mask on some pixels and not on others (the error leaves no trace).
+        when ``sigma`` is given) and "psf" (the fitted window, sum 1); None
+        when the design does not use the deepest mask on some pixels and not
+        on others (the error leaves no trace).
     """
     deep = masks_from_levels(levels, n_levels, level_step=1.0)[0].bitmap
     if deep.all() or not deep.any():
@@ -269,7 +299,12 @@ def fit_deep_etch_error(window, sigma, levels, n_levels, search=0.5, step=1e-3):
     chi2 = ((model * scale[:, None] - meas[None, :]) ** 2).sum(axis=1)
     best = int(np.argmin(chi2))
     zero = int(np.argmin(np.abs(eps)))
-    return {"eps": float(eps[best]), "chi2_drop": float(chi2[zero] - chi2[best])}
+    fitted = (model[best] / wts).reshape(k, k)
+    return {
+        "eps": float(eps[best]),
+        "chi2_drop": float(chi2[zero] - chi2[best]),
+        "psf": fitted / fitted.sum(),
+    }
 
 
 def implied_deep_etch_error(levels, n_levels, zero_order_power, sign_hint=None):
@@ -330,13 +365,15 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
     sigma = np.sqrt(sigma**2 + (PHOTOMETRIC_FLOOR * np.nan_to_num(power)) ** 2)
     scores = {}
     for name, transform in _TRANSFORMS.items():
-        scores[name] = locate_zero_order(power, valid, sigma, transform(period))
-    m0, n0, _frame_corr = scores["design"]
+        scores[name] = locate_zero_order(power, valid, sigma, transform(period), kernel_size // 2)
+    m0, n0 = scores["design"][:2]
     k, half = kernel_size, kernel_size // 2
     design_psf, design_eff = simulate_levels(levels, n_levels, k)
     result = {
         "zero_order_px": [float(rows[m0, n0]), float(cols[m0, n0])],
         "frame_correlation": {name: s[2] for name, s in scores.items()},
+        "outside_window_correlation": {name: _finite(s[3]) for name, s in scores.items()},
+        "outside_window_orders": scores["design"][4],
         "design_efficiency": design_eff,
         "design_zero_order": float(period[0, 0]),
     }
@@ -388,11 +425,15 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
             ),
             "deep_etch_error_fit": None if etch_fit is None else etch_fit["eps"],
             "deep_etch_error_fit_significance": None if etch_fit is None else etch_fit["chi2_drop"],
-            "power_outside_window": 1 - w_sum / on_camera,
+            "correlation_with_fitted_etch": None
+            if etch_fit is None
+            else correlation(measured_psf, etch_fit["psf"]),
+            "power_outside_window": 1 - w_sum / beam["signal"],
             "power_outside_window_sigma": float(
-                np.sqrt(max(float((sigma[valid] ** 2).sum()) - w_var, 0)) / on_camera
+                np.sqrt(max(beam["signal_var"] - w_var, 0)) / beam["signal"]
             ),
-            "expected_power_outside_window": 1 - float(model[sl].sum()) / float(model[valid].sum()),
+            "expected_power_outside_window": 1 - float(model[sl].sum()) / beam["model_share"],
+            "power_outside_window_all_orders": 1 - w_sum / on_camera,
             "beam_power_dn": beam["power"],
             "orders_with_signal": beam["orders"],
             "window_snr": float(snr),
@@ -416,15 +457,18 @@ def beam_power(meas, sigma, valid, model, window):
     divided by the design's share of the beam in those orders (the design's
     far field sums to 1 over all orders).
 
+    The same orders give the on-camera power outside the window: the share of
+    their light outside it (the empty apertures would add only noise).
+
     Returns
     -------
     dict
         "power" (DN), "signal" (DN in the orders used), "signal_var", "model_share",
         "orders" (count).
     """
-    total = max(float(meas[valid].sum()), 1e-30)
-    scale = total / max(float(model[valid].sum()), 1e-30)
-    use = valid & ((meas > SIGNAL_SIGMAS * sigma) | (model * scale > PREDICTED_SIGMAS * sigma))
+    detected = valid & (meas > SIGNAL_SIGMAS * sigma)
+    scale = _scale(meas, model, detected, valid)
+    use = detected | (valid & (model * scale > PREDICTED_SIGMAS * sigma))
     use[window] = True
     signal = float(meas[use].sum())
     share = float(model[use].sum())
@@ -435,6 +479,19 @@ def beam_power(meas, sigma, valid, model, window):
         "model_share": share,
         "orders": int(use.sum()),
     }
+
+
+def _other_design(result):
+    """Whether neither the design nor the design with a deep-etch error explains the plate.
+
+    A dense design shows it in the whole frame (its speckle of weak orders is
+    unrelated to another design's); a compact one only in the window, where a
+    plate of this design with a depth error still matches the fitted model.
+    """
+    if max(result["frame_correlation"].values()) < OTHER_DESIGN_MAX:
+        return True
+    explained = max(result["correlation"], result["correlation_with_fitted_etch"] or -1.0)
+    return explained < EXPLAINED_MIN
 
 
 def diagnose(result, thresholds):
@@ -457,7 +514,7 @@ def diagnose(result, thresholds):
         and frame[best_other] >= OTHER_DESIGN_MAX
     ):
         codes.append("conjugate_plate" if best_other == "rot180" else "mirrored")
-    elif max(frame.values()) < OTHER_DESIGN_MAX and "low_signal" not in codes:
+    elif "low_signal" not in codes and _other_design(result):
         codes.append("other_design")
     process = []
     if codes:  # a plate that is not this design: its process figures mean nothing

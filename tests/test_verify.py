@@ -379,3 +379,69 @@ def _grid(sim):
     cap = condition_capture(raw, RawImage(sim["dark"] >> 4, 4095.0, None))
     lattice, _ = register_lattice(cap.image, PITCH_PX)
     return measure_orders(cap.image, lattice, cap.saturated)
+
+
+@pytest.fixture(scope="module")
+def designed():
+    """A retrieved, high-efficiency design (most light in the window, weak outside)."""
+    from doe.retrieval import retrieve_phase
+    from doe.targets import make_target
+
+    return retrieve_phase(make_target("asymmetric", K), N, L, seed=0).levels
+
+
+def test_designed_plate_passes(tmp_path, designed):
+    code, report, sim = run_verify(
+        tmp_path, designed, dict(seed=21, rotation_deg=-1.5, centre=(280.2, 310.6), scale=1.02)
+    )
+    assert code == 0, report["diagnosis"]
+    assert np.allclose(report["zero_order_px"], sim["zero_order_px"], atol=0.3)
+    assert report["efficiency"] == pytest.approx(report["design_efficiency"], abs=0.03)
+    assert report["zero_order"] == pytest.approx(report["design_zero_order"], abs=0.005)
+
+
+@pytest.mark.parametrize("eps", [0.15, -0.15])
+def test_designed_plate_with_deep_etch_error_fails(tmp_path, designed, eps):
+    code, report, sim = run_verify(
+        tmp_path, designed, dict(seed=22, faults=PlateFaults(deep_etch_error=eps))
+    )
+    assert code == 1
+    # Which way the zero order moves depends on the design; the window fit sees both.
+    assert "deep_etch_error" in report["diagnosis"]
+    assert report["deep_etch_error_fit"] == pytest.approx(eps, abs=0.02)
+    assert report["implied_deep_etch_error"] == pytest.approx(eps, abs=0.02)
+    if float(sim["order_power"](0, 0)) > report["design_zero_order"] + 0.02:
+        assert "zero_order_excess" in report["diagnosis"]
+
+
+def test_designed_conjugate_plate_fails(tmp_path, designed):
+    code, report, _ = run_verify(
+        tmp_path, designed, dict(seed=23, faults=PlateFaults(conjugate=True))
+    )
+    assert code == 1 and report["diagnosis"] == ["conjugate_plate"]
+
+
+def test_compact_psf_registers_from_a_few_dots(tmp_path):
+    """The paper's Gaussian PSF: only the zero order and its neighbours stand out."""
+    from doe.retrieval import retrieve_phase
+    from doe.targets import make_target
+
+    lv = retrieve_phase(make_target("paper_gaussian", K), N, L, seed=0).levels
+    code, report, sim = run_verify(
+        tmp_path, lv, dict(seed=24, rotation_deg=2.0, centre=(301.3, 288.9))
+    )
+    assert code == 0, report["diagnosis"]
+    assert report["efficiency"] == pytest.approx(report["design_efficiency"], abs=0.03)
+    assert np.allclose(report["zero_order_px"], sim["zero_order_px"], atol=0.3)
+    assert report["lattice"]["rotation_deg"] == pytest.approx(2.0, abs=0.3)
+
+
+def test_designed_plate_of_another_design_fails(tmp_path, designed):
+    from doe.retrieval import retrieve_phase
+    from doe.targets import make_target
+
+    other = retrieve_phase(make_target("anisotropic", K), N, L, seed=3).levels
+    code, report, _ = run_verify(
+        tmp_path, designed, dict(seed=25, faults=PlateFaults(other_levels=other))
+    )
+    assert code == 1 and report["diagnosis"] == ["other_design"]
