@@ -143,7 +143,7 @@ def preview_png_bytes(relief, title=""):
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
     ax.set_title(title or f"relief tile {rows} x {cols} px, {relief.n_levels} levels")
-    fig.colorbar(im, ax=ax, label="top height - substrate thickness (um)")
+    fig.colorbar(im, ax=ax, label="top height relative to the unetched surface (um)")
     buf = io.BytesIO()
     fig.savefig(buf, format="png", metadata={"Software": None, "Creation Time": None})
     plt.close(fig)
