@@ -51,25 +51,7 @@ def main_bench():
     }
     for label, levels in plates.items():
         print(f"== {label} (N={n}, K={k})")
-        _bench_plate(
-            levels,
-            n_levels,
-            k,
-            der,
-            pitch_px,
-            main,
-            save_npy,
-            write_json,
-            simulate_levels,
-            read_capture,
-            write_image,
-            simulate_capture,
-            measure_orders,
-            register_lattice,
-            analyse,
-            design_order_power,
-            resolve_thresholds,
-        )
+        _bench_plate(levels, n_levels, k, der, pitch_px)
 
 
 def _bench_plate(levels, n_levels, k, der, pitch_px):
