@@ -17,6 +17,9 @@ from doe.errors import InputError
 
 # A dark-frame pixel this many robust sigmas above the dark median is hot.
 HOT_PIXEL_SIGMAS = 10.0
+# This many pixels at exactly the image's maximum mark clipping when the
+# sensor's full scale is not known.
+PLATEAU_PIXELS = 3
 # Exposure times (from the files' metadata) may differ by this fraction.
 EXPOSURE_RTOL = 0.02
 
@@ -240,16 +243,23 @@ def condition_capture(raw, dark=None):
     """
     data = raw.data
     notes = []
+    saturated = np.zeros(data.shape, bool)
     if raw.full_scale is not None:
         saturated = data >= raw.full_scale
-    else:
+    if raw.encoding in ("float", "uint16") and not saturated.any():
+        # A sensor of unknown depth (a 14-bit one stored LSB-aligned, float data)
+        # clips to a plateau: several bright pixels at exactly the maximum.
         peak = float(data.max())
-        # Clipped float data shows as a plateau of pixels at exactly the maximum.
-        saturated = (
-            (data >= peak)
-            if np.count_nonzero(data >= peak) >= 3 and peak > 0
-            else (np.zeros(data.shape, bool))
-        )
+        plateau = data >= peak
+        floor = float(np.median(data[::4, ::4]))
+        if np.count_nonzero(plateau) >= PLATEAU_PIXELS and peak > floor + 100 * max(
+            robust_sigma(data[::4, ::4]), 1e-6
+        ):
+            saturated = plateau
+            notes.append(
+                f"{int(plateau.sum())} pixels share the maximum value {peak:g}: "
+                "taken as clipped (saturated)"
+            )
     image = data.astype(np.float32)
     hot = np.zeros(data.shape, bool)
     if dark is not None:

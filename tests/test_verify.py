@@ -445,3 +445,16 @@ def test_designed_plate_of_another_design_fails(tmp_path, designed):
         tmp_path, designed, dict(seed=25, faults=PlateFaults(other_levels=other))
     )
     assert code == 1 and report["diagnosis"] == ["other_design"]
+
+
+def test_clipped_14bit_capture_is_flagged_saturated(tmp_path, levels):
+    """A 16-bit file from a 14-bit sensor (LSB-aligned): clipping shows as a plateau."""
+    sim = simulate_capture(
+        levels, L, pitch_px=PITCH_PX, seed=26, bits=16, peak_fraction=3.0, full_well_e=16383 * 2.0
+    )
+    clipped = np.minimum(sim["capture"], 16383).astype(np.uint16)
+    design = make_design_dir(tmp_path / "design", levels)
+    write_image(tmp_path / "cap.tif", clipped)
+    code = main(["verify", str(design), str(tmp_path / "cap.tif"), "--out", str(tmp_path / "o")])
+    report = json.loads((tmp_path / "o" / "verify.json").read_text())
+    assert code == 1 and "saturated" in report["diagnosis"]
