@@ -177,15 +177,17 @@ def assembly_step_bytes(tile_step, offsets_mm, name="aperture"):
         Translation of each instance (mm).
     """
     text = tile_step
-    ids = [int(m) for m in _ENTITY.findall(text)]
-    pd = re.findall(rb"^#(\d+) = PRODUCT_DEFINITION\('design'", text, re.M)
-    rep = re.findall(
-        rb"^#(\d+) = ADVANCED_BREP_SHAPE_REPRESENTATION\('[^']*',\(#(\d+),"
-        rb"[^;]*\),#(\d+)\);",
+    # OCCT writes the product and representation entities first and numbers entities in
+    # order, so the head and the tail suffice (a full regex scan of 100 MB takes seconds)
+    head, tail = text[: 1 << 20], text[-(1 << 16) :]
+    ids = [int(m) for m in _ENTITY.findall(tail)] or [int(m) for m in _ENTITY.findall(text)]
+    pd = _find_all(rb"^#(\d+) = PRODUCT_DEFINITION\('design'", head, text)
+    rep = _find_all(
+        rb"^#(\d+) = ADVANCED_BREP_SHAPE_REPRESENTATION\('[^']*',\(#(\d+),[^;]*\),#(\d+)\);",
+        head,
         text,
-        re.M,
     )
-    app = re.findall(rb"^#(\d+) = APPLICATION_CONTEXT\(", text, re.M)
+    app = _find_all(rb"^#(\d+) = APPLICATION_CONTEXT\(", head, text)
     if len(pd) != 1 or len(rep) != 1 or len(app) != 1:
         raise ValueError("not a single-solid STEP file from step_bytes()")
     pd, (rep, origin, ctx), app = int(pd[0]), [int(v) for v in rep[0]], int(app[0])
@@ -235,6 +237,12 @@ def assembly_step_bytes(tile_step, offsets_mm, name="aperture"):
     cut = text.rindex(tail)
     body = text[:cut] + ("\n".join(out) + "\n").encode("ascii") + text[cut:]
     return re.sub(rb"FILE_NAME\('[^']*'", f"FILE_NAME('{name}'".encode(), body, count=1)
+
+
+def _find_all(pattern, head, text):
+    """Return the matches of ``pattern`` in ``head``, or in all of ``text`` if none there."""
+    found = re.findall(pattern, head, re.M)
+    return found or re.findall(pattern, text, re.M)
 
 
 def check_solid(shape, validate=False):
