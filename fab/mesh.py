@@ -122,7 +122,10 @@ def relief_surface(levels):
     # quadrant d and d + 1: 0 north, 1 west, 2 south, 3 east.
     # g is the SW corner of the NE cell, the SE corner of NW, NE of SW and NW of SE
     cell_corner_of = (0, 1, 2, 3)
-    for j in range(rows + 1):
+    from tqdm import tqdm
+
+    # a progress bar on a terminal only (disable=None): the loop takes seconds at N = 175
+    for j in tqdm(range(rows + 1), desc="mesh corners", unit="row", leave=False, disable=None):
         for i in range(cols + 1):
             q = (pad_list[j + 1][i + 1], pad_list[j + 1][i], pad_list[j][i], pad_list[j][i + 1])
             cells = ((j, i), (j, i - 1), (j - 1, i - 1), (j - 1, i))

@@ -54,7 +54,11 @@ def tile_solid(relief, surface=None):
     builder = BRep_Builder()
     shell = TopoDS_Shell()
     builder.MakeShell(shell)
-    for loop, normal in zip(surface.loops, surface.loop_normals.tolist(), strict=True):
+    from tqdm import tqdm
+
+    loops = zip(surface.loops, surface.loop_normals.tolist(), strict=True)
+    bar = tqdm(loops, total=len(surface.loops), desc="STEP faces", leave=False, disable=None)
+    for loop, normal in bar:
         ids = loop.tolist()
         wire = BRepBuilderAPI_MakeWire()
         for a, b in zip(ids, ids[1:] + ids[:1], strict=True):
