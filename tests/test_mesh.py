@@ -371,3 +371,21 @@ def test_cli_crop_needs_a_mesh_format(tmp_path, capsys):
     assert main(["mesh", str(fab), "--out", str(out), "--formats", "step", "--crop", "1"]) == 2
     assert "--crop" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_every_pixel_top_lies_over_its_pixel_at_its_level():
+    levels = random_levels(9, seed=17)[:, :7]  # non-square: catches a transpose
+    relief = relief_of(levels)
+    v, f = tile_mesh(relief)
+    p = v[f]
+    n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    up = n[:, 2] > 0
+    centre = p[up].mean(axis=1)
+    p_mm = PITCH * 1e3
+    col = np.floor(centre[:, 0] / p_mm).astype(int)
+    row = levels.shape[0] - 1 - np.floor(centre[:, 1] / p_mm).astype(int)
+    level_of_z = np.rint((centre[:, 2] - THICK * 1e3) / (STEP * 1e3) + L - 1).astype(int)
+    assert np.array_equal(level_of_z, levels[row, col])
+    hit = np.zeros(levels.shape, int)
+    np.add.at(hit, (row, col), 1)
+    assert np.all(hit == 2), "two top triangles per pixel"
