@@ -7,9 +7,10 @@ orientations would pass it). The zero order is found by correlating the
 measured powers with the design's far field over integer offsets: it is often
 not the brightest dot. Then the K x K window is the measured PSF, compared with
 ``doe.fraunhofer.simulate_levels`` the CONVENTIONS way, and the faults that
-leave fingerprints are named: zero-order excess (a deep-etch depth error), a
-point-reflected pattern (conjugate plate: etch and glass swapped), a mirrored
-one, a plate of another design, low signal, saturation.
+leave fingerprints are named: zero-order excess and a deep-etch depth error
+(fitted to the window, and implied by the zero order), a point-reflected
+pattern (conjugate plate: etch and glass swapped), a mirrored one, a plate of
+another design, low signal, saturation.
 
 Far-field model of a real plate: order (m, n) carries
 ``|DFT[m mod N, n mod N]|^2 sinc^2(m/N) sinc^2(n/N)`` of the power (square
@@ -35,9 +36,7 @@ DEFAULT_ACCEPTANCE = {
     "efficiency_ratio_min": 0.85,
     "zero_order_excess_max": 0.01,
 }
-# Diagnosis settings: the window must stand this far above the noise; another
-# transform of the design must beat the design's own frame correlation by this
-# margin to be named; below this frame correlation the plate is another design.
+# The window's signal must stand this far above its noise (else "low_signal").
 MIN_WINDOW_SNR = 30.0
 # An order carries signal when measured this many sigma above the noise (one false
 # detection in ~3 million orders), or predicted by the design above PREDICTED_SIGMAS.
@@ -50,10 +49,13 @@ PHOTOMETRIC_FLOOR = 0.01
 DEEP_ETCH_TOLERANCE = 0.10
 # Failing checks must be this many sigma beyond their threshold (noise is not a fault).
 SIGNIFICANCE = 2.0
+# A reflection of the design (rot180: conjugate plate; mirrors) is named when its
+# frame correlation beats the design's by this margin and reaches OTHER_DESIGN_MAX.
 TRANSFORM_MARGIN = 0.10
+# Below this frame correlation (design and reflections) the plate is another design ...
 OTHER_DESIGN_MAX = 0.8
-# ... or when neither the design nor the design with a fitted deep-etch error reaches
-# this PSF correlation.
+# ... as it is when neither the design nor the design with a fitted deep-etch error
+# reaches this PSF correlation.
 EXPLAINED_MIN = 0.95
 
 # The design's order powers under each point symmetry a faulty plate can show.

@@ -458,3 +458,29 @@ def test_clipped_14bit_capture_is_flagged_saturated(tmp_path, levels):
     code = main(["verify", str(design), str(tmp_path / "cap.tif"), "--out", str(tmp_path / "o")])
     report = json.loads((tmp_path / "o" / "verify.json").read_text())
     assert code == 1 and "saturated" in report["diagnosis"]
+
+
+def test_orientation_against_the_foundation_renderer(tmp_path):
+    """A blazed tile sends most light to order (m, n) = (-2, +3): up 2, right 3.
+
+    The capture comes from doe.fraunhofer.dot_lattice_image (not this package's
+    simulator); the measured PSF must peak at [K//2 - 2, K//2 + 3] as simulate_levels.
+    """
+    from doe.fraunhofer import dot_lattice_image, level_phase
+
+    r, c = np.meshgrid(np.arange(N), np.arange(N), indexing="ij")
+    blaze = (-2 * r + 3 * c) / N  # phase ramp of order (-2, 3), in cycles
+    lv = np.floor(np.mod(blaze, 1) * L).astype(np.uint8)
+    design_psf, _ = simulate_levels(lv, L, K)
+    assert np.unravel_index(np.argmax(design_psf), design_psf.shape) == (K // 2 - 2, K // 2 + 3)
+    img = dot_lattice_image(level_phase(lv, L), (500, 520), PITCH_PX, centre=(240.3, 262.8))
+    img = img / img.max() * 3000 + np.random.default_rng(27).normal(20, 1.0, img.shape)
+    design = make_design_dir(tmp_path / "design", lv)
+    write_image(tmp_path / "cap.exr", img.astype(np.float32))
+    code = main(["verify", str(design), str(tmp_path / "cap.exr"), "--out", str(tmp_path / "o")])
+    report = json.loads((tmp_path / "o" / "verify.json").read_text())
+    psf = read_psf(tmp_path / "o" / "measured_psf.npy")
+    assert np.unravel_index(np.argmax(psf), psf.shape) == (K // 2 - 2, K // 2 + 3)
+    assert np.allclose(report["zero_order_px"], (240.3, 262.8), atol=0.3)
+    assert report["correlation"] > 0.99
+    assert code == 0, report["diagnosis"]
