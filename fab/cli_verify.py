@@ -198,7 +198,13 @@ def _verify(args):
         raise InputError(args.capture, why)
     report = {
         **result,
-        "lattice": {**lattice.summary(), "nominal_pitch_px": nominal_px},
+        # The lattice's centre is its zero order (the origin of the fit is only
+        # the lattice point nearest the image centre).
+        "lattice": {
+            **lattice.summary(),
+            "centre_px": result["zero_order_px"],
+            "nominal_pitch_px": nominal_px,
+        },
         "thresholds": thresholds,
         "orientation": args.orientation,
         "pixel_pitch_um": args.pixel_pitch_um,

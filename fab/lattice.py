@@ -86,7 +86,7 @@ class Lattice:
         return {
             "pitch_px": self.pitch_px,
             "rotation_deg": self.rotation_deg,
-            "centre_px": [float(self.origin[0]), float(self.origin[1])],
+            "origin_px": [float(self.origin[0]), float(self.origin[1])],
             "basis_px": self.basis.tolist(),
         }
 

@@ -96,6 +96,7 @@ def test_good_plate_passes_and_registers_the_lattice(tmp_path, levels, kwargs, n
     assert lat["pitch_px"] == pytest.approx(PITCH_PX * kwargs.get("scale", 1.0), rel=1e-3)
     assert lat["rotation_deg"] == pytest.approx(kwargs.get("rotation_deg", 0.0), abs=0.05)
     assert np.allclose(report["zero_order_px"], sim["zero_order_px"], atol=0.3)
+    assert report["lattice"]["centre_px"] == report["zero_order_px"]
     assert report["correlation"] > 0.98
     psf = read_psf(tmp_path / "out" / "measured_psf.npy")  # the contract reader accepts it
     assert psf.shape == (K, K) and psf.dtype == np.float64
@@ -363,7 +364,6 @@ def test_hot_pixels_flagged_from_the_dark_are_repaired(levels):
     assert not cap.saturated[cap.hot].any()
 
 
-@pytest.mark.slow
 def test_full_size_tile_n175(tmp_path):
     """The contract's N = 175 tile: the frame holds less than one period of orders."""
     lv = np.random.default_rng(175).integers(0, L, (175, 175)).astype(np.uint8)
