@@ -87,6 +87,8 @@ def _train_all(args, out):
                 str(args.seed),
                 "--force",
                 "--restart",
+                "--threads",
+                "1",
                 *budget,
                 *args.learn_args,
             ]
@@ -124,11 +126,12 @@ def _as_fabricated_psf(learned_psf):
 def _evaluate_all(args, out):
     import torch
 
+    from psf_learn.cli import idle_cores
     from psf_learn.evaluate import evaluate
     from psf_learn.images import read_folder
     from psf_learn.sr import load_model
 
-    torch.set_num_threads(2)
+    torch.set_num_threads(idle_cores())
     sets = {"Set5": DATA / "set5", "Set14": DATA / "set14"}
     sets.update({Path(e).name: Path(e) for e in args.extra})
     data = {name: read_folder(folder) for name, folder in sets.items()}

@@ -23,7 +23,8 @@ def register(sub):
         "--psf",
         default="learned",
         help="learned (default), delta (low fill factor), box (full fill factor), "
-        "gaussian, or a psf.npy file (fixed)",
+        "gaussian (sigma 0.459 sub-pixel), gaussian:SIGMA (sub-pixels), or a psf.npy file "
+        "(fixed)",
     )
     budget = p.add_mutually_exclusive_group()
     budget.add_argument(
@@ -34,14 +35,14 @@ def register(sub):
     p.add_argument("--config", help="design TOML file or preset name")
     p.add_argument("--init", metavar="MODEL_DIR", help="start from a trained model (fine-tune)")
     p.add_argument("--freeze-psf", action="store_true", help="keep the PSF fixed")
-    p.add_argument("--features", type=int, help="network feature channels (default 32)")
-    p.add_argument("--stages", type=int, help="residual blocks / projection stages (default 6)")
+    p.add_argument("--features", type=int, help="network feature channels (default 24)")
+    p.add_argument("--stages", type=int, help="residual blocks / projection stages (default 4)")
     p.add_argument("--arch", choices=("resnet", "dbpn"), help="network design (default resnet)")
     p.add_argument("--batch", type=int, help="patches per step (default 16)")
     p.add_argument(
         "--patch", type=int, help="patch size in sub-pixels, a multiple of the factor (default 64)"
     )
-    p.add_argument("--lr", type=float, help="network learning rate (default 1e-3)")
+    p.add_argument("--lr", type=float, help="network learning rate (default 4e-3)")
     p.add_argument("--psf-lr", type=float, help="PSF logit learning rate (default 0.05)")
     p.add_argument(
         "--photons",
@@ -52,9 +53,8 @@ def register(sub):
     p.add_argument(
         "--threads",
         type=int,
-        default=1,
-        help="CPU threads (default 1: robust on a "
-        "shared CPU; run several trainings side by side instead)",
+        help="CPU threads (default: the idle cores, from the load average; 1 on a busy "
+        "machine, where one thread runs far faster than two fighting for cores)",
     )
     p.add_argument("--restart", action="store_true", help="ignore an existing checkpoint")
     p.add_argument("--force", action="store_true", help="overwrite existing outputs")
@@ -90,7 +90,7 @@ def _learn(args):
     from psf_learn.sensor import sensor_from_design
     from psf_learn.train import TrainConfig, augment_scales, train, with_overrides
 
-    torch.set_num_threads(max(1, args.threads))
+    torch.set_num_threads(args.threads or idle_cores())
     design = load_design(args.config)
     k = design.kernel_size
     for flag, value in (
@@ -142,8 +142,12 @@ def _learn(args):
     if spec == "learned":
         psf0 = init_psf if init_psf is not None else gaussian_psf(k)
         learn_psf = not args.freeze_psf
-    elif spec in PSF_CHOICES:
-        psf0, learn_psf = baseline_psf(spec, k, sensor.factor, sensor.sample_cell), False
+    elif spec in PSF_CHOICES or spec.startswith("gaussian:"):
+        try:
+            psf0 = baseline_psf(spec, k, sensor.factor, sensor.sample_cell)
+        except ValueError as e:
+            raise InputError("--psf", str(e)) from None
+        learn_psf = False
     else:
         psf0, learn_psf = read_psf(spec), False
     config = with_overrides(config, learn_psf=learn_psf)
@@ -208,6 +212,20 @@ def _learn(args):
         f"training PSNR {result.psnr:.2f} dB -> {out}"
     )
     return 0
+
+
+def idle_cores():
+    """Return the CPU threads to use: OMP_NUM_THREADS if set, else the cores not busy now."""
+    import os
+
+    if os.environ.get("OMP_NUM_THREADS", "").isdigit():
+        return max(1, int(os.environ["OMP_NUM_THREADS"]))
+    cores = os.cpu_count() or 1
+    try:
+        busy = os.getloadavg()[0]
+    except OSError:
+        busy = 0.0
+    return max(1, min(cores, int(cores - busy)))
 
 
 def _version():

@@ -64,7 +64,7 @@ class SRNet(nn.Module):
     arch : {"resnet", "dbpn"}
     """
 
-    def __init__(self, factor=4, features=32, stages=6, arch="resnet"):
+    def __init__(self, factor=4, features=24, stages=4, arch="resnet"):
         super().__init__()
         self.factor, self.arch = factor, arch
         self.head = nn.Conv2d(1, features, 3, padding=1)

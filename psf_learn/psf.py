@@ -52,13 +52,24 @@ def gaussian_psf(k, sigma=GAUSSIAN_SIGMA):
 
 
 def baseline_psf(name, k, factor=4, sample_cell=(2, 2)):
-    """Return a named fixed PSF: ``delta``, ``box`` or ``gaussian``."""
+    """Return a named fixed PSF: ``delta``, ``box``, ``gaussian`` or ``gaussian:SIGMA``.
+
+    ``gaussian:SIGMA`` takes sigma in sub-pixels (``gaussian`` = ``gaussian:0.459``).
+    """
     if name == "delta":
         return delta_psf(k)
     if name == "box":
         return box_psf(k, factor, sample_cell)
     if name == "gaussian":
         return gaussian_psf(k)
+    if name.startswith("gaussian:"):
+        try:
+            sigma = float(name.split(":", 1)[1])
+        except ValueError:
+            sigma = -1.0
+        if not sigma > 0:
+            raise ValueError(f"gaussian:SIGMA needs a sigma > 0 in sub-pixels, got {name!r}")
+        return gaussian_psf(k, sigma)
     raise ValueError(f"unknown baseline PSF {name!r}")
 
 

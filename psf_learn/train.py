@@ -42,10 +42,10 @@ class TrainConfig:
     seed: int = 0
     batch: int = 16
     patch: int = 64
-    lr: float = 1e-3
+    lr: float = 4e-3
     psf_lr: float = 0.05
-    features: int = 32
-    stages: int = 6
+    features: int = 24
+    stages: int = 4
     arch: str = "resnet"
     learn_psf: bool = True
     checkpoint_seconds: float = 60.0

@@ -103,11 +103,12 @@ def test_short_training_lowers_the_loss():
     images = _images()
     sensor = SensorModel(POINT, 1000.0)
     start = train(TrainConfig(**{**TINY.__dict__, "steps": 0}), images, sensor, gaussian_psf(K))
-    end = train(TrainConfig(**{**TINY.__dict__, "steps": 60}), images, sensor, gaussian_psf(K))
-    before = _fixed_batch_loss(start.camera, images)
+    config = TrainConfig(**{**TINY.__dict__, "steps": 80, "lr": 1e-2})
+    end = train(config, images, sensor, gaussian_psf(K))
+    before = _fixed_batch_loss(start.camera, images)  # an untrained model is bicubic upsampling
     after = _fixed_batch_loss(end.camera, images)
-    assert after < 0.8 * before
-    assert end.steps == 60 and len(end.history) == 60
+    assert after < 0.97 * before
+    assert end.steps == 80 and len(end.history) == 80
     # the PSF moved, and is still a PSF
     assert not np.allclose(end.camera.psf.numpy(), start.camera.psf.numpy())
     check_psf(end.camera.psf.numpy(), "trained")
@@ -382,3 +383,13 @@ def test_evaluate_and_sr_refuse_bad_inputs(trained, tmp_path, capsys):
     assert main(["sr", str(out), str(bad), "--out", str(tmp_path / "sr")]) == 2
     assert str(bad) in capsys.readouterr().err
     assert not (tmp_path / "sr").exists()
+
+
+def test_gaussian_sigma_spec(tmp_path, capsys):
+    from psf_learn.psf import baseline_psf
+
+    np.testing.assert_allclose(baseline_psf("gaussian:1.5", K), gaussian_psf(K, 1.5))
+    np.testing.assert_allclose(baseline_psf("gaussian", K), gaussian_psf(K, 0.459))
+    out = tmp_path / "out"
+    assert main(["learn", "--out", str(out), "--psf", "gaussian:-1", *SMALL]) == 2
+    assert "--psf" in capsys.readouterr().err and not out.exists()
