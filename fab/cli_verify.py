@@ -155,7 +155,12 @@ def _verify(args):
     from doe.files import save_npy, staged_output, write_json
     from doe.fraunhofer import correlation, simulate_levels
     from fab.capture import read_capture
-    from fab.lattice import LatticeNotFound, measure_orders, register_lattice
+    from fab.lattice import (
+        LatticeNotFound,
+        measure_orders,
+        register_lattice,
+        repair_stray_spikes,
+    )
     from fab.verify import analyse, design_order_power, resolve_thresholds
 
     if not (args.pixel_pitch_um > 0 and math.isfinite(args.pixel_pitch_um)):
@@ -175,7 +180,16 @@ def _verify(args):
             f"; {int(capture.saturated.sum())} saturated pixels" if capture.saturated.any() else ""
         )
         raise InputError(args.capture, f"{e}{extra}") from None
-    grid = measure_orders(capture.image, lattice, capture.saturated)
+    image = capture.image
+    if args.dark is None:
+        image, repaired = repair_stray_spikes(image, lattice)
+        if repaired:
+            lattice_notes.append(
+                f"{repaired} hot pixel(s) away from the dots repaired (no dark "
+                "frame; median of neighbours)"
+            )
+            lattice, _ = register_lattice(image, nominal_px)
+    grid = measure_orders(image, lattice, capture.saturated)
     design_psf, design_eff = simulate_levels(design.levels, design.n_levels, design.kernel_size)
     try:
         thresholds = resolve_thresholds(
@@ -229,7 +243,7 @@ def _verify(args):
         save_npy(stage / "measured_psf.npy", np.asarray(measured, dtype=np.float64))
         write_json(stage / "verify.json", report)
         write_verify_report(
-            stage, report, capture.image, grid, lattice, measured, design_psf, args.orientation
+            stage, report, image, grid, lattice, measured, design_psf, args.orientation
         )
     verdict = "PASS" if report["pass"] else "FAIL"
     print(

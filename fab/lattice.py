@@ -34,6 +34,12 @@ DETECT_SIGMAS = 8.0
 MAX_DOTS = 20000
 # One least-squares step may change a lattice vector by at most this fraction of the pitch.
 MAX_BASIS_STEP = 0.05
+# A dot's light lies within this many pixels of its lattice point (a focused spot is
+# ~0.7 px wide); sharp spikes farther out are hot pixels.
+SPOT_CORE = 1.5
+# ... and at most ~82 % of it falls in one pixel: an aperture with more in one
+# pixel holds a hot pixel.
+SPIKE_FRACTION = 0.95
 # Aperture photometry radii as fractions of the pitch: dot aperture, background annulus.
 APERTURE_RADIUS = 0.30
 ANNULUS = (0.38, 0.50)
@@ -115,6 +121,14 @@ class OrderGrid:
         1-sigma uncertainty of ``power`` from the background noise (DN).
     aperture_radius_px : float
         Radius of the photometry apertures.
+    spike_orders : int
+        Apertures whose light was a single hot pixel (removed from their power).
+    spot_sigma_px : float or None
+        RMS radius per axis of the bright dots' light within the background
+        annulus (pixels; None without bright dots); it saturates near 1.7 px
+        for blurred dots, which then spill into their neighbours' apertures.
+    pitch_px : float
+        The lattice pitch the grid was measured on.
     """
 
     u: np.ndarray
@@ -128,6 +142,9 @@ class OrderGrid:
     aperture_pixels: int
     sigma: np.ndarray
     aperture_radius_px: float
+    spike_orders: int = 0
+    spot_sigma_px: float | None = None
+    pitch_px: float = 0.0
 
 
 class LatticeNotFound(ValueError):
@@ -270,8 +287,16 @@ def _fit_dots(lattice, dots, weight, reach):
             lattice.origin + np.average(res, axis=0, weights=weight[near]), lattice.basis
         )
     sw = np.sqrt(weight[near])[:, None]
-    coef_r, *_ = np.linalg.lstsq(design * sw, dots[near, 0] * sw[:, 0], rcond=None)
-    coef_c, *_ = np.linalg.lstsq(design * sw, dots[near, 1] * sw[:, 0], rcond=None)
+    target = dots[near]
+    use = np.ones(design.shape[0], bool)
+    for _ in range(3):  # drop outliers (hot pixels near a lattice site) and refit
+        coef_r, *_ = np.linalg.lstsq((design * sw)[use], (target[:, 0] * sw[:, 0])[use], rcond=None)
+        coef_c, *_ = np.linalg.lstsq((design * sw)[use], (target[:, 1] * sw[:, 0])[use], rcond=None)
+        resid = np.hypot(design @ coef_r - target[:, 0], design @ coef_c - target[:, 1])
+        new = resid < max(3 * float(np.median(resid[use])), 0.3)
+        if new.sum() < 3 or np.array_equal(new, use) or np.linalg.matrix_rank(design[new]) < 3:
+            break
+        use = new
     basis = np.array([[coef_r[1], coef_r[2]], [coef_c[1], coef_c[2]]])
     if np.abs(basis - lattice.basis).max() > MAX_BASIS_STEP * lattice.pitch_px:
         # A jump this large comes from a stray dot, not from the lattice: keep the basis.
@@ -350,6 +375,46 @@ def _refine(x, lattice, noise):
     return _recentre(Lattice(origin, basis), x.shape)
 
 
+def repair_stray_spikes(image, lattice, noise=None):
+    """Repair single-pixel spikes (hot pixels) away from every dot's centre.
+
+    Without a dark frame a hot pixel looks like a compact dot; but a dot's light
+    lies within ``SPOT_CORE`` pixels of its lattice point, so a pixel standing
+    ``DETECT_SIGMAS`` sigma above the median of its 3 x 3 neighbourhood farther
+    from every lattice point is not light from the plate. It is replaced by the
+    median of its neighbours.
+
+    Returns
+    -------
+    (image, count)
+        A repaired copy (float32) and the number of pixels repaired.
+    """
+    from fab.capture import repair_pixels
+
+    x = np.asarray(image, dtype=np.float32)
+    if noise is None:
+        noise = max(robust_sigma(x[::4, ::4]), 1e-6)
+    floor = float(np.median(x[::4, ::4]))
+    rows, cols = np.nonzero(x > floor + DETECT_SIGMAS * noise)
+    if rows.size == 0:
+        return x.copy(), 0
+    if rows.size > 0.25 * x.size:
+        return x.copy(), 0  # a bright scene, not a dot lattice: nothing to tell apart
+    padded = np.pad(x, 1, mode="edge")
+    off = np.arange(-1, 2)
+    block = padded[
+        rows[:, None, None] + 1 + off[None, :, None], cols[:, None, None] + 1 + off[None, None, :]
+    ]
+    med = np.median(block.reshape(rows.size, 9), axis=1)
+    spike = x[rows, cols] - med > DETECT_SIGMAS * noise
+    u, v = lattice.coordinates(rows, cols)
+    pr, pc = lattice.positions(np.round(u), np.round(v))
+    stray = spike & (np.hypot(rows - pr, cols - pc) > SPOT_CORE)
+    bad = np.zeros(x.shape, bool)
+    bad[rows[stray], cols[stray]] = True
+    return repair_pixels(x, bad), int(stray.sum())
+
+
 def measure_orders(image, lattice, saturated=None):
     """Measure every dot's power by aperture photometry with a local background.
 
@@ -395,20 +460,79 @@ def measure_orders(image, lattice, saturated=None):
     dist = np.sqrt((offf[None, :, None] - fr) ** 2 + (offf[None, None, :] - fc) ** 2)
     net = patch - background[:, None, None].astype(np.float32)
     radius = _aperture_radius(net, dist, noise, max(APERTURE_RADIUS * pitch, 1.5))
+    spot = _spot_sigma(net, dist, noise, ANNULUS[0] * pitch)
     aperture = dist <= radius
     n_ap = aperture.sum(axis=(1, 2))
-    signal = np.where(aperture, net, 0).astype(np.float64).sum(axis=(1, 2))
+    inap = np.where(aperture, net, 0).astype(np.float64)
+    signal = inap.sum(axis=(1, 2))
+    sigma_k = noise * np.sqrt(n_ap * (1 + n_ap / n_ring))
+    signal, spikes = _remove_spikes(inap, signal, sigma_k)
     power = np.full(valid.shape, np.nan)
     power[valid] = signal
     sigma = np.full(valid.shape, np.nan)
-    sigma[valid] = noise * np.sqrt(n_ap * (1 + n_ap / n_ring))
+    sigma[valid] = sigma_k
     sat = np.zeros(valid.shape, bool)
     if saturated is not None and np.any(saturated):
         sat_patch = _patches(saturated, pr, pc, outer)
         sat[valid] = (sat_patch & aperture).any(axis=(1, 2))
     return OrderGrid(
-        u, v, power, valid, rows, cols, sat, noise, int(np.median(n_ap)), sigma, float(radius)
+        u,
+        v,
+        power,
+        valid,
+        rows,
+        cols,
+        sat,
+        noise,
+        int(np.median(n_ap)),
+        sigma,
+        float(radius),
+        spikes,
+        spot,
+        pitch,
     )
+
+
+def _remove_spikes(inap, signal, sigma):
+    """Take single-pixel spikes (hot pixels) out of the aperture sums.
+
+    A focused dot puts at most ~82 % of its light into one pixel (a spot of
+    0.3 px sigma centred on it); an aperture with more than ``SPIKE_FRACTION``
+    of a significant signal in one pixel holds a hot pixel (or a cosmic ray),
+    whose excess over the median of its 8 neighbours is removed.
+
+    Returns
+    -------
+    (signal, count)
+    """
+    p = inap.shape[0]
+    flat = inap.reshape(p, -1)
+    peak_idx = np.argmax(flat, axis=1)
+    peak = flat[np.arange(p), peak_idx]
+    spike = (signal > DETECT_SIGMAS * sigma) & (peak > SPIKE_FRACTION * signal)
+    if not spike.any():
+        return signal, 0
+    side = inap.shape[1]
+    r, c = np.divmod(peak_idx[spike], side)
+    padded = np.pad(inap[spike], ((0, 0), (1, 1), (1, 1)))
+    off = np.array([(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc])
+    k = np.arange(r.size)[:, None]
+    neigh = padded[k, r[:, None] + 1 + off[None, :, 0], c[:, None] + 1 + off[None, :, 1]]
+    out = signal.copy()
+    out[spike] -= peak[spike] - np.median(neigh, axis=1)
+    return out, int(spike.sum())
+
+
+def _spot_sigma(net, dist, noise, r_max):
+    """Return the per-axis RMS radius (px) of the bright dots' light within ``r_max``."""
+    inside = dist <= r_max
+    flux = np.where(inside, net, 0).sum(axis=(1, 2))
+    bright = np.argsort(flux)[::-1][:50]
+    bright = bright[flux[bright] > 50 * noise * np.sqrt(inside[bright].sum(axis=(1, 2)))]
+    if bright.size < 3:
+        return None
+    second = np.where(inside[bright], net[bright] * dist[bright] ** 2, 0).sum(axis=(1, 2))
+    return float(np.sqrt(max(np.median(second / flux[bright]), 0) / 2))
 
 
 def _aperture_radius(net, dist, noise, r_max):

@@ -378,6 +378,7 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
         "outside_window_orders": scores["design"][4],
         "design_efficiency": design_eff,
         "design_zero_order": float(period[0, 0]),
+        "pitch_px": grid.pitch_px,
     }
     sl = (slice(m0 - half, m0 + half + 1), slice(n0 - half, n0 + half + 1))
     in_frame = (
@@ -443,6 +444,8 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
             "saturated_in_window": int(sat[sl].sum()),
             "orders_measured": int(valid.sum()),
             "aperture_radius_px": grid.aperture_radius_px,
+            "spot_sigma_px": grid.spot_sigma_px,
+            "hot_pixel_orders": grid.spike_orders,
         }
     )
     result["diagnosis"] = diagnose(result, thresholds)

@@ -484,3 +484,29 @@ def test_orientation_against_the_foundation_renderer(tmp_path):
     assert np.allclose(report["zero_order_px"], (240.3, 262.8), atol=0.3)
     assert report["correlation"] > 0.99
     assert code == 0, report["diagnosis"]
+
+
+def test_hot_pixels_without_a_dark_frame_do_not_fail_a_good_plate(tmp_path, designed):
+    code, report, sim = run_verify(tmp_path, designed, dict(seed=28, hot_pixels=150), dark=False)
+    assert code == 0, report["diagnosis"]
+    assert np.allclose(report["zero_order_px"], sim["zero_order_px"], atol=0.3)
+    assert any("hot pixel" in n for n in report["notes"])
+    assert report["efficiency"] == pytest.approx(report["design_efficiency"], abs=0.03)
+
+
+def test_spike_repair_keeps_dots_and_removes_stray_pixels(levels):
+    from fab.lattice import repair_stray_spikes
+
+    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, seed=29, shape=(300, 300), bits=16)
+    image = sim["capture"].astype(np.float32)
+    lattice, _ = register_lattice(image, PITCH_PX)
+    spiked = image.copy()
+    spiked[150 + 5, 150 + 5] += 5000  # half a pitch from every dot
+    fixed, count = repair_stray_spikes(spiked, lattice)
+    assert count >= 1
+    assert abs(fixed[155, 155] - image[155, 155]) < 50
+    # Real dots are untouched.
+    u, v = np.meshgrid(np.arange(-5, 6), np.arange(-5, 6), indexing="ij")
+    r, c = lattice.positions(u, v)
+    r, c = np.rint(r).astype(int), np.rint(c).astype(int)
+    assert np.array_equal(fixed[r, c], spiked[r, c])
