@@ -519,7 +519,7 @@ def diagnose(result, thresholds):
         and frame[best_other] >= OTHER_DESIGN_MAX
     ):
         codes.append("conjugate_plate" if best_other == "rot180" else "mirrored")
-    elif "low_signal" not in codes and _other_design(result):
+    elif not codes and _other_design(result):  # clipped or noisy windows explain nothing
         codes.append("other_design")
     process = []
     if codes:  # a plate that is not this design: its process figures mean nothing
