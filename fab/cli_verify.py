@@ -263,6 +263,11 @@ def _notes(result, capture, design):
             f"{result['saturated_dots']} dot(s) hold saturated pixels: their powers are "
             "clipped; shorten the exposure"
         )
+    if {"conjugate_plate", "mirrored"} & set(result.get("diagnosis", [])):
+        notes.append(
+            "the orders match a reflection of the design: a faulty plate, or a "
+            "camera mounted otherwise than --orientation says (it is never guessed)"
+        )
     if design.acceptance is None:
         notes.append("no acceptance in the design folder: default thresholds used")
     return notes
