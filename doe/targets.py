@@ -99,6 +99,59 @@ def dense_random(k=11, seed=0):
     return _normalise(rng.uniform(0.05, 1.0, (k, k)))
 
 
+def random_dots(k=11, seed=0, count=None):
+    """Return 3-9 (or ``count``) dots at random distinct positions, weights 0.3-1."""
+    rng = np.random.default_rng(seed)
+    count = int(rng.integers(3, 10)) if count is None else count
+    cells = rng.choice(k * k, size=count, replace=False)
+    psf = np.zeros(k * k)
+    psf[cells] = rng.uniform(0.3, 1.0, count)
+    return _normalise(psf.reshape(k, k))
+
+
+def square(k=11, side=5):
+    """Return a uniform side x side square (side odd) centred on the axis, zero outside."""
+    psf = np.zeros((k, k))
+    lo = k // 2 - side // 2
+    psf[lo : lo + side, lo : lo + side] = 1.0
+    return _normalise(psf)
+
+
+def ring(k=11, radius=3.0, width=0.6):
+    """Return a Gaussian-profiled ring of ``radius`` sub-pixels and 1/e^2 half-width ``width``."""
+    y, x = _grid(k)
+    r = np.sqrt(y**2 + x**2)
+    return _normalise(np.exp(-0.5 * ((r - radius) / width) ** 2))
+
+
+def two_lobes(k=11, separation=4.0, sigma=0.8, ratio=0.6):
+    """Return two Gaussian lobes ``separation`` apart diagonally, the second ``ratio`` as bright."""
+    h = separation / (2 * np.sqrt(2))
+    return _normalise(
+        gaussian(k, sigma, centre=(-h, -h)) + ratio * gaussian(k, sigma, centre=(h, h))
+    )
+
+
+def robustness_set(k=11):
+    """Return {name: PSF} of a wide, seeded set of targets of many kinds (bench and tests).
+
+    Random sparse dots (3-9 dots, seeds 1-4), hard flat tops (discs of radius 2, 2.5,
+    3 and 4, squares 3 x 3, 5 x 5, 7 x 7), rings, two-lobe kernels, near-deltas and
+    dense random kernels.
+    """
+    out = {f"dots_s{s}": random_dots(k, seed=s) for s in range(1, 5)}
+    out.update(
+        {"dots_3": random_dots(k, seed=5, count=3), "dots_9": random_dots(k, seed=6, count=9)}
+    )
+    out.update({f"disc_r{r:g}": flat_top(k, r) for r in (2.0, 2.5, 3.0, 4.0)})
+    out.update({f"square_{s}x{s}": square(k, s) for s in (3, 5, 7)})
+    out.update({"ring_r3": ring(k, 3.0), "ring_r2": ring(k, 2.0, 0.5)})
+    out.update({"two_lobes": two_lobes(k), "two_lobes_far": two_lobes(k, 6.0, 0.6, 0.8)})
+    out.update({"near_delta_0.3": gaussian(k, 0.3), "near_delta_0.4": gaussian(k, 0.4)})
+    out.update({f"dense_s{s}": dense_random(k, seed=s) for s in (1, 2)})
+    return out
+
+
 TARGETS = {
     "compact_blob": compact_blob,
     "near_delta": near_delta,

@@ -33,6 +33,29 @@ def test_unknown_target_is_refused():
         targets.make_target("nope")
 
 
+def test_robustness_set_is_varied_seeded_and_satisfies_the_contract():
+    one, two = targets.robustness_set(11), targets.robustness_set(11)
+    assert len(one) >= 20
+    for name, t in one.items():
+        assert t.shape == (11, 11) and t.dtype == np.float64, name
+        assert np.all(t >= 0) and t.sum() == pytest.approx(1.0, abs=1e-12), name
+        np.testing.assert_array_equal(t, two[name])  # seeded: the same set every call
+    lit = {name: int((t > 0).sum()) for name, t in one.items()}
+    assert all(3 <= lit[n] <= 9 for n in one if n.startswith("dots"))
+    assert lit["dots_3"] == 3 and lit["dots_9"] == 9
+    # hard flat tops: every lit element equal, zero outside
+    for name in ("disc_r2", "disc_r2.5", "square_3x3", "square_5x5", "square_7x7"):
+        t = one[name]
+        np.testing.assert_allclose(t[t > 0], 1.0 / lit[name], rtol=1e-12)
+    assert lit["square_3x3"] == 9 and lit["square_7x7"] == 49 and lit["disc_r2"] == 13
+
+
+def test_random_dots_differ_by_seed_and_keep_their_count():
+    a, b = targets.random_dots(11, seed=1, count=5), targets.random_dots(11, seed=2, count=5)
+    assert (a > 0).sum() == (b > 0).sum() == 5
+    assert not np.array_equal(a > 0, b > 0)
+
+
 # ----------------------------------------------------------------------------- objective
 
 
@@ -52,6 +75,69 @@ def test_objective_gradient_matches_finite_differences(name):
             retrieval.objective(up, target, 3.0)[0] - retrieval.objective(down, target, 3.0)[0]
         ) / (2 * h)
         assert grad[r, c] == pytest.approx(fd, rel=1e-5, abs=1e-7 * np.abs(grad).max())
+
+
+@pytest.mark.parametrize("cap", [0.0, 1e9])
+@pytest.mark.parametrize("name", ["compact_blob", "flat_top", "sparse_dots"])
+def test_constrained_objective_gradient_matches_finite_differences(name, cap):
+    # cap 0: the penalty is active; cap 1e9: only -efficiency is left
+    rng = np.random.default_rng(11)
+    target = targets.make_target(name, 5)
+    n = 13
+    phase = rng.uniform(0, 2 * np.pi, (n, n))
+    _, grad = retrieval.constrained_objective(phase, target, cap=cap, mu=0.3)
+    h = 1e-6
+    for r, c in [(0, 0), (4, 9), (12, 3), (7, 7)]:
+        up, down = phase.copy(), phase.copy()
+        up[r, c] += h
+        down[r, c] -= h
+        fd = (
+            retrieval.constrained_objective(up, target, cap, 0.3)[0]
+            - retrieval.constrained_objective(down, target, cap, 0.3)[0]
+        ) / (2 * h)
+        assert grad[r, c] == pytest.approx(fd, rel=1e-5, abs=1e-7 * np.abs(grad).max())
+
+
+def test_constrained_objective_is_efficiency_within_the_cap_and_penalised_above():
+    rng = np.random.default_rng(12)
+    target = targets.asymmetric(5)
+    phase = rng.uniform(0, 2 * np.pi, (15, 15))
+    eff = fraunhofer.window_power(phase, 5).sum()
+    fid = float(
+        retrieval._values(
+            fraunhofer.window_power(phase, 5), retrieval._Goal.of(target), 0.0, mode="smooth"
+        )
+    )
+    inside, _ = retrieval.constrained_objective(phase, target, cap=2 * fid, mu=5.0)
+    assert inside == pytest.approx(-eff, rel=1e-12)
+    above, _ = retrieval.constrained_objective(phase, target, cap=fid / 2, mu=5.0)
+    assert above == pytest.approx(-eff + 5.0 * (fid / 2) ** 2, rel=1e-10)
+
+
+def test_mixed_region_with_the_whole_window_is_weighted_gs():
+    # mix = 1 keeps nothing outside the window: the GS projection, up to scale
+    target = targets.asymmetric(7)
+    start = np.random.default_rng(13).uniform(-np.pi, np.pi, (29, 29))
+    gains = np.ones((7, 7))
+    gs, gs_gains = retrieval.gerchberg_saxton(target, 29, 6, phase=start, gains=gains)
+    mr, mr_gains = retrieval.mixed_region(target, start, gains, 6, mix=1.0)
+    np.testing.assert_allclose(np.exp(1j * mr), np.exp(1j * gs), atol=1e-9)
+    np.testing.assert_allclose(mr_gains, gs_gains, rtol=1e-9)
+    np.testing.assert_array_equal(gains, 1.0)  # arguments are not mutated
+
+
+def test_constrained_refinement_reaches_the_cap_and_gains_efficiency():
+    target = targets.flat_top(7)
+    rng = np.random.default_rng(14)
+    start, gains = retrieval.gerchberg_saxton(target, 41, 60, rng)
+    start, _ = retrieval.mixed_region(target, start, gains, 60)
+    goal = retrieval._Goal.of(target)
+    before = float(retrieval._values(fraunhofer.window_power(start, 7), goal, 0.0, mode="smooth"))
+    phase, fid, eff = retrieval.refine_constrained(start, target, 0.5, (0.1, 1.0, 10.0), 60)
+    assert before > 0.5  # the start misses the cap ...
+    assert fid <= 0.55  # ... the refinement walks onto it
+    assert eff == pytest.approx(fraunhofer.window_power(phase, 7).sum(), rel=1e-12)
+    assert eff > 0.7
 
 
 def test_fidelity_terms_measure_the_quality_goals():
@@ -233,6 +319,30 @@ def test_retrieval_quality_full_tile(name):
     target = targets.make_target(name, 11)
     res = retrieval.retrieve_phase(target, 175, 8, seed=0)
     _check(res.quality_quantised, 0.85)
+
+
+ROBUST_FAST = ("dots_3", "disc_r2.5", "ring_r2")
+
+
+@pytest.mark.parametrize("name", ROBUST_FAST)
+def test_robustness_targets_meet_the_fidelity_goals_at_full_size(name):
+    # a sparse, a hard-edged and a ring target at the contract's N = 175; the
+    # efficiency bound is the floor measured by bench/retrieval.py less a margin
+    target = targets.robustness_set(11)[name]
+    res = retrieval.retrieve_phase(target, 175, 8, seed=0)
+    _check(res.quality_quantised, 0.75)
+    assert res.quality_quantised["rmse"] <= 0.0041
+
+
+@pytest.mark.slow
+def test_every_robustness_target_meets_the_fidelity_goals_at_full_size():
+    for name, target in targets.robustness_set(11).items():
+        if name in ROBUST_FAST:
+            continue
+        res = retrieval.retrieve_phase(target, 175, 8, seed=0)
+        assert res.quality_quantised["correlation"] >= 0.9999, name
+        assert res.quality_quantised["rmse"] <= 0.0041, name
+        assert res.quality_quantised["efficiency"] >= 0.75, name
 
 
 # ----------------------------------------------------------------------------- CLI
