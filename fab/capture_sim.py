@@ -27,6 +27,7 @@ from scipy.special import erf
 
 from doe.fraunhofer import order_amplitudes
 from fab.masks import masks_from_levels
+from fab.verify import pixel_envelope
 
 # Orientation of the camera against the design: design order offset (m, n)
 # (down, right) lands at camera lattice offset (du, dv) (down, right).
@@ -117,7 +118,7 @@ def plate_far_field(phase):
 
     def orders(m, n):
         m, n = np.asarray(m), np.asarray(n)
-        return power[m % cells, n % cells] * np.sinc(m / cells) ** 2 * np.sinc(n / cells) ** 2
+        return power[m % cells, n % cells] * pixel_envelope(m, cells) * pixel_envelope(n, cells)
 
     return orders
 
