@@ -4,10 +4,13 @@ Every later mask is aligned to the first (deepest) one. Per later mask j the
 first mask carries a cross and two vernier combs (pitch 10 um); mask j carries
 the box around the cross and the matching combs at pitch 9.8 um, so the bar
 pair that lines up reads the overlay error in 0.2 um steps (bar k coincides
-for an offset of k * 0.2 um, k = -10 .. 10). Marks sit on their own GDS layers
-(``MARK_LAYER_OFFSET + mask layer``) that the mask shop merges into that mask's
-plate; the outline of the plate and of the clear aperture sits on
-``OUTLINE_LAYER``, a drawing layer that is not etched.
+for an offset of k * 0.2 um, k = -10 .. 10). Marks and labels are drawn on the
+pattern layer of the mask they belong to (``MARK_LAYER_OFFSET`` = 0): they are
+etched in that step, which is what makes them visible to the next alignment,
+each photomask is one GDS layer with nothing to merge, and a mask that etches
+no pixel of the tile still has its layer in the file. The outline of the plate
+and of the clear aperture sits on ``OUTLINE_LAYER``, a drawing layer that is not
+etched.
 
 All geometry is built in integer nanometres and returned as gdstk polygons in
 micrometres (the library's user unit), so every vertex lies on the 1 nm grid.
@@ -18,7 +21,7 @@ from dataclasses import dataclass
 import gdstk
 
 # One named place for the mark geometry (nm).
-MARK_LAYER_OFFSET = 100  # marks of the mask on GDS layer L go to layer L + 100
+MARK_LAYER_OFFSET = 0  # marks of the mask on GDS layer L go to layer L + offset
 OUTLINE_LAYER = 200  # plate edge and clear-aperture frame (documentation, not etched)
 PLATE_MARGIN_NM = 1_500_000  # plate edge = aperture edge + 1.5 mm on every side
 MARK_RING_NM = 750_000  # mark blocks centred 0.75 mm outside the aperture edge

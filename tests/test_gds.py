@@ -66,8 +66,17 @@ def test_golden_xor_against_independent_reference(tmp_path):
     layout = read_layout(path)
     origin = array_origin_nm(tiles, 12, PITCH)
     assert info.array_origin_nm == origin == (-(3 * 12 * PITCH) // 2, -(2 * 12 * PITCH) // 2)
+    # marks and labels share the mask layers but lie outside the tiled area
+    array = kdb.Region(
+        kdb.Box(
+            origin[0],
+            origin[1],
+            origin[0] + tiles[0] * 12 * PITCH,
+            origin[1] + tiles[1] * 12 * PITCH,
+        )
+    )
     for mk in masks:
-        got = flat_layer(layout, info.top_cell, mk.gds_layer)
+        got = flat_layer(layout, info.top_cell, mk.gds_layer) & array
         want = reference_region(mk.bitmap, tiles, origin)
         diff = got ^ want
         if not diff.is_empty():  # leave a debug layout next to the test output
@@ -162,16 +171,16 @@ def test_marks_labels_outline_outside_the_aperture(tmp_path):
     pattern_layers = {mk.gds_layer for mk in masks}
     extra = [layout.get_info(li) for li in layout.layer_indexes()]
     extra = [i.layer for i in extra if i.layer not in pattern_layers]
-    assert sorted(extra) == [101, 102, 103, mk_marks.OUTLINE_LAYER]
-    for layer in extra:
-        region = flat_layer(layout, info.top_cell, layer)
-        assert not region.is_empty()
-        assert (region & clear).is_empty(), f"layer {layer} draws inside the aperture"
-        assert (plate & region.bbox()) == region.bbox(), f"layer {layer} draws outside the plate"
-    # The pattern layers hold nothing but the tiled area.
+    assert extra == [mk_marks.OUTLINE_LAYER]  # marks and labels live on the mask layers
+    outline = flat_layer(layout, info.top_cell, mk_marks.OUTLINE_LAYER)
+    assert (outline & clear).is_empty(), "the outline draws inside the aperture"
     for mk in masks:
-        box = flat_layer(layout, info.top_cell, mk.gds_layer).bbox()
-        assert (box & tiled.bbox()) == box
+        # Every mask carries marks and a label; all of it outside the clear aperture,
+        # inside the plate; within the tiled area a mask layer holds only its pattern.
+        marks = flat_layer(layout, info.top_cell, mk.gds_layer) - tiled
+        assert not marks.is_empty(), f"mask {mk.name} has no marks"
+        assert (marks & clear).is_empty(), f"layer {mk.gds_layer} draws inside the aperture"
+        assert (plate & marks.bbox()) == marks.bbox(), f"layer {mk.gds_layer} leaves the plate"
     assert top.bbox().width() == 2 * mk_marks.plate_half_size_nm(aperture // 2)
 
 
@@ -305,3 +314,15 @@ def test_worst_case_n175_design_stays_under_5_mb(tmp_path):
     path, _, info = write_plate(tmp_path, levels, tiles=(16, 16))
     assert all(count == (n * n + 1) // 2 for count in info.polygon_counts.values())
     assert path.stat().st_size <= 5 * 10**6
+
+
+def test_a_mask_that_etches_nothing_keeps_its_layer(tmp_path):
+    # Level 5 = etch code 2: only the middle mask etches; the deep and shallow
+    # masks are empty in the tile but must still exist (marks, label) so that a
+    # reader finds every mask layer the manifest names.
+    levels = np.full((10, 10), 5, np.uint8)
+    path, masks, info = write_plate(tmp_path, levels, (2, 2), aperture_nm=14_000_000)
+    layout = read_layout(path)
+    assert [mk.bitmap.any() for mk in masks] == [False, True, False]
+    for mk in masks:
+        assert layout.find_layer(mk.gds_layer, 0) is not None, f"{mk.name} layer missing"
