@@ -321,7 +321,7 @@ def test_a_mask_that_etches_nothing_keeps_its_layer(tmp_path):
     # masks are empty in the tile but must still exist (marks, label) so that a
     # reader finds every mask layer the manifest names.
     levels = np.full((10, 10), 5, np.uint8)
-    path, masks, info = write_plate(tmp_path, levels, (2, 2), aperture_nm=14_000_000)
+    path, masks, _ = write_plate(tmp_path, levels, (2, 2), aperture_nm=14_000_000)
     layout = read_layout(path)
     assert [mk.bitmap.any() for mk in masks] == [False, True, False]
     for mk in masks:
