@@ -59,6 +59,9 @@ PENALTIES = (0.1, 1.0)
 STARTS = 2
 """Random starts of the continuous stage; the most efficient within the cap is kept."""
 
+POLISH_SWEEPS = 6
+"""Most exact-figure coordinate-descent sweeps that bring the fidelity within the cap."""
+
 
 @dataclass(frozen=True)
 class Retrieval:
@@ -714,10 +717,17 @@ def retrieve_phase(
         if fid <= cap and new_eff - eff < MIN_GAIN:
             break
         eff = new_eff
-    if fid > cap:
-        # the smooth stand-in for the peak normalisation can disagree with the
-        # exact rmse on flat-topped targets: polish on the exact figures
-        levels = coordinate_descent(levels, target, n_levels, 0.0, sweeps=4, rng=rng, cap=cap)
+    for _ in range(POLISH_SWEEPS):
+        if fid <= cap:
+            break
+        # the smooth stand-in for the peak normalisation can disagree with the exact
+        # rmse on flat-topped targets: polish on the exact figures, sweep by sweep,
+        # still weighing efficiency (with weight 0 the slack below the cap would
+        # trade efficiency for needless fidelity)
+        levels = coordinate_descent(
+            levels, target, n_levels, cd_weights[-1], sweeps=1, rng=rng, cap=cap
+        )
+        fid = fidelity(fraunhofer.level_phase(levels, n_levels), target)
     bar.close()
     seconds = time.perf_counter() - t0
     quality_q = fraunhofer.quality(fraunhofer.level_phase(levels, n_levels), target)
