@@ -14,6 +14,7 @@ another). The budget is wall-clock minutes per model (or ``--steps``).
 
     python bench/table2.py --minutes 6
     python bench/table2.py --minutes 15 --extra held_back_images/
+    python bench/table2.py --minutes 6 -- --photons 10000   # extra `doefab learn` flags
 """
 
 import argparse
@@ -55,6 +56,8 @@ def main(argv=None):
     p.add_argument("--no-fab", action="store_true", help="skip the as-fabricated evaluation")
     p.add_argument("learn_args", nargs=argparse.REMAINDER, help="extra `doefab learn` flags")
     args = p.parse_args(argv)
+    if args.learn_args[:1] == ["--"]:
+        args.learn_args = args.learn_args[1:]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     if not args.reuse:
