@@ -306,6 +306,17 @@ def test_retrieval_is_deterministic_for_a_seed():
     assert one.levels.tobytes() != other.levels.tobytes()
 
 
+def test_several_finishes_keep_the_most_efficient_design_within_the_cap():
+    target = targets.asymmetric(7)
+    one = retrieval.retrieve_phase(target, 31, 8, seed=5, starts=2, finishes=1)
+    two = retrieval.retrieve_phase(target, 31, 8, seed=5, starts=2, finishes=2)
+    again = retrieval.retrieve_phase(target, 31, 8, seed=5, starts=2, finishes=2)
+    assert two.levels.tobytes() == again.levels.tobytes()
+    # the first finish of both runs is the same computation; the second can only add
+    assert retrieval.fidelity(fraunhofer.level_phase(two.levels, 8), target) <= retrieval.CAP
+    assert two.quality_quantised["efficiency"] >= one.quality_quantised["efficiency"] - 1e-12
+
+
 def test_retrieval_refuses_bad_arguments():
     with pytest.raises(ValueError, match="exceeds"):
         retrieval.retrieve_phase(targets.compact_blob(11), 9)
