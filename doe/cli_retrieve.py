@@ -1,5 +1,6 @@
 """``doefab retrieve``: an 8-level phase tile from a target PSF (see doe.retrieval)."""
 
+import hashlib
 from pathlib import Path
 
 from doe.errors import InputError
@@ -76,7 +77,9 @@ def run(args):
                 "levels": n_levels,
                 "tile_pixels": n,
                 "kernel_size": k,
-                "target_psf": str(Path(args.psf)),
+                # name and digest, not the path: the same input gives the same bytes
+                "target_psf": Path(args.psf).name,
+                "target_psf_sha256": hashlib.sha256(Path(args.psf).read_bytes()).hexdigest(),
                 "design": design_summary(design),
                 "versions": _versions(),
             },

@@ -52,6 +52,7 @@ class Fabrication:
 class Learning:
     seed: int
     minutes: float
+    steps: int
     photons_per_pixel: float
 
 
@@ -145,6 +146,7 @@ _SCHEMA = {
     "learning": {
         "seed": (int, None, _NONNEG),
         "minutes": (float, None, _POSITIVE),
+        "steps": (int, None, _POSITIVE),
         "photons_per_pixel": (float, None, _POSITIVE),
     },
 }
@@ -243,7 +245,10 @@ def parse_design(raw, source="design"):
             s("fabrication", "grid_nm"),
         ),
         learning=Learning(
-            s("learning", "seed"), s("learning", "minutes"), s("learning", "photons_per_pixel")
+            s("learning", "seed"),
+            s("learning", "minutes"),
+            s("learning", "steps"),
+            s("learning", "photons_per_pixel"),
         ),
     )
     _check_consistency(design, source)

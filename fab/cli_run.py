@@ -19,7 +19,12 @@ def register(sub):
     p.add_argument("--config", help="design TOML file or preset name (default preset if absent)")
     p.add_argument("--out", required=True, help="run folder")
     p.add_argument("--psf", help="use this psf.npy instead of learning one")
-    p.add_argument("--minutes", type=float, help="training budget (default: the design's)")
+    p.add_argument(
+        "--minutes",
+        type=float,
+        help="train for this wall-clock time instead of the design's [learning] steps "
+        "(faster or slower machines then give different results)",
+    )
     p.add_argument("--seed", type=int, help="seed of every stage (default: the design's)")
     p.add_argument("--formats", default=MESH_FORMATS, help=f"mesh formats (default {MESH_FORMATS})")
     p.add_argument("--force", action="store_true", help="redo every stage and overwrite")
@@ -39,10 +44,13 @@ def plan(args, run_dir, design):
         if not psf.is_file():
             raise InputError(psf, "no such PSF file")
     else:
-        minutes = str(args.minutes if args.minutes is not None else design.learning.minutes)
-        stages.append(
-            Stage("learn", ("learn", "--minutes", minutes, "--seed", seed, *config), config_inputs)
+        # A step budget keeps the run reproducible; --minutes trades that for a time budget.
+        budget = (
+            ["--minutes", str(args.minutes)]
+            if args.minutes is not None
+            else ["--steps", str(design.learning.steps)]
         )
+        stages.append(Stage("learn", ("learn", *budget, "--seed", seed, *config), config_inputs))
         psf = run_dir / "learn" / "psf.npy"
     retrieve = run_dir / "retrieve"
     fab = run_dir / "fab"
@@ -99,6 +107,8 @@ def _run(args):
             return code
     save_state(run_dir, state)
     write_index(run_dir, design, [s.name for s in stages])
-    write_manifest(run_dir, design, args, timings)
+    write_manifest(
+        run_dir, design, args, timings, {k: v.get("seconds", {}) for k, v in state.items()}
+    )
     print(f"doefab run: done, open {run_dir / 'index.html'}", file=sys.stderr)
     return 0

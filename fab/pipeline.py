@@ -124,6 +124,7 @@ def run_stage(stage, run_dir, state, invoke):
     code = invoke([*stage.argv, "--out", str(new), "--force"])
     if code != 0:
         return code
+    seconds = move_timings(new)
     final = run_dir / stage.name
     old = run_dir / f".{stage.name}.old"
     if old.exists():
@@ -133,9 +134,30 @@ def run_stage(stage, run_dir, state, invoke):
     new.rename(final)
     if old.exists():
         _remove_tree(old)
-    state[stage.name] = {"key": key, "files": stage_files(final)}
+    state[stage.name] = {"key": key, "files": stage_files(final), "seconds": seconds}
     save_state(run_dir, state)
     return 0
+
+
+def move_timings(folder):
+    """Take the wall-clock ``seconds`` out of a stage's JSON reports; return them.
+
+    Timings differ from run to run; recorded apart (the run's ``timings.json``)
+    they leave every product byte-identical for the same inputs and seed. The
+    reports keep the key, set to null.
+    """
+    from doe.files import write_json
+
+    seconds = {}
+    for path in sorted(Path(folder).glob("*.json")):
+        try:
+            report = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError):
+            continue
+        if isinstance(report, dict) and report.get("seconds") is not None:
+            seconds[path.name] = report["seconds"]
+            write_json(path, {**report, "seconds": None})
+    return seconds
 
 
 def save_state(run_dir, state):

@@ -1,0 +1,134 @@
+"""``doefab run`` end to end on a small design: package, skip on rerun, reproducible, resumable."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from doe.cli import main
+from fab.pipeline import sha256_file
+
+pytestmark = pytest.mark.slow
+
+SMALL = """
+name = "small"
+[fabrication]
+feature_size_um = 20.0     # N = 44 pixels: a fast tile
+[learning]
+steps = 12
+"""
+FORMATS = "ply,glb,3mf,stl,step"
+
+
+@pytest.fixture(scope="module")
+def config(tmp_path_factory):
+    path = tmp_path_factory.mktemp("cfg") / "small.toml"
+    path.write_text(SMALL)
+    return path
+
+
+def run(config, out, *extra):
+    return main(["run", "--config", str(config), "--out", str(out), "--formats", FORMATS, *extra])
+
+
+@pytest.fixture(scope="module")
+def finished(config, tmp_path_factory):
+    out = tmp_path_factory.mktemp("run") / "out"
+    assert run(config, out) == 0
+    return out
+
+
+def test_run_writes_the_whole_package(finished):
+    for rel in (
+        "learn/psf.npy",
+        "retrieve/levels.npy",
+        "fab/mask.gds",
+        "fab/fab_manifest.json",
+        "fab/fab_report.html",
+        "mesh/tile.ply",
+        "mesh/tile.step",
+        "index.html",
+    ):
+        assert (finished / rel).is_file(), rel
+    manifest = json.loads((finished / "manifest.json").read_text())
+    listed = {f["path"]: f["sha256"] for f in manifest["files"]}
+    assert "index.html" in listed and "fab/mask.gds" in listed
+    for rel, digest in listed.items():
+        assert sha256_file(finished / rel) == digest, rel
+    assert manifest["design"]["derived"]["tile_pixels"] == 44
+    assert manifest["seeds"] == {"learn": 0, "retrieve": 0}
+    assert manifest["versions"]["numpy"]
+    index = (finished / "index.html").read_text()
+    assert "fab/fab_report.html" in index and "retrieve/retrieval.png" in index
+
+
+def test_rerun_skips_every_stage_and_changes_nothing(config, finished, capsys):
+    before = (finished / "manifest.json").read_bytes()
+    capsys.readouterr()
+    assert run(config, finished) == 0
+    err = capsys.readouterr().err
+    assert err.count("up to date, skipped") == 4, err
+    assert (finished / "manifest.json").read_bytes() == before
+
+
+def test_a_second_run_gives_byte_identical_outputs(config, finished, tmp_path):
+    out = tmp_path / "again"
+    assert run(config, out) == 0
+    assert (out / "manifest.json").read_bytes() == (finished / "manifest.json").read_bytes()
+
+
+def test_killed_run_resumes_to_the_same_outputs(config, finished, tmp_path):
+    out = tmp_path / "killed"
+    cmd = [
+        sys.executable,
+        "-m",
+        "doe.cli",
+        "run",
+        "--config",
+        str(config),
+        "--out",
+        str(out),
+        "--formats",
+        FORMATS,
+    ]
+    proc = subprocess.Popen(cmd, stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.time() + 300
+    while not (out / "retrieve").exists() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.05)
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGKILL)  # part-way: learn and retrieve done, fab running
+    proc.wait()
+    assert not (out / "manifest.json").exists()
+    assert run(config, out) == 0
+    assert (out / "manifest.json").read_bytes() == (finished / "manifest.json").read_bytes()
+
+
+def test_edited_output_is_not_overwritten(config, finished, tmp_path, capsys):
+    report = finished / "fab" / "fab_report.md"
+    original = report.read_bytes()
+    try:
+        report.write_text("my notes")
+        capsys.readouterr()
+        assert run(config, finished) == 2
+        assert "fab_report.md" in capsys.readouterr().err
+        assert report.read_text() == "my notes"
+    finally:
+        report.write_bytes(original)
+
+
+def test_bad_inputs_exit_2(tmp_path, capsys):
+    assert main(["run", "--out", str(tmp_path / "o"), "--psf", str(tmp_path / "none.npy")]) == 2
+    assert "none.npy" in capsys.readouterr().err
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[fabrication]\nlevels = 3\n")
+    assert main(["run", "--config", str(bad), "--out", str(tmp_path / "o2")]) == 2
+    assert "bad.toml" in capsys.readouterr().err
+    stranger = tmp_path / "stranger"
+    stranger.mkdir()
+    (stranger / "thesis.tex").write_text("precious")
+    assert main(["run", "--out", str(stranger), "--psf", str(tmp_path / "none.npy")]) == 2
+    assert (stranger / "thesis.tex").read_text() == "precious"
