@@ -1,0 +1,75 @@
+"""Property tests: the image readers accept good files and refuse damaged ones with InputError."""
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from doe.errors import InputError
+from fab.capture import read_raw_image, write_image
+from psf_learn.cubes import read_frame
+from psf_learn.images import read_image
+
+READERS = {
+    "capture": lambda path: read_raw_image(path).data,
+    "frame": read_frame,
+    "training image": read_image,
+}
+
+
+@pytest.fixture(scope="module")
+def good_files(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("images")
+    rng = np.random.default_rng(0)
+    files = {}
+    for ext, dtype in (("png", np.uint16), ("tif", np.uint8), ("tif16", np.uint16)):
+        image = rng.integers(1, np.iinfo(dtype).max, (40, 56)).astype(dtype)
+        path = folder / f"good.{ext.removesuffix('16')}"
+        path = path.with_stem(f"good_{ext}")
+        write_image(path, image)
+        files[ext] = (path, image)
+    return files
+
+
+@pytest.mark.parametrize("reader", READERS)
+def test_readers_return_the_pixels_of_a_good_file(good_files, reader):
+    for path, image in good_files.values():
+        got = np.asarray(READERS[reader](path))
+        assert got.shape == image.shape, (reader, path)
+        if reader != "training image":  # that one scales to [0, 1] grey
+            assert np.array_equal(got, image), (reader, path)
+
+
+@settings(
+    max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    kind=st.sampled_from(["png", "tif", "tif16"]),
+    reader=st.sampled_from(sorted(READERS)),
+    cut=st.floats(0.0, 0.9),
+    flips=st.lists(st.tuples(st.floats(0, 1), st.integers(1, 255)), max_size=4),
+)
+def test_damaged_files_are_refused_or_read_never_crash(
+    good_files, tmp_path, kind, reader, cut, flips
+):
+    path, _ = good_files[kind]
+    data = bytearray(path.read_bytes())
+    for where, xor in flips:
+        data[int(where * (len(data) - 1))] ^= xor
+    damaged = tmp_path / f"damaged_{kind}{path.suffix}"
+    damaged.write_bytes(bytes(data[: max(1, int(len(data) * (1 - cut)))]))
+    try:
+        READERS[reader](damaged)
+    except InputError as e:
+        assert str(damaged) in str(e)  # names the file
+    # Anything else (a crash, a hang) fails the test.
+
+
+@pytest.mark.parametrize("reader", READERS)
+def test_truncated_file_is_refused(good_files, tmp_path, reader):
+    path, _ = good_files["png"]
+    data = path.read_bytes()
+    damaged = tmp_path / "truncated.png"
+    damaged.write_bytes(data[: len(data) // 2])
+    with pytest.raises(InputError, match="truncated"):
+        READERS[reader](damaged)
