@@ -208,7 +208,7 @@ def _learn(args):
         write_json(stage / "learn.json", info)
     checkpoint.unlink(missing_ok=True)
     print(
-        f"learned {spec} PSF model: {result.steps} steps in {result.seconds:.0f} s, "
+        f"trained the model for PSF {spec}: {result.steps} steps in {result.seconds:.0f} s, "
         f"training PSNR {result.psnr:.2f} dB -> {out}"
     )
     return 0
