@@ -144,6 +144,7 @@ def _ddp_worker(rank, world, port, out):
     torch.distributed.destroy_process_group()
 
 
+@pytest.mark.slow  # spawns two Python processes that import torch
 def test_ddp_with_gloo_on_two_processes_matches_one_process(tmp_path):
     import torch.multiprocessing as mp
 
