@@ -342,9 +342,12 @@ def derive(d, tile_pixels=None):
     )
 
 
-def design_summary(d):
-    """Return the design and its derived quantities as a JSON-ready dict, units in the keys."""
-    der = derive(d)
+def design_summary(d, tile_pixels=None):
+    """Return the design and its derived quantities as a JSON-ready dict, units in the keys.
+
+    ``tile_pixels`` overrides N as in :func:`derive` (a tile of another size).
+    """
+    der = derive(d, tile_pixels)
     return {
         "name": d.name,
         "description": d.description,

@@ -98,20 +98,7 @@ def tile_summary(design, der):
     """Return design_summary(design) with its derived optics for the tile actually fabricated."""
     from doe.design import design_summary
 
-    summary = design_summary(design)
-    summary["derived"].update(
-        {
-            "tile_pixels": der.tile_pixels,
-            "mask_pixel_pitch_nm": round(der.mask_pixel_pitch * 1e9),
-            "tile_size_um": der.tile_size * 1e6,
-            "lattice_pitch_um": der.lattice_pitch * 1e6,
-            "lattice_mismatch_um": der.lattice_mismatch * 1e6,
-            "lattice_drift_at_edge_um": der.lattice_drift_at_edge * 1e6,
-            "tiles_across_aperture": der.tiles,
-            "tiled_size_mm": der.tiled_size * 1e3,
-        }
-    )
-    return summary
+    return design_summary(design, tile_pixels=der.tile_pixels)
 
 
 def mask_table(masks, counts, pitch_nm):
