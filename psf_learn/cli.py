@@ -42,7 +42,7 @@ def register(sub):
     p.add_argument(
         "--patch", type=int, help="patch size in sub-pixels, a multiple of the factor (default 64)"
     )
-    p.add_argument("--lr", type=float, help="network learning rate (default 4e-3)")
+    p.add_argument("--lr", type=float, help="network learning rate (default 2e-3)")
     p.add_argument("--psf-lr", type=float, help="PSF logit learning rate (default 0.05)")
     p.add_argument(
         "--photons",

@@ -42,7 +42,7 @@ class TrainConfig:
     seed: int = 0
     batch: int = 16
     patch: int = 64
-    lr: float = 4e-3
+    lr: float = 2e-3
     psf_lr: float = 0.05
     features: int = 24
     stages: int = 4
@@ -264,6 +264,8 @@ def train(
         loss = F.l1_loss(estimate, target)
         opt.zero_grad(set_to_none=True)
         loss.backward()
+        # long runs at a high learning rate spike without this (seen at 14 k steps)
+        nn.utils.clip_grad_norm_(camera.parameters(), 1.0)
         opt.step()
         mse = float(F.mse_loss(estimate.detach().clamp(0, 1), target))
         history.append([loss.item(), psnr_from_mse(mse)])
