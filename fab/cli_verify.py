@@ -268,6 +268,15 @@ def _notes(result, capture, design):
             "the orders match a reflection of the design: a faulty plate, or a "
             "camera mounted otherwise than --orientation says (it is never guessed)"
         )
+    if "zero_order_ambiguous" in result.get("diagnosis", []):
+        z = result["zero_order_search"]
+        gains = ", ".join(f"{k} {v:.3g}" for k, v in z["delta_chi2"].items())
+        notes.append(
+            "the zero order is ambiguous: the orders outside the window do not stand out "
+            "enough to tell the design from a reflection of it or the zero order from its "
+            f"neighbour (chi-square gain over the design: {gains}"
+            f"; runner-up offset {z['runner_up_margin']:.3g}); lengthen the exposure"
+        )
     if design.acceptance is None:
         notes.append("no acceptance in the design folder: default thresholds used")
     return notes

@@ -49,9 +49,12 @@ PHOTOMETRIC_FLOOR = 0.01
 DEEP_ETCH_TOLERANCE = 0.10
 # Failing checks must be this many sigma beyond their threshold (noise is not a fault).
 SIGNIFICANCE = 2.0
-# A reflection of the design (rot180: conjugate plate; mirrors) is named when its
-# frame correlation beats the design's by this margin and reaches OTHER_DESIGN_MAX.
-TRANSFORM_MARGIN = 0.10
+# A reflection of the design (rot180: conjugate plate; mirrors) is named when it explains
+# the visible orders better than the design by this chi-square (after inflation by the
+# best fit's reduced chi-square) and its frame correlation reaches OTHER_DESIGN_MAX; the
+# zero order is ambiguous when the runner-up offset, or a reflection whose PSF differs
+# from the design's, comes within it.
+DECISIVE_CHI2 = 25.0
 # Below this frame correlation (design and reflections) the plate is another design ...
 OTHER_DESIGN_MAX = 0.8
 # ... as it is when neither the design nor the design with a fitted deep-etch error
@@ -166,17 +169,103 @@ def _pearson(a, b):
     return float((a * b).sum() / den) if den > 0 else 0.0
 
 
-def locate_zero_order(measured, valid, sigma, period_power, half=5, top=3):
+def _model_table(period_power, shape):
+    """Return the model's order powers for order offsets -(nu-1)..nu-1 by -(nv-1)..nv-1.
+
+    Element [i, j] is order (i - nu + 1, j - nv + 1), pixel envelope included.
+    """
+    n = period_power.shape[0]
+    m = np.arange(-(shape[0] - 1), shape[0])
+    k = np.arange(-(shape[1] - 1), shape[1])
+    env = pixel_envelope(m, n)[:, None] * pixel_envelope(k, n)[None, :]
+    return period_power[np.ix_(m % n, k % n)] * env
+
+
+def _correlate(table, grid):
+    """Return C[m0, n0] = sum_uv grid[u, v] table[u - m0 + nu - 1, v - n0 + nv - 1] (FFT)."""
+    from scipy.signal import fftconvolve
+
+    return fftconvolve(table, grid[::-1, ::-1], mode="valid")[::-1, ::-1]
+
+
+def offset_chi2(measured, valid, sigma, period_power):
+    """Return the chi-square of the far-field model with its zero order at every grid element.
+
+    For a zero order at [m0, n0] the model of order [u, v] is the tile's far
+    field at (u - m0, v - n0) with the pixel envelope, times a free scale
+    (weighted least squares, >= 0); the chi-square sums over EVERY valid order
+    in the frame, each weighted by its noise, so that the weak orders outside
+    the K x K window count as much as their signal warrants: they tell a
+    design from its point reflection when the window alone cannot (a PSF
+    nearly symmetric about a point half an order off the axis). The candidate
+    zero order itself is left out (a deep-etch depth error changes it most).
+    Orders with no light add the same (their noise) to every candidate.
+    Three FFT cross-correlations give all offsets at once.
+
+    Parameters
+    ----------
+    measured, valid, sigma : (nu, nv) arrays
+        Dot powers in the design frame, which are measured, their 1-sigma noise.
+    period_power : (N, N) float array
+        Order powers of the tile, FFT index order.
+
+    Returns
+    -------
+    (nu, nv) float array
+        Chi-square per candidate zero order (inf where the candidate is not valid).
+    """
+    wts = np.where(valid, 1.0 / np.where(valid, sigma, 1.0) ** 2, 0.0)
+    meas = np.where(valid, measured, 0.0)
+    table = _model_table(period_power, measured.shape)
+    zero = float(period_power[0, 0])
+    a = float((wts * meas**2).sum()) - wts * meas**2
+    b = _correlate(table, wts * meas) - wts * meas * zero
+    d = _correlate(table**2, wts) - wts * zero**2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        chi2 = a - np.where((b > 0) & (d > 0), b**2 / d, 0.0)
+    return np.where(valid, chi2, np.inf)
+
+
+def _frame_score(meas, valid, sigma, period_power, m0, n0, half):
+    """Pearson correlation of measured and model powers over the orders with signal.
+
+    The orders of the (2 half + 1)^2 window and those that carry signal
+    (measured above ``SIGNAL_SIGMAS`` sigma, or predicted so by the design)
+    count, the candidate zero order does not; the pixel envelope is divided
+    out, so that two unrelated plates do not correlate through it.
+
+    Returns
+    -------
+    (score, outside_score, outside_orders)
+        The correlation; that over the orders with signal outside the window
+        alone (NaN when fewer than 3) and their count.
+    """
+    shape = meas.shape
+    sig = np.where(valid, sigma, np.inf)
+    detected = valid & (meas > SIGNAL_SIGMAS * sig)
+    model = _model(period_power, m0, n0, shape)
+    scale = _scale(meas, model, detected, valid)
+    use = detected | (valid & (model * scale > PREDICTED_SIGMAS * sig))
+    # The window always counts: its dark orders are as telling as its bright ones.
+    win = (slice(max(m0 - half, 0), m0 + half + 1), slice(max(n0 - half, 0), n0 + half + 1))
+    use[win] |= valid[win]
+    use[m0, n0] = False
+    if use.sum() < 3:
+        return 0.0, float("nan"), 0
+    env = np.maximum(_model(np.ones_like(period_power), m0, n0, shape)[use], 0.0025)
+    r = _pearson(meas[use] / env, model[use] / env)
+    out = use.copy()
+    out[win] = False
+    r_out = _pearson(meas[out], model[out]) if out.sum() >= 3 else float("nan")
+    return r, r_out, int(out.sum())
+
+
+def locate_zero_order(measured, valid, sigma, period_power, half=5):
     """Find where the zero order sits in a measured grid by matching the design's far field.
 
-    Offsets modulo N come from one FFT cross-correlation of the grid folded
-    modulo N (of square-rooted powers, so that weak orders count too); which
-    period holds the zero order follows from the pixel envelope. Candidates are
-    scored by the Pearson correlation of the powers over the orders of the
-    (2 half + 1)^2 window and those that carry signal:
-    measured above ``SIGNAL_SIGMAS`` sigma, or predicted so by the design.
-    Noise-only orders elsewhere would only dilute the score; the candidate zero
-    order itself is left out (a depth error changes it most).
+    The zero order is the candidate with the least chi-square over all the
+    visible orders (``offset_chi2``); the runner-up offset is returned too, so
+    that an ambiguous match can be reported rather than passed.
 
     Parameters
     ----------
@@ -189,62 +278,33 @@ def locate_zero_order(measured, valid, sigma, period_power, half=5, top=3):
         Order powers of the tile, FFT index order.
     half : int
         K // 2.
-    top : int
-        Offsets modulo N tried with the envelope.
 
     Returns
     -------
-    (m0, n0, score, outside_score, outside_orders)
-        Grid indices of the zero order and the correlation there (the pixel
-        envelope divided out, so that two unrelated plates do not correlate
-        through their common envelope); the correlation over the orders with
-        signal outside the window alone (NaN when fewer than 3) and their count.
+    dict
+        "m0", "n0" (grid indices of the zero order), "chi2" there, "runner_up"
+        ((m, n) of the next best offset), "runner_up_chi2", "score" (Pearson
+        correlation there, see ``_frame_score``), "outside_score",
+        "outside_orders".
     """
-    n = period_power.shape[0]
-    nu, nv = measured.shape
+    if not valid.any():
+        raise ValueError("no valid dot where the zero order could sit")
+    chi2 = offset_chi2(measured, valid, sigma, period_power)
+    order = np.argsort(chi2, axis=None)
+    m0, n0 = (int(i) for i in np.unravel_index(order[0], chi2.shape))
+    second = np.unravel_index(order[1], chi2.shape) if order.size > 1 else (m0, n0)
     meas = np.where(valid, measured, 0.0)
-    amp = np.sqrt(np.clip(meas, 0, None))
-    mean = amp[valid].mean()
-    centred = np.where(valid, amp - mean, 0.0)
-    fold = np.zeros((n, n))
-    np.add.at(fold, (np.arange(nu)[:, None] % n, np.arange(nv)[None, :] % n), centred)
-    ref = np.sqrt(period_power)
-    score = np.real(np.fft.ifft2(np.fft.fft2(fold) * np.conj(np.fft.fft2(ref - ref.mean()))))
-    sig = np.where(valid, sigma, np.inf)
-    detected = valid & (meas > SIGNAL_SIGMAS * sig)
-    best, tried, fallback = None, 0, None
-    for flat in np.argsort(score, axis=None)[::-1]:
-        s, t = np.unravel_index(flat, score.shape)
-        cands = [
-            (m0, n0) for m0 in range(int(s), nu, n) for n0 in range(int(t), nv, n) if valid[m0, n0]
-        ]
-        tried += bool(cands)
-        if tried > top:
-            break
-        fallback = fallback or (cands[0] if cands else None)
-        for m0, n0 in cands:
-            model = _model(period_power, m0, n0, (nu, nv))
-            scale = _scale(meas, model, detected, valid)
-            use = detected | (valid & (model * scale > PREDICTED_SIGMAS * sig))
-            # The window always counts: its dark orders are as telling as its bright ones.
-            win = (slice(max(m0 - half, 0), m0 + half + 1), slice(max(n0 - half, 0), n0 + half + 1))
-            use[win] |= valid[win]
-            use[m0, n0] = False
-            if use.sum() < 3:
-                continue
-            env = _model(np.ones_like(period_power), m0, n0, (nu, nv))[use]
-            env = np.maximum(env, 0.0025)
-            r = _pearson(meas[use] / env, model[use] / env)
-            if best is None or r > best[2]:
-                out = use.copy()
-                out[win] = False
-                r_out = _pearson(meas[out], model[out]) if out.sum() >= 3 else float("nan")
-                best = (m0, n0, r, r_out, int(out.sum()))
-    if best is None:
-        if fallback is None:
-            raise ValueError("no valid dot where the zero order could sit")
-        return (*fallback, 0.0, float("nan"), 0)  # nothing above the noise: the FFT's guess
-    return best
+    score, out_score, out_orders = _frame_score(meas, valid, sigma, period_power, m0, n0, half)
+    return {
+        "m0": m0,
+        "n0": n0,
+        "chi2": float(chi2[m0, n0]),
+        "runner_up": (int(second[0]), int(second[1])),
+        "runner_up_chi2": float(chi2[second]),
+        "score": score,
+        "outside_score": out_score,
+        "outside_orders": out_orders,
+    }
 
 
 def _deep_mask_fields(levels, n_levels):
@@ -365,17 +425,21 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
     period = design_order_power(levels, n_levels)
     sigma = to_design_frame(grid.sigma, orientation)
     sigma = np.sqrt(sigma**2 + (PHOTOMETRIC_FLOOR * np.nan_to_num(power)) ** 2)
-    scores = {}
-    for name, transform in _TRANSFORMS.items():
-        scores[name] = locate_zero_order(power, valid, sigma, transform(period), kernel_size // 2)
-    m0, n0 = scores["design"][:2]
+    searches = {
+        name: locate_zero_order(power, valid, sigma, transform(period), kernel_size // 2)
+        for name, transform in _TRANSFORMS.items()
+    }
+    m0, n0 = searches["design"]["m0"], searches["design"]["n0"]
     k, half = kernel_size, kernel_size // 2
     design_psf, design_eff = simulate_levels(levels, n_levels, k)
     result = {
         "zero_order_px": [float(rows[m0, n0]), float(cols[m0, n0])],
-        "frame_correlation": {name: s[2] for name, s in scores.items()},
-        "outside_window_correlation": {name: _finite(s[3]) for name, s in scores.items()},
-        "outside_window_orders": scores["design"][4],
+        "frame_correlation": {name: s["score"] for name, s in searches.items()},
+        "outside_window_correlation": {
+            name: _finite(s["outside_score"]) for name, s in searches.items()
+        },
+        "outside_window_orders": searches["design"]["outside_orders"],
+        "zero_order_search": _search_summary(searches, valid, rows, cols, period, design_psf),
         "design_efficiency": design_eff,
         "design_zero_order": float(period[0, 0]),
         "pitch_px": grid.pitch_px,
@@ -453,6 +517,44 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
     return result, measured_psf
 
 
+def _search_summary(searches, valid, rows, cols, period, design_psf):
+    """Return the JSON-ready evidence of the zero-order search.
+
+    The chi-squares are compared after dividing by the reduced chi-square of
+    the best hypothesis when it exceeds 1 (a plate with fabrication errors
+    fits no model to the noise; its misfit must not pass for evidence).
+    "delta_chi2" > 0 means the transform explains the capture better than
+    the design; "runner_up_margin" is how much worse the design fits with its
+    zero order at the next best place. "transform_psf_correlation" is how
+    well each transform of the design's PSF matches the design's PSF: near 1
+    when telling them apart does not matter.
+    """
+    dof = max(int(valid.sum()) - 2, 1)
+    best = min(s["chi2"] for s in searches.values())
+    inflation = max(1.0, best / dof)
+    d = searches["design"]
+    k = design_psf.shape[0]
+    idx = (np.arange(k) - k // 2) % period.shape[0]
+    psf_corr = {}
+    for name, transform in _TRANSFORMS.items():
+        window = transform(period)[np.ix_(idx, idx)]
+        psf_corr[name] = correlation(window / window.sum(), design_psf)
+    r, c = d["runner_up"]
+    return {
+        "chi2": {name: s["chi2"] for name, s in searches.items()},
+        "dof": dof,
+        "inflation": inflation,
+        "delta_chi2": {
+            name: (d["chi2"] - s["chi2"]) / inflation
+            for name, s in searches.items()
+            if name != "design"
+        },
+        "runner_up_margin": (d["runner_up_chi2"] - d["chi2"]) / inflation,
+        "runner_up_px": [float(rows[r, c]), float(cols[r, c])],
+        "transform_psf_correlation": psf_corr,
+    }
+
+
 def beam_power(meas, sigma, valid, model, window):
     """Estimate the whole beam's power (DN) from the orders that carry signal.
 
@@ -499,11 +601,27 @@ def _other_design(result):
     return explained < EXPLAINED_MIN
 
 
+def _ambiguous(search, thresholds):
+    """Whether the capture cannot tell where the zero order is, when it matters.
+
+    Either the design fits nearly as well with its zero order one place
+    further, or a reflection of the design (whose PSF differs from the
+    design's beyond the acceptance) fits nearly as well as the design.
+    """
+    if search["runner_up_margin"] < DECISIVE_CHI2:
+        return True
+    return any(
+        abs(d) <= DECISIVE_CHI2
+        and search["transform_psf_correlation"][t] < thresholds["correlation_min"]
+        for t, d in search["delta_chi2"].items()
+    )
+
+
 def diagnose(result, thresholds):
     """Return the list of short diagnosis codes (["ok"] when every check holds).
 
     Codes: "saturated", "low_signal", "conjugate_plate", "mirrored",
-    "other_design", "zero_order_excess", "deep_etch_error", "psf_mismatch",
+    "other_design", "zero_order_ambiguous", "zero_order_excess", "deep_etch_error", "psf_mismatch",
     "low_efficiency". A check on a noisy figure (zero order, efficiency) fails
     only when it misses its threshold by ``SIGNIFICANCE`` sigma.
     """
@@ -513,14 +631,16 @@ def diagnose(result, thresholds):
     if result["window_snr"] < thresholds["min_window_snr"]:
         codes.append("low_signal")
     frame = result["frame_correlation"]
-    best_other = max(("rot180", "mirror-x", "mirror-y"), key=lambda t: frame[t])
-    if (
-        frame[best_other] > frame["design"] + TRANSFORM_MARGIN
-        and frame[best_other] >= OTHER_DESIGN_MAX
-    ):
+    search = result["zero_order_search"]
+    delta = search["delta_chi2"]
+    better = [t for t in delta if delta[t] > DECISIVE_CHI2 and frame[t] >= OTHER_DESIGN_MAX]
+    if better:
+        best_other = max(better, key=lambda t: delta[t])
         codes.append("conjugate_plate" if best_other == "rot180" else "mirrored")
     elif not codes and _other_design(result):  # clipped or noisy windows explain nothing
         codes.append("other_design")
+    elif not codes and _ambiguous(search, thresholds):
+        codes.append("zero_order_ambiguous")
     process = []
     if codes:  # a plate that is not this design: its process figures mean nothing
         return codes

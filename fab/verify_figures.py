@@ -164,6 +164,15 @@ def _html(report):
             ),
         ),
         (
+            "zero-order search: chi-square gain of rot180 / mirror-x / mirror-y over the "
+            "design (> 0: fits better), runner-up offset margin",
+            " / ".join(
+                f"{report['zero_order_search']['delta_chi2'][k]:.4g}"
+                for k in ("rot180", "mirror-x", "mirror-y")
+            )
+            + f", {report['zero_order_search']['runner_up_margin']:.4g}",
+        ),
+        (
             "lattice pitch (px), rotation (deg), zero order (row, col px)",
             f"{lat['pitch_px']:.4f} (nominal {lat['nominal_pitch_px']:.4f}), "
             f"{lat['rotation_deg']:.3f}, ({report['zero_order_px'][0]:.2f}, "

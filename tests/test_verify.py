@@ -161,6 +161,59 @@ def test_conjugate_plate_fails_as_point_reflection(tmp_path, levels):
     assert fc["rot180"] > fc["design"] + 0.3
 
 
+@pytest.fixture(scope="module")
+def half_order_levels():
+    """A tile whose PSF is a 6 x 6 apodised window centred half an order off the axis.
+
+    Its point reflection about the zero order is the same window one order
+    further up-left: within the K x K window a conjugate plate looks like the
+    design shifted by one order.
+    """
+    from doe.retrieval import retrieve_phase
+
+    taper = np.hanning(8)[1:-1]
+    target = np.zeros((K, K))
+    target[3:9, 3:9] = np.outer(taper, taper)
+    target /= target.sum()
+    return retrieve_phase(target, n_pixels=48, n_levels=L, seed=0).levels
+
+
+def test_conjugate_of_half_order_symmetric_psf_fails(tmp_path, half_order_levels):
+    psf, _ = simulate_levels(half_order_levels, L, K)
+    # The premise: the reflected PSF is the PSF shifted by one order, not the PSF.
+    reflected = psf[::-1, ::-1]
+    assert np.corrcoef(psf[1:, 1:].ravel(), reflected[:-1, :-1].ravel())[0, 1] > 0.99
+    assert np.corrcoef(psf.ravel(), reflected.ravel())[0, 1] < 0.9
+    kwargs = dict(rotation_deg=1.5, centre=(290.4, 310.2))
+    code, report, _ = run_verify(tmp_path / "good", half_order_levels, dict(seed=31, **kwargs))
+    assert code == 0, report["diagnosis"]
+    assert report["zero_order_search"]["delta_chi2"]["rot180"] < -25
+    code, report, _ = run_verify(
+        tmp_path / "conj",
+        half_order_levels,
+        dict(seed=32, faults=PlateFaults(conjugate=True), **kwargs),
+    )
+    assert code == 1
+    assert report["diagnosis"] == ["conjugate_plate"]
+    assert report["zero_order_search"]["delta_chi2"]["rot180"] > 25
+    # The window search alone is fooled: the shifted window matches the design.
+    assert report["correlation"] > 0.95
+
+
+def test_ambiguous_zero_order_is_reported_not_passed(tmp_path, half_order_levels):
+    # A short exposure: the window stands out of the noise but the orders outside it,
+    # which alone tell the design from its reflection, do not.
+    code, report, _ = run_verify(
+        tmp_path,
+        half_order_levels,
+        dict(seed=33, peak_fraction=0.1, faults=PlateFaults(conjugate=True)),
+    )
+    assert code == 1
+    assert "zero_order_ambiguous" in report["diagnosis"]
+    assert report["window_snr"] > 30  # not merely low signal
+    assert any("ambiguous" in note for note in report["notes"])
+
+
 def test_other_design_fails(tmp_path, levels):
     other = np.random.default_rng(99).integers(0, L, (N, N)).astype(np.uint8)
     code, report, _ = run_verify(
