@@ -106,6 +106,17 @@ def sensor_from_design(design, photons=None, dark_counts=0.0):
     return SensorModel(tuple(map(tuple, w.tolist())), float(photons), float(dark_counts))
 
 
+def _padded_and_flipped(images, psf, padding):
+    """Return (images, kernel) for ``F.conv2d`` to compute a true convolution with ``psf``."""
+    k = psf.shape[-1]
+    kernel = torch.flip(psf, dims=(-2, -1)).reshape(1, 1, k, k).to(images.dtype)
+    if padding == "reflect":
+        images = F.pad(images, (k // 2,) * 4, mode="reflect")
+    elif padding != "valid":
+        raise ValueError(f"padding must be 'reflect' or 'valid', got {padding!r}")
+    return images, kernel
+
+
 def convolve_psf(images, psf, padding="reflect"):
     """Convolve images with a PSF (a true convolution, not a correlation).
 
@@ -120,12 +131,7 @@ def convolve_psf(images, psf, padding="reflect"):
         "reflect" keeps the size (mirror the scene at its borders); "valid"
         returns (H - K + 1, W - K + 1), using only scene inside the image.
     """
-    k = psf.shape[-1]
-    kernel = torch.flip(psf, dims=(-2, -1)).reshape(1, 1, k, k).to(images.dtype)
-    if padding == "reflect":
-        images = F.pad(images, (k // 2,) * 4, mode="reflect")
-    elif padding != "valid":
-        raise ValueError(f"padding must be 'reflect' or 'valid', got {padding!r}")
+    images, kernel = _padded_and_flipped(images, psf, padding)
     return F.conv2d(images, kernel)
 
 
@@ -178,12 +184,8 @@ def point_sample_blur(images, psf, cell, factor, padding="reflect"):
     Computes only the sampled outputs (a strided convolution), f^2 times less
     work than blurring everything and then sampling; the result is identical.
     """
-    k = psf.shape[-1]
-    kernel = torch.flip(psf, dims=(-2, -1)).reshape(1, 1, k, k).to(images.dtype)
-    if padding == "reflect":
-        images = F.pad(images, (k // 2,) * 4, mode="reflect")
-    elif padding != "valid":
-        raise ValueError(f"padding must be 'reflect' or 'valid', got {padding!r}")
+    images, kernel = _padded_and_flipped(images, psf, padding)
+    k = kernel.shape[-1]
     h, w = images.shape[-2] - k + 1, images.shape[-1] - k + 1
     if h % factor or w % factor:
         raise ValueError(f"image size {(h, w)} is not a multiple of {factor}")
