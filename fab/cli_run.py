@@ -50,7 +50,9 @@ def plan(args, run_dir, design):
             if args.minutes is not None
             else ["--steps", str(design.learning.steps)]
         )
-        stages.append(Stage("learn", ("learn", *budget, "--seed", seed, *config), config_inputs))
+        # One thread: the thread count changes torch's summation order, hence the bits.
+        learn = ("learn", *budget, "--threads", "1", "--seed", seed, *config)
+        stages.append(Stage("learn", learn, config_inputs))
         psf = run_dir / "learn" / "psf.npy"
     retrieve = run_dir / "retrieve"
     fab = run_dir / "fab"
