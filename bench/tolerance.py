@@ -24,22 +24,14 @@ import numpy as np
 _HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 
+from doe.retrieval import gerchberg_saxton, round_levels  # noqa: E402
+
 
 def gs_levels(n, target, n_levels, seed=0, iters=120):
-    """Return a level map from a short Gerchberg-Saxton run with quantisation."""
+    """Return a level map from a plain Gerchberg-Saxton run, rounded to the levels."""
     rng = np.random.default_rng(seed)
-    k = target.shape[0]
-    idx = np.ix_((np.arange(k) - k // 2) % n, (np.arange(k) - k // 2) % n)
-    phase = rng.uniform(0, 2 * np.pi, (n, n))
-    q = 2 * np.pi / n_levels
-    for it in range(iters):
-        f = np.fft.fft2(np.exp(1j * phase))
-        g = np.zeros_like(f)
-        g[idx] = np.sqrt(target) * n * np.exp(1j * np.angle(f[idx]))
-        phase = np.angle(np.fft.ifft2(g))
-        if it > iters // 2:
-            phase = np.round(phase / q) * q
-    return (np.round(phase / q) % n_levels).astype(np.uint8)
+    phase, _ = gerchberg_saxton(target, n, iters, rng, weighted=False)
+    return round_levels(phase, n_levels)
 
 
 def median_time(fn, repeat):
