@@ -24,20 +24,14 @@ COMMAND_MODULES = (
 
 
 def build_parser():
-    """Return the argparse parser with every available subcommand registered."""
+    """Return the argparse parser with every subcommand registered."""
     parser = argparse.ArgumentParser(
         prog="doefab",
         description="Design and fabricate diffractive phase plates for low-fill-factor sensors.",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMAND_MODULES:
-        try:
-            module = importlib.import_module(name)
-        except ModuleNotFoundError as e:
-            if e.name != name:
-                raise
-            continue  # a stage not installed in this build
-        module.register(sub)
+        importlib.import_module(name).register(sub)
     return parser
 
 
