@@ -9,8 +9,10 @@ Every PSF is a (K, K) array, non-negative and summing to one, element
   cell, it gives the mean of the pixel's own 4 x 4 block (a full fill-factor
   sensor). For the default sample cell (2, 2) the box covers axis offsets
   -1 .. +2 (rows and columns).
-- ``gaussian``: sigma 0.459 sub-pixel, centred on the axis (the best fixed PSF
-  of Sun et al. 2020).
+- ``gaussian``: sigma 0.459 sub-pixel (the best fixed PSF of Sun et al.
+  2020), centred like the box on the pixel centre, so the SPAD sees a
+  Gaussian-weighted mean around the centre of its own pixel, as a Gaussian
+  PSF on the axis over an active area at the pixel centre does physically.
 """
 
 import numpy as np
@@ -44,24 +46,44 @@ def box_psf(k, factor=4, sample_cell=(2, 2)):
     return psf
 
 
-def gaussian_psf(k, sigma=GAUSSIAN_SIGMA):
-    """Return the (k, k) float64 Gaussian PSF of ``sigma`` sub-pixels, centred on the axis."""
+def gaussian_psf(k, sigma=GAUSSIAN_SIGMA, centre=(0.0, 0.0)):
+    """Return the (k, k) float64 Gaussian PSF of ``sigma`` sub-pixels.
+
+    ``centre`` is its (row, column) offset from the axis in sub-pixels. It is cut
+    to the widest window symmetric about that centre, so its centroid stays there.
+    """
     r = np.arange(k) - k // 2
-    g = np.exp(-(r[:, None] ** 2 + r[None, :] ** 2) / (2 * sigma**2))
+
+    def profile(c):
+        d = np.abs(r - c)
+        return np.where(d <= k // 2 - abs(c), np.exp(-(d**2) / (2 * sigma**2)), 0.0)
+
+    g = profile(centre[0])[:, None] * profile(centre[1])[None, :]
     return g / g.sum()
+
+
+def pixel_centre_offset(factor=4, sample_cell=(2, 2)):
+    """Return the axis offset (sub-pixels) of the pixel centre seen by a point sample.
+
+    blurred[f m + s] = sum_o psf[K//2 + o] scene[f m + s - o], and the block centre
+    is f m + (f - 1) / 2, so the offset is s - (f - 1) / 2 (+0.5 for the default).
+    """
+    return tuple(s - (factor - 1) / 2 for s in sample_cell)
 
 
 def baseline_psf(name, k, factor=4, sample_cell=(2, 2)):
     """Return a named fixed PSF: ``delta``, ``box``, ``gaussian`` or ``gaussian:SIGMA``.
 
-    ``gaussian:SIGMA`` takes sigma in sub-pixels (``gaussian`` = ``gaussian:0.459``).
+    ``gaussian:SIGMA`` takes sigma in sub-pixels (``gaussian`` = ``gaussian:0.459``);
+    Gaussians are centred on the pixel centre, like the box.
     """
+    centre = pixel_centre_offset(factor, sample_cell)
     if name == "delta":
         return delta_psf(k)
     if name == "box":
         return box_psf(k, factor, sample_cell)
     if name == "gaussian":
-        return gaussian_psf(k)
+        return gaussian_psf(k, GAUSSIAN_SIGMA, centre)
     if name.startswith("gaussian:"):
         try:
             sigma = float(name.split(":", 1)[1])
@@ -69,7 +91,7 @@ def baseline_psf(name, k, factor=4, sample_cell=(2, 2)):
             sigma = -1.0
         if not sigma > 0:
             raise ValueError(f"gaussian:SIGMA needs a sigma > 0 in sub-pixels, got {name!r}")
-        return gaussian_psf(k, sigma)
+        return gaussian_psf(k, sigma, centre)
     raise ValueError(f"unknown baseline PSF {name!r}")
 
 

@@ -14,7 +14,7 @@ from doe.files import check_psf
 from psf_learn.evaluate import evaluate, evaluate_image
 from psf_learn.images import dead_leaves
 from psf_learn.network import SRNet
-from psf_learn.psf import LearnedPSF, box_psf, delta_psf, gaussian_psf
+from psf_learn.psf import LearnedPSF, baseline_psf, box_psf, delta_psf, gaussian_psf
 from psf_learn.sensor import SensorModel
 from psf_learn.sr import SRModel, load_model, super_resolve
 from psf_learn.train import TrainConfig, make_batch, train
@@ -67,6 +67,14 @@ def test_baseline_psfs():
     assert np.argwhere(b > 0).min(axis=0).tolist() == [K // 2 - 1] * 2
     assert np.argwhere(b > 0).max(axis=0).tolist() == [K // 2 + 2] * 2
     assert np.count_nonzero(box_psf(5)) == 16  # offsets -1 .. +2 fit in K = 5
+    # the Gaussian baseline shares the box's centroid: the sampled pixel's centre
+    r = np.arange(K)
+    for name in ("gaussian", "gaussian:1.836"):
+        p = baseline_psf(name, K)
+        assert p.sum() == pytest.approx(1)
+        for axis in (0, 1):
+            centroid = (p.sum(axis=1 - axis) * r).sum()
+            assert centroid == pytest.approx((b.sum(axis=1 - axis) * r).sum())
     with pytest.raises(ValueError):
         box_psf(5, sample_cell=(0, 0))  # offsets -3 .. 0 do not
 
@@ -387,10 +395,8 @@ def test_evaluate_and_sr_refuse_bad_inputs(trained, tmp_path, capsys):
 
 
 def test_gaussian_sigma_spec(tmp_path, capsys):
-    from psf_learn.psf import baseline_psf
-
-    np.testing.assert_allclose(baseline_psf("gaussian:1.5", K), gaussian_psf(K, 1.5))
-    np.testing.assert_allclose(baseline_psf("gaussian", K), gaussian_psf(K, 0.459))
+    np.testing.assert_allclose(baseline_psf("gaussian:1.5", K), gaussian_psf(K, 1.5, (0.5, 0.5)))
+    np.testing.assert_allclose(baseline_psf("gaussian", K), gaussian_psf(K, 0.459, (0.5, 0.5)))
     out = tmp_path / "out"
     assert main(["learn", "--out", str(out), "--psf", "gaussian:-1", *SMALL]) == 2
     assert "--psf" in capsys.readouterr().err and not out.exists()
