@@ -327,17 +327,19 @@ def test_retrieval_quality_full_tile(name):
     _check(res.quality_quantised, 0.85)
 
 
-ROBUST_FAST = ("dots_3", "disc_r2.5", "ring_r2")
+# efficiency floors: the acceptance's 0.85, or for three dots (whose exact-shape
+# bound is 0.827 even with a continuous phase) what bench/retrieval.py measures
+ROBUST_FAST = {"dots_3": 0.78, "disc_r2.5": 0.85, "ring_r2": 0.85}
 
 
 @pytest.mark.parametrize("name", ROBUST_FAST)
 def test_robustness_targets_meet_the_fidelity_goals_at_full_size(name):
-    # a sparse, a hard-edged and a ring target at the contract's N = 175; the
-    # efficiency bound is the floor measured by bench/retrieval.py less a margin
+    # a sparse, a hard-edged and a ring target at the contract's N = 175
     target = targets.robustness_set(11)[name]
     res = retrieval.retrieve_phase(target, 175, 8, seed=0)
-    _check(res.quality_quantised, 0.75)
-    assert res.quality_quantised["rmse"] <= 0.0041
+    _check(res.quality_quantised, ROBUST_FAST[name])
+    # the cap shares the fidelity budget: rmse <= 0.005 sqrt(CAP)
+    assert res.quality_quantised["rmse"] <= 0.005 * np.sqrt(retrieval.CAP) + 1e-6
 
 
 @pytest.mark.slow
@@ -347,8 +349,10 @@ def test_every_robustness_target_meets_the_fidelity_goals_at_full_size():
             continue
         res = retrieval.retrieve_phase(target, 175, 8, seed=0)
         assert res.quality_quantised["correlation"] >= 0.9999, name
-        assert res.quality_quantised["rmse"] <= 0.0041, name
-        assert res.quality_quantised["efficiency"] >= 0.75, name
+        assert res.quality_quantised["rmse"] <= 0.005 * np.sqrt(retrieval.CAP) + 1e-6, name
+        # sparse dots are bound-limited (docs/retrieve.md), everything else meets 0.85
+        floor = 0.78 if name.startswith("dots") else 0.85
+        assert res.quality_quantised["efficiency"] >= floor, name
 
 
 # ----------------------------------------------------------------------------- CLI
