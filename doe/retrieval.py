@@ -428,11 +428,10 @@ def flat_modulus_start(target, n_pixels, rng=None, restarts=3, max_eval=200):
         h = scipy.fft.fft2(unit)[sel][lit] / n_pixels**2
         return -float(np.mean(np.abs(g))), -np.real(1j * w * np.conj(h))
 
-    best = min(
-        (_lbfgs(fun, rng.uniform(-np.pi, np.pi, int(lit.sum())), max_eval) for _ in range(restarts)),
-        key=lambda xf: xf[1],
-    )
-    return np.angle(field(best[0])[0])
+    n_lit = int(lit.sum())
+    runs = [_lbfgs(fun, rng.uniform(-np.pi, np.pi, n_lit), max_eval) for _ in range(restarts)]
+    theta, _ = min(runs, key=lambda run: run[1])
+    return np.angle(field(theta)[0])
 
 
 def mixed_region(target, phase, gains, iterations=100, mix=MRAF_MIX):
