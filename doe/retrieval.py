@@ -2,12 +2,14 @@
 
 The pipeline, all on the forward model of :mod:`doe.fraunhofer`:
 
-1. :func:`gerchberg_saxton` (weighted) -- a continuous phase whose K x K window
-   of orders has the target's shape; the light that does not fit leaves into
-   the orders outside the window, the light sink.
-2. :func:`refine_continuous` -- nlopt L-BFGS on :func:`objective`, which trades
-   the two quality figures (rmse, correlation, each in units of its goal)
-   against efficiency, with an analytic (adjoint) gradient.
+1. Screening -- cheap starts: :func:`flat_modulus_start` (order phases that make
+   the band-limited field's modulus as flat as possible) and random weighted
+   :func:`gerchberg_saxton`, each followed by :func:`mixed_region` (MRAF); the
+   light that does not fit the window leaves into the outside orders, the
+   light sink. The best few by efficiency and fidelity go on.
+2. :func:`refine_constrained` -- nlopt L-BFGS on :func:`constrained_objective`:
+   maximal efficiency with the two quality figures (rmse, correlation, each in
+   units of its goal) within a cap, with an analytic (adjoint) gradient.
 3. :func:`gerchberg_saxton` with ``n_levels`` -- quantised GS from that phase;
    it, or plain rounding at the best global offset, starts the discrete search.
 4. :func:`coordinate_descent` -- a direct search over the discrete levels on the
@@ -721,15 +723,17 @@ def retrieve_phase(
 ):
     """Design an L-level phase tile whose K x K window of orders forms ``target``.
 
-    For each of ``starts`` random starts: weighted GS, mixed-region (MRAF)
-    iterations, then L-BFGS on the constrained objective (maximal efficiency
-    with the fidelity within ``cap``); the ``finishes`` most efficient continuous
-    designs go on. Quantised weighted GS from each (or plain rounding) starts coordinate
-    descent on the level map: one sweep for each of the efficiency weights
-    ``cd_weights`` in turn, with the fidelity capped at ``cap`` (below it only
-    :data:`SLACK` of it counts), until the fidelity is within ``cap`` and a sweep
-    gains less than :data:`MIN_GAIN` of efficiency; the most efficient level map
-    within the cap wins.
+    ``screens`` cheap starts -- :func:`flat_modulus_start` and random weighted GS,
+    each followed by mixed-region (MRAF) iterations -- are ranked by efficiency less
+    :data:`SCREEN_RATE` per unit of fidelity; the best ``starts`` go through L-BFGS
+    on the constrained objective (maximal efficiency with the fidelity within
+    ``cap``), and the ``finishes`` most efficient continuous designs go on.
+    Quantised weighted GS from each (or plain rounding) starts coordinate descent on
+    the level map: one sweep for each of the efficiency weights ``cd_weights`` in
+    turn, with the fidelity capped at ``cap`` (below it only :data:`SLACK` of it
+    counts), until the fidelity is within ``cap`` and a sweep gains less than
+    :data:`MIN_GAIN` of efficiency; the most efficient level map within the cap
+    wins.
 
     Parameters
     ----------
