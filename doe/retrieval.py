@@ -58,7 +58,7 @@ MRAF_MIX = 0.6
 PENALTIES = (0.1, 1.0)
 """Penalty weights of :func:`refine_constrained`, one L-BFGS run each."""
 
-SCREENS = 8
+SCREENS = 6
 """Cheap starts (GS + MRAF) screened for the continuous stage; see :data:`SCREEN_RATE`."""
 
 SCREEN_RATE = 0.012
