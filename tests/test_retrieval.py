@@ -109,6 +109,23 @@ def test_constrained_objective_is_efficiency_within_the_cap_and_penalised_above(
     assert above == pytest.approx(-eff + 5.0 * (fid / 2) ** 2, rel=1e-10)
 
 
+def test_flat_modulus_start_of_two_equal_dots_is_the_binary_grating():
+    # two equal dots at +-1 column: g = sqrt(2) cos(2 pi c / N + const), whose phase
+    # is a 0 / pi grating; each first order then carries (2 / pi)^2 (the classic
+    # 8 / pi^2 two-spot limit), the odd harmonics the rest
+    k, n = 11, 175
+    target = np.zeros((k, k))
+    target[k // 2, k // 2 - 1] = target[k // 2, k // 2 + 1] = 0.5
+    phase = retrieval.flat_modulus_start(target, n, np.random.default_rng(3))
+    step = np.angle(np.exp(1j * (phase - phase[0, 0])))
+    assert np.allclose(np.minimum(np.abs(step), np.abs(np.abs(step) - np.pi)), 0, atol=1e-9)
+    power = fraunhofer.window_power(phase, k)
+    dots = power[k // 2, [k // 2 - 1, k // 2 + 1]]
+    np.testing.assert_allclose(dots, 4 / np.pi**2, rtol=1e-3)
+    third = power[k // 2, [k // 2 - 3, k // 2 + 3]]
+    np.testing.assert_allclose(third, 4 / (9 * np.pi**2), rtol=1e-2)
+
+
 def test_mixed_region_with_the_whole_window_is_weighted_gs():
     # mix = 1 keeps nothing outside the window: the GS projection, up to scale
     target = targets.asymmetric(7)
