@@ -272,16 +272,24 @@ def objective(phase, target, weight=DEFAULT_WEIGHT, goal=None):
     grad : (N, N) float64
         dJ/dphase, rad^-1.
     """
-    phase = np.asarray(phase, dtype=np.float64)
-    n, k = phase.shape[0], target.shape[0]
-    idx = fraunhofer.window_indices(n, k)
+    field, w, idx = _window_of(phase, target.shape[0])
     goal = _Goal.of(target) if goal is None else goal
-    field = np.exp(1j * phase)
-    w = _window_fft(field, idx)
     value, grad_p = _fidelity_terms(np.abs(w) ** 2, goal, weight)
-    back = _back_fft(grad_p * np.conj(w), idx, n)
-    grad = -2.0 / phase.size * np.imag(field * back)
-    return value, grad
+    return value, _phase_gradient(field, w, idx, grad_p)
+
+
+def _window_of(phase, k):
+    """Return (tile field, K x K window of orders, window indices) of a phase."""
+    phase = np.asarray(phase, dtype=np.float64)
+    idx = fraunhofer.window_indices(phase.shape[0], k)
+    field = np.exp(1j * phase)
+    return field, _window_fft(field, idx), idx
+
+
+def _phase_gradient(field, w, idx, d_power):
+    """Return dJ/dphase (N, N) from dJ/d(window power) by the adjoint of the window DFT."""
+    back = _back_fft(d_power * np.conj(w), idx, field.shape[0])
+    return -2.0 / field.size * np.imag(field * back)
 
 
 def fidelity(phase, target):
@@ -322,19 +330,13 @@ def constrained_objective(phase, target, cap=None, mu=1.0, goal=None):
         dJ/dphase, rad^-1.
     """
     cap = CAP if cap is None else cap
-    phase = np.asarray(phase, dtype=np.float64)
-    n, k = phase.shape[0], target.shape[0]
-    idx = fraunhofer.window_indices(n, k)
+    field, w, idx = _window_of(phase, target.shape[0])
     goal = _Goal.of(target) if goal is None else goal
-    field = np.exp(1j * phase)
-    w = _window_fft(field, idx)
     power = w.real**2 + w.imag**2
     fid, d_fid = _fidelity_terms(power, goal, 0.0)
     excess = max(fid - cap, 0.0)
     value = float(-power.sum() + mu * excess * excess)
-    back = _back_fft((2.0 * mu * excess * d_fid - 1.0) * np.conj(w), idx, n)
-    grad = -2.0 / phase.size * np.imag(field * back)
-    return value, grad
+    return value, _phase_gradient(field, w, idx, 2.0 * mu * excess * d_fid - 1.0)
 
 
 # --------------------------------------------------------------------------- GS
