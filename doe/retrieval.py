@@ -29,7 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft
 
-from doe import fraunhofer
+from doe import bounds, fraunhofer
+from doe.lbfgs import minimise as _lbfgs
 
 DEFAULT_WEIGHT = 30.0
 """Weight of the efficiency term against the fidelity terms in :func:`objective`.
@@ -43,7 +44,7 @@ CD_WEIGHTS = (100.0, 60.0, 40.0, 30.0, 20.0, 15.0, 10.0, 5.0, 2.0)
 
 CAP = 0.81
 """Fidelity (see :func:`fidelity`) the design aims at: the two quality figures share
-64 % of their goals' error budget (so rmse <= 0.0040 and 1 - correlation <= 6.4e-5)."""
+81 % of their goals' error budget (so rmse <= 0.0045 and 1 - correlation <= 8.1e-5)."""
 
 SLACK = 0.1
 """Weight of the fidelity below :data:`CAP` in the coordinate descent's objective."""
@@ -402,40 +403,14 @@ def gerchberg_saxton(
 def flat_modulus_start(target, n_pixels, rng=None, restarts=3, max_eval=200):
     """Return a tile phase (rad, (N, N)) whose band-limited field is as flat in modulus as can be.
 
-    Only the phases theta of the lit orders are free: the field g(x) with the
-    window amplitudes sqrt(target) e^{i theta} and nothing outside has unit
-    mean power, and a phase-only plate t reaches at most |mean(t* g)|^2 <=
-    (mean |g|)^2 of efficiency with exactly the target's shape (Wyrowski's
-    bound), with equality only where |g| is constant. L-BFGS maximises
-    mean |g| over theta (gradient Re(i W_u conj(H_u)), H the window of g / |g|)
-    from ``restarts`` random phases; arg g of the best is a start that is
-    already both efficient and close to the target shape (on a hard 5 x 5 square
-    it beat two random starts by 3.5 % of efficiency; like theirs, its result
-    varies with the seed).
+    The field g(x) of the target's window amplitudes with the lit orders' phases
+    that maximise mean |g| (:func:`doe.bounds.best_flat_field`: Wyrowski's bound
+    on the efficiency of a plate forming exactly the target's shape) has the
+    flattest modulus, so arg g is a start that is already both efficient and
+    close to the target shape (on a hard 5 x 5 square it beat two random starts
+    by 3.5 % of efficiency; like theirs, its result varies with the seed).
     """
-    rng = np.random.default_rng(0) if rng is None else rng
-    k = target.shape[0]
-    sel = np.ix_(*[fraunhofer.window_indices(n_pixels, k)] * 2)
-    lit = target > 0
-    amp = np.sqrt(target[lit])
-
-    def field(theta):
-        spec = np.zeros((n_pixels, n_pixels), dtype=np.complex128)
-        win = np.zeros((k, k), dtype=np.complex128)
-        win[lit] = amp * np.exp(1j * theta)
-        spec[sel] = win
-        return scipy.fft.ifft2(spec) * n_pixels**2, win[lit]
-
-    def fun(theta):
-        g, w = field(theta)
-        unit = g / np.maximum(np.abs(g), 1e-300)
-        h = scipy.fft.fft2(unit)[sel][lit] / n_pixels**2
-        return -float(np.mean(np.abs(g))), -np.real(1j * w * np.conj(h))
-
-    n_lit = int(lit.sum())
-    runs = [_lbfgs(fun, rng.uniform(-np.pi, np.pi, n_lit), max_eval) for _ in range(restarts)]
-    theta, _ = min(runs, key=lambda run: run[1])
-    return np.angle(field(theta)[0])
+    return np.angle(bounds.best_flat_field(target, n_pixels, None, rng, restarts, max_eval)[1])
 
 
 def mixed_region(target, phase, gains, iterations=100, mix=MRAF_MIX):
@@ -485,32 +460,6 @@ def mixed_region(target, phase, gains, iterations=100, mix=MRAF_MIX):
 def level_step(n_levels):
     """Return the phase step between two levels, 2 pi / L (rad)."""
     return 2 * np.pi / n_levels
-
-
-# --------------------------------------------------------------------------- L-BFGS
-def _lbfgs(fun, x0, max_eval, ftol_rel=1e-10):
-    """Minimise ``fun(x) -> (value, grad)`` with nlopt L-BFGS; return the best point seen."""
-    import nlopt
-
-    best = {"x": x0.copy(), "f": np.inf}
-
-    def f(x, grad):
-        value, g = fun(x)
-        if grad.size:
-            grad[:] = g.ravel()
-        if value < best["f"]:
-            best["f"], best["x"] = value, x.copy()
-        return value
-
-    opt = nlopt.opt(nlopt.LD_LBFGS, x0.size)
-    opt.set_min_objective(f)
-    opt.set_maxeval(int(max_eval))
-    opt.set_ftol_rel(ftol_rel)
-    try:
-        opt.optimize(x0.ravel().copy())
-    except (nlopt.RoundoffLimited, ValueError, RuntimeError):
-        pass  # keep our own best point: nlopt drops it on these exceptions
-    return best["x"], best["f"]
 
 
 def refine_continuous(phase, target, weight=DEFAULT_WEIGHT, max_eval=300):

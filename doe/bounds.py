@@ -1,0 +1,111 @@
+"""Upper bounds on the efficiency of a phase-only tile that forms a target PSF exactly.
+
+Let the window orders u carry w_u = c sqrt(t_u) e^{i theta_u} on the lit orders of
+the target t (sum 1) and nothing on its dark ones: exactly the target's shape,
+efficiency |c|^2. With g(x) = sum_u sqrt(t_u) e^{i theta_u} e^{2 pi i u.x / N}
+(the band-limited field of the lit orders, unit mean power), Parseval gives
+c = mean_x(plate(x) conj g(x)), so for a plate of unit modulus
+
+    efficiency <= max over theta of (mean_x |g(x)|)^2
+
+(Wyrowski's bound), reached only where |g| is constant. A plate of L levels can
+only match arg g to the nearest level, so
+
+    efficiency <= max over theta of (mean_x |g(x)| cos d(x))^2,
+
+d the distance of arg g to the nearest level (the global phase is part of
+theta). Both maxima are found by L-BFGS from random phases, so the figures
+returned are estimates from below of the true bounds. A design within the
+fidelity goals need not have exactly the target's shape: a faint, nearly
+uniform background in the dark orders counts as window power, which lets a
+design pass the exact-shape bound by a few percent (docs/retrieve.md).
+"""
+
+import numpy as np
+import scipy.fft
+
+from doe import fraunhofer
+from doe.lbfgs import minimise
+
+
+def best_flat_field(target, n_pixels, n_levels=None, rng=None, restarts=3, max_eval=200):
+    """Return (bound, g) maximising the exact-shape efficiency bound over the lit orders' phases.
+
+    Parameters
+    ----------
+    target : (K, K) array
+        Target PSF, >= 0, sum 1.
+    n_pixels : int
+        Tile size N.
+    n_levels : int or None
+        L for the bound of an L-level plate; None for a continuous phase.
+    rng : numpy Generator
+        Draws the random starting phases (default seed 0).
+
+    Returns
+    -------
+    bound : float
+        The efficiency bound (mean |g| cos d)^2 at the best phases found.
+    g : (N, N) complex128
+        The band-limited field there; its argument is a flat-modulus start.
+    """
+    rng = np.random.default_rng(0) if rng is None else rng
+    k = target.shape[0]
+    sel = np.ix_(*[fraunhofer.window_indices(n_pixels, k)] * 2)
+    lit = target > 0
+    amp = np.sqrt(target[lit])
+
+    def field(theta):
+        spec = np.zeros((n_pixels, n_pixels), dtype=np.complex128)
+        win = np.zeros((k, k), dtype=np.complex128)
+        win[lit] = amp * np.exp(1j * theta)
+        spec[sel] = win
+        return scipy.fft.ifft2(spec) * n_pixels**2, win[lit]
+
+    def objective(step):
+        def fun(theta):
+            # mean Re(g conj q) with q the unit-modulus plate that best matches g (arg g,
+            # or its nearest level); d/dtheta_u = Re(i w_u conj(Q_u)), Q the window of q
+            g, w = field(theta)
+            if step is None:
+                q, matched = g / np.maximum(np.abs(g), 1e-300), np.abs(g)
+            else:
+                q = np.exp(1j * step * np.round(np.angle(g) / step))
+                matched = np.real(g * np.conj(q))
+            h = scipy.fft.fft2(q)[sel][lit] / n_pixels**2
+            return -float(np.mean(matched)), -np.real(1j * w * np.conj(h))
+
+        return fun
+
+    starts = [rng.uniform(-np.pi, np.pi, int(lit.sum())) for _ in range(restarts)]
+    runs = [minimise(objective(None), x0, max_eval) for x0 in starts]
+    theta, value = min(runs, key=lambda run: run[1])
+    if n_levels is not None:
+        # the levelled objective is piecewise smooth with many local maxima: start
+        # from the continuous optimum under a sweep of global phases (over which its
+        # mean keeps sinc(1 / L) of mean |g|) as well as from the random phases
+        step = 2 * np.pi / n_levels
+        starts += [theta + offset for offset in np.arange(8) * step / 8]
+        runs = [minimise(objective(step), x0, max_eval) for x0 in starts]
+        theta, value = min(runs, key=lambda run: run[1])
+    return value**2, field(theta)[0]
+
+
+def with_background(target, rmse):
+    """Return the target with a uniform background in its dark orders that costs ``rmse``.
+
+    The background is ``rmse * sqrt(K^2 / dark orders)`` of the peak, so the rmse
+    of CONVENTIONS.md between the two (both normalised by their peaks) is ``rmse``;
+    the result sums to 1.
+    """
+    dark = target == 0
+    if not dark.any():
+        return target / target.sum()
+    level = rmse * np.sqrt(target.size / dark.sum()) * target.max()
+    padded = target + level * dark
+    return padded / padded.sum()
+
+
+def efficiency_bound(target, n_pixels, n_levels=None, rng=None, restarts=3, max_eval=200):
+    """Return the exact-shape efficiency bound of a continuous (None) or L-level tile."""
+    return best_flat_field(target, n_pixels, n_levels, rng, restarts, max_eval)[0]

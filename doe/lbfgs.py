@@ -1,0 +1,33 @@
+"""nlopt L-BFGS that keeps the best point it has seen."""
+
+import numpy as np
+
+
+def minimise(fun, x0, max_eval, ftol_rel=1e-10):
+    """Minimise ``fun(x) -> (value, grad)`` with nlopt L-BFGS; return (best x, best value).
+
+    nlopt wants the gradient written in place and drops its best point on some
+    exceptions (a round-off stop, an error raised in ``fun``), so the best point
+    is tracked here.
+    """
+    import nlopt
+
+    best = {"x": x0.copy(), "f": np.inf}
+
+    def f(x, grad):
+        value, g = fun(x)
+        if grad.size:
+            grad[:] = g.ravel()
+        if value < best["f"]:
+            best["f"], best["x"] = value, x.copy()
+        return value
+
+    opt = nlopt.opt(nlopt.LD_LBFGS, x0.size)
+    opt.set_min_objective(f)
+    opt.set_maxeval(int(max_eval))
+    opt.set_ftol_rel(ftol_rel)
+    try:
+        opt.optimize(x0.ravel().copy())
+    except (nlopt.RoundoffLimited, ValueError, RuntimeError):
+        pass  # keep our own best point: nlopt drops it on these exceptions
+    return best["x"], best["f"]
