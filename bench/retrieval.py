@@ -42,13 +42,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from doe import fraunhofer, retrieval, targets
 
-COMPACT = ("compact_blob", "near_delta", "paper_gaussian", "near_delta_0.3", "near_delta_0.4")
-"""Targets held to the 0.90 efficiency bound (the rest to 0.85)."""
-
 
 def acceptance(name, q, seconds):
     """Return the failed acceptance checks of issue 2 (empty: PASS)."""
-    bound = 0.90 if name in COMPACT else 0.85
+    bound = 0.90 if name in targets.COMPACT else 0.85
     checks = {
         "corr": q["correlation"] >= 0.9999,
         "rmse": q["rmse"] <= 0.005,

@@ -165,6 +165,11 @@ TARGETS = {
 """Name -> generator ``f(k) -> (K, K) PSF`` of every named target."""
 
 
+COMPACT = ("compact_blob", "near_delta", "paper_gaussian", "near_delta_0.3", "near_delta_0.4")
+"""The compact kernels among the named and robustness targets: the benches hold them
+to an efficiency floor of 0.90, every other target to 0.85."""
+
+
 def make_target(name, k=11):
     """Return the named target PSF of size ``k`` (see :data:`TARGETS`)."""
     try:
