@@ -67,7 +67,7 @@ def main(argv=None):
             t0 = time.perf_counter()
             design = retrieval.retrieve_phase(target, n, n_levels, seed=args.seed)
             eff = design.quality_quantised["efficiency"]
-            floor = 0.90 if name in targets.COMPACT else 0.85
+            floor = targets.efficiency_floor(name)
             if eff >= floor:
                 verdict = "meets the floor"
             elif floor > padded:

@@ -45,7 +45,7 @@ from doe import fraunhofer, retrieval, targets
 
 def acceptance(name, q, seconds):
     """Return the failed acceptance checks of issue 2 (empty: PASS)."""
-    bound = 0.90 if name in targets.COMPACT else 0.85
+    bound = targets.efficiency_floor(name)
     checks = {
         "corr": q["correlation"] >= 0.9999,
         "rmse": q["rmse"] <= 0.005,

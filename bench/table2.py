@@ -2,7 +2,7 @@
 
 Trains low fill-factor (delta PSF), full fill-factor (4 x 4 box), Gaussian
 (sigma 0.459 sub-pixel as the issue reads the paper, and sigma 0.459 SPAD
-pixel = 1.836 sub-pixels, the reading under which a Gaussian can beat the box)
+pixel = 1.836 sub-pixels, the other reading of the paper's sigma)
 and learned-PSF models with ``doefab learn`` on the
 same images and the same budget, evaluates them on Set5, Set14 and any extra
 folders, and prints PSNR/SSIM beside the paper's numbers. The learned model is

@@ -462,19 +462,6 @@ def level_step(n_levels):
     return 2 * np.pi / n_levels
 
 
-def refine_continuous(phase, target, weight=DEFAULT_WEIGHT, max_eval=300):
-    """Return the phase (rad, (N, N)) after L-BFGS on :func:`objective`."""
-    shape = phase.shape
-    goal = _Goal.of(target)
-
-    def fun(x):
-        value, grad = objective(x.reshape(shape), target, weight, goal)
-        return value, grad
-
-    x, _ = _lbfgs(fun, np.asarray(phase, float).ravel(), max_eval)
-    return x.reshape(shape)
-
-
 def refine_constrained(phase, target, cap=None, mus=PENALTIES, max_eval=35):
     """Return (phase, fidelity, efficiency) after L-BFGS on :func:`constrained_objective`.
 

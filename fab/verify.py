@@ -20,7 +20,14 @@ K x K window of an N = 175 tile changes powers by under 0.3 %.
 
 import numpy as np
 
-from doe.fraunhofer import correlation, level_phase, order_amplitudes, rmse, simulate_levels
+from doe.fraunhofer import (
+    correlation,
+    level_phase,
+    order_amplitudes,
+    rmse,
+    simulate_levels,
+    window_indices,
+)
 from fab.masks import masks_from_levels
 
 ORIENTATIONS = ("as-designed", "rot90", "rot180", "rot270", "mirror-x", "mirror-y")
@@ -534,7 +541,7 @@ def _search_summary(searches, valid, rows, cols, period, design_psf):
     inflation = max(1.0, best / dof)
     d = searches["design"]
     k = design_psf.shape[0]
-    idx = (np.arange(k) - k // 2) % period.shape[0]
+    idx = window_indices(period.shape[0], k)
     psf_corr = {}
     for name, transform in _TRANSFORMS.items():
         window = transform(period)[np.ix_(idx, idx)]
