@@ -1,6 +1,7 @@
 """``doefab retrieve``: an 8-level phase tile from a target PSF (see doe.retrieval)."""
 
 import hashlib
+import math
 from pathlib import Path
 
 from doe.errors import InputError
@@ -88,8 +89,10 @@ def run(args):
             stage / "retrieval.png", target, psf, result.levels, n_levels, result.quality_quantised
         )
     q = result.quality_quantised
+    corr = q["correlation"]
+    corr = "undefined (uniform target)" if math.isnan(corr) else f"{corr:.6f}"
     print(
-        f"retrieve: {n_levels} levels, N = {n}, K = {k}: correlation {q['correlation']:.6f}, "
+        f"retrieve: {n_levels} levels, N = {n}, K = {k}: correlation {corr}, "
         f"rmse {q['rmse']:.5f}, efficiency {q['efficiency']:.4f} in {result.seconds:.1f} s "
         f"-> {args.out}"
     )

@@ -100,6 +100,7 @@ class Derived:
 
 # (section, key) -> (type, unit scale to SI or None, check, explanation)
 _POSITIVE = (lambda v: v > 0, "must be > 0")
+_SHORTEST, _LONGEST = 1e-12, 1.0  # m, the range of every length in a design
 _NONNEG = (lambda v: v >= 0, "must be >= 0")
 _SCHEMA = {
     "sensor": {
@@ -271,7 +272,12 @@ def _check_value(where, value, typ, scale, ok, why):
     if not ok(value):
         raise InputError(where, f"{why}, got {value!r}")
     if scale is not None:
-        value = [v * scale for v in value] if typ is list else value * scale
+        given, value = value, [v * scale for v in value] if typ is list else value * scale
+        # lengths outside 1 pm .. 1 m are typing errors, and would overflow the
+        # derived quantities (a pitch squared) rather than fail a physical check
+        sizes = [abs(v) for v in value if v != 0] if typ is list else [value]
+        if not all(_SHORTEST <= v <= _LONGEST for v in sizes):
+            raise InputError(where, f"must lie between 1 pm and 1 m, got {given!r}")
     return value
 
 

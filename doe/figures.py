@@ -51,9 +51,10 @@ def save_retrieval_figure(path, target, psf, levels, n_levels, quality):
     axes[3].set_xlabel("column (+x)")
     axes[3].set_ylabel("row (row 0 = top)")
     fig.colorbar(im, ax=axes[3], fraction=0.046)
+    corr = quality["correlation"]
+    corr = "undefined (uniform target)" if np.isnan(corr) else f"{corr:.6f}"
     fig.suptitle(
-        f"correlation {quality['correlation']:.6f}   rmse {quality['rmse']:.5f}   "
-        f"efficiency {quality['efficiency']:.4f}"
+        f"correlation {corr}   rmse {quality['rmse']:.5f}   efficiency {quality['efficiency']:.4f}"
     )
     fig.tight_layout()
     fig.savefig(path, dpi=80, metadata=PNG_METADATA)

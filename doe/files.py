@@ -92,19 +92,31 @@ def read_json(path):
 
 
 def write_json(path, obj):
-    """Write ``obj`` as indented, key-sorted JSON (deterministic bytes), atomically."""
-    text = json.dumps(obj, indent=2, sort_keys=True, default=_json_default) + "\n"
+    """Write ``obj`` as indented, key-sorted JSON (deterministic bytes), atomically.
+
+    Numpy scalars and arrays become numbers and lists. JSON has no NaN or
+    infinity (strict readers refuse Python's ``NaN``), so a figure that is
+    undefined -- the correlation with a uniform target -- is written as null.
+    """
+    text = json.dumps(_plain(obj), indent=2, sort_keys=True, allow_nan=False) + "\n"
     atomic_write_bytes(path, text.encode())
 
 
-def _json_default(o):
-    if isinstance(o, np.generic):
-        return o.item()
+def _plain(o):
+    """Return ``o`` with numpy values as Python ones and non-finite floats as None."""
+    if isinstance(o, dict):
+        return {k: _plain(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_plain(v) for v in o]
     if isinstance(o, np.ndarray):
-        return o.tolist()
+        return _plain(o.tolist())
+    if isinstance(o, np.generic):
+        o = o.item()
+    if isinstance(o, float) and not np.isfinite(o):
+        return None
     if isinstance(o, Path):
         return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+    return o
 
 
 def save_npy(path, array):

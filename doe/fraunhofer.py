@@ -54,8 +54,18 @@ def simulate_levels(levels, n_levels, k):
 
 
 def correlation(psf, target):
-    """Return the Pearson correlation of two PSFs, flattened."""
-    return float(np.corrcoef(np.ravel(psf), np.ravel(target))[0, 1])
+    """Return the Pearson correlation of two PSFs, flattened.
+
+    NaN where either is uniform (a flat top filling the window): Pearson's
+    correlation is then undefined, and the rmse alone measures the fit.
+    """
+    a, b = np.ravel(psf).astype(float), np.ravel(target).astype(float)
+    a, b = a - a.mean(), b - b.mean()
+    norm_a, norm_b = np.sqrt(np.dot(a, a)), np.sqrt(np.dot(b, b))
+    # a spread of rounding errors is no variation
+    if norm_a <= 1e-12 * np.abs(psf).max() or norm_b <= 1e-12 * np.abs(target).max():
+        return float("nan")
+    return float(np.dot(a, b) / (norm_a * norm_b))
 
 
 def rmse(psf, target):

@@ -8,12 +8,11 @@ links), so the two never disagree. Output is deterministic for the same input.
 """
 
 import html
-import json
 from pathlib import Path
 
 import numpy as np
 
-from doe.files import atomic_write_bytes
+from doe.files import atomic_write_bytes, write_json
 from doe.fraunhofer import correlation, level_phase, rmse
 
 REPORT_MD = "fab_report.md"
@@ -61,21 +60,12 @@ def write_fab_report(out_dir, context):
     written = _write_figures(out_dir, context)
     tolerance = context.get("tolerance")
     if tolerance is not None:
-        text = json.dumps(tolerance, indent=2, sort_keys=True, default=_json_default) + "\n"
-        atomic_write_bytes(out_dir / TOLERANCE_JSON, text.encode())
+        write_json(out_dir / TOLERANCE_JSON, tolerance)
         written.append(TOLERANCE_JSON)
     blocks = report_blocks(context, figures=written)
     atomic_write_bytes(out_dir / REPORT_MD, render_markdown(blocks).encode())
     atomic_write_bytes(out_dir / REPORT_HTML, render_html(blocks).encode())
     return [REPORT_MD, REPORT_HTML, *written]
-
-
-def _json_default(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
 def _write_figures(out_dir, context):

@@ -82,6 +82,10 @@ def test_every_material_refuses_wavelengths_outside_its_fit():
         ("fabrication", "aperture_mm", 0.5, "larger than the aperture"),
         ("optics", "wavelength_nm", 5000.0, "outside the Sellmeier range"),
         ("sensor", "pixel_pitch_um", -150.0, "must be > 0"),
+        # found by hypothesis: a pitch of 1e160 um overflowed the fill factor
+        ("sensor", "pixel_pitch_um", 1e160, "between 1 pm and 1 m"),
+        ("optics", "focal_length_mm", 1e-300, "between 1 pm and 1 m"),
+        ("sensor", "active_offset_um", [0.0, 1e7], "between 1 pm and 1 m"),
         ("psf", "kernel_size", 10, "odd"),
         ("psf", "kernel_size", 401, "exceeds"),
         ("sensor", "active_area_um", 200.0, "larger than the pixel pitch"),

@@ -116,3 +116,13 @@ def test_quality_figures_are_the_contract_definitions():
     assert q["correlation"] == pytest.approx(np.corrcoef(sim.ravel(), target.ravel())[0, 1])
     ref = np.sqrt(np.mean((sim / sim.max() - target / target.max()) ** 2))
     assert q["rmse"] == pytest.approx(ref, rel=1e-12)
+
+
+def test_correlation_with_a_uniform_target_is_undefined_not_noise():
+    rng = np.random.default_rng(1)
+    psf = rng.uniform(0, 1, (11, 11))
+    # 1/121 does not sum exactly: the mean leaves rounding residues, not variation
+    assert np.isnan(fraunhofer.correlation(psf, np.full((11, 11), 1 / 121)))
+    assert np.isnan(fraunhofer.correlation(np.full((5, 5), 0.3), psf[:5, :5]))
+    assert fraunhofer.correlation(psf, 2 * psf + 1) == pytest.approx(1.0, abs=1e-14)
+    assert fraunhofer.correlation(psf, -psf) == pytest.approx(-1.0, abs=1e-14)
