@@ -24,8 +24,8 @@ How it was run (the figures quoted in docs/retrieve.md)::
 
     python bench/retrieval.py            # N = 175, L = 8, seed 0
 
-on the shared 2-core development machine while other jobs were running
-(load average 4-9), so the seconds are pessimistic.
+on the shared 2-core development machine, idle (load below 1), 2 min 30 s in
+all; under load the seconds grow with it.
 """
 
 import argparse
