@@ -593,7 +593,7 @@ def _finish(phase, gains, target, n_levels, rng, cd_weights, cap, quantised_iter
     """Return (levels, exact fidelity): the discrete stages of :func:`retrieve_phase`.
 
     Two descents, one from quantised GS and one from the best plain rounding: which
-    of them ends higher is a lottery (on 9 hard flat tops x 2 seeds the second won
+    of them ends higher is a lottery (on 7 hard flat tops x 2 seeds the second won
     13 times, by 0.0004-0.012 of efficiency), so both run and the better is kept.
     """
     n_pixels, k = phase.shape[0], target.shape[0]
