@@ -1,7 +1,6 @@
 """``doefab retrieve``: an 8-level phase tile from a target PSF (see doe.retrieval)."""
 
 import hashlib
-import math
 from pathlib import Path
 
 from doe.errors import InputError
@@ -41,7 +40,7 @@ def run(args):
 
     from doe import fraunhofer
     from doe.design import derive, design_summary, load_design
-    from doe.figures import save_retrieval_figure
+    from doe.figures import correlation_text, save_retrieval_figure
     from doe.files import read_psf, save_npy, staged_output, write_json
     from doe.retrieval import retrieve_phase
 
@@ -89,10 +88,9 @@ def run(args):
             stage / "retrieval.png", target, psf, result.levels, n_levels, result.quality_quantised
         )
     q = result.quality_quantised
-    corr = q["correlation"]
-    corr = "undefined (uniform target)" if math.isnan(corr) else f"{corr:.6f}"
     print(
-        f"retrieve: {n_levels} levels, N = {n}, K = {k}: correlation {corr}, "
+        f"retrieve: {n_levels} levels, N = {n}, K = {k}: "
+        f"correlation {correlation_text(q['correlation'])}, "
         f"rmse {q['rmse']:.5f}, efficiency {q['efficiency']:.4f} in {result.seconds:.1f} s "
         f"-> {args.out}"
     )

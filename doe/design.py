@@ -100,8 +100,8 @@ class Derived:
 
 # (section, key) -> (type, unit scale to SI or None, check, explanation)
 _POSITIVE = (lambda v: v > 0, "must be > 0")
-_SHORTEST, _LONGEST = 1e-12, 1.0  # m, the range of every length in a design
 _NONNEG = (lambda v: v >= 0, "must be >= 0")
+_SHORTEST, _LONGEST = 1e-12, 1.0  # m, the range of every length in a design
 _SCHEMA = {
     "sensor": {
         "columns": (int, None, _POSITIVE),

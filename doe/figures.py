@@ -9,6 +9,11 @@ PNG_METADATA = {"Software": None}
 """savefig metadata for PNG: no software/version stamp, so the bytes are deterministic."""
 
 
+def correlation_text(value):
+    """Return a correlation for people: 6 decimals, or why it is undefined (NaN)."""
+    return "undefined (uniform target)" if np.isnan(value) else f"{value:.6f}"
+
+
 def save_retrieval_figure(path, target, psf, levels, n_levels, quality):
     """Write a PNG of the target, the simulated PSF, their difference and the level map.
 
@@ -51,10 +56,9 @@ def save_retrieval_figure(path, target, psf, levels, n_levels, quality):
     axes[3].set_xlabel("column (+x)")
     axes[3].set_ylabel("row (row 0 = top)")
     fig.colorbar(im, ax=axes[3], fraction=0.046)
-    corr = quality["correlation"]
-    corr = "undefined (uniform target)" if np.isnan(corr) else f"{corr:.6f}"
     fig.suptitle(
-        f"correlation {corr}   rmse {quality['rmse']:.5f}   efficiency {quality['efficiency']:.4f}"
+        f"correlation {correlation_text(quality['correlation'])}   "
+        f"rmse {quality['rmse']:.5f}   efficiency {quality['efficiency']:.4f}"
     )
     fig.tight_layout()
     fig.savefig(path, dpi=80, metadata=PNG_METADATA)

@@ -590,7 +590,7 @@ def _progress_bar(enabled, total):
 
 
 def _finish(phase, gains, target, n_levels, rng, cd_weights, cap, quantised_iterations, bar):
-    """Return (levels, exact fidelity): the discrete stages of :func:`retrieve_phase`.
+    """Return (:func:`_rank` key, levels): the discrete stages of :func:`retrieve_phase`.
 
     Two descents, one from quantised GS and one from the best plain rounding: which
     of them ends higher is a lottery (on 7 hard flat tops x 2 seeds the second won
@@ -619,14 +619,18 @@ def _finish(phase, gains, target, n_levels, rng, cd_weights, cap, quantised_iter
         )
         for s in roundings
     ]
-    best = None
+    ranked = []
     for start in (round_levels(soft, n_levels), roundings[int(np.argmin(scores))]):
         levels, fid = _descend(start, target, n_levels, rng, cd_weights, cap, bar)
         eff = fraunhofer.simulate_levels(levels, n_levels, k)[1]
-        key = (0, -eff) if fid <= cap else (1, fid)
-        if best is None or key < best[0]:
-            best = (key, levels, fid)
-    return best[1], best[2]
+        ranked.append((_rank(eff, fid, cap), len(ranked), levels))
+    key, _, levels = min(ranked, key=lambda r: r[:2])
+    return key, levels
+
+
+def _rank(eff, fid, cap):
+    """Sort key of a level map: within the cap the most efficient first, else the most faithful."""
+    return (0, -eff) if fid <= cap else (1, fid)
 
 
 def _descend(levels, target, n_levels, rng, cd_weights, cap, bar):
@@ -760,12 +764,9 @@ def retrieve_phase(
     designs.sort(key=lambda d: (-d[0], d[1]))
     best = None
     for _, _, phase, gains in designs[:finishes]:
-        levels, fid = _finish(
+        key, levels = _finish(
             phase, gains, target, n_levels, rng, cd_weights, cap, quantised_iterations, bar
         )
-        eff = fraunhofer.simulate_levels(levels, n_levels, k)[1]
-        # within the cap the most efficient wins, else the most faithful
-        key = (0, -eff) if fid <= cap else (1, fid)
         if best is None or key < best[0]:
             best = (key, levels, phase)
     _, levels, phase = best

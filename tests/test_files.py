@@ -1,17 +1,10 @@
 """Contract readers and the staged (all-or-nothing) output folder."""
 
-import json
-
 import numpy as np
 import pytest
 
 from doe.errors import InputError
 from doe.files import read_levels, read_psf, save_npy, staged_output, write_json
-
-
-def _strict(token):
-    """json.loads hook: NaN and Infinity are not JSON, so a strict reader refuses them."""
-    raise ValueError(f"not JSON: {token}")
 
 
 def test_staged_output_leaves_nothing_on_failure(tmp_path):
@@ -60,7 +53,7 @@ def test_read_levels_refuses_contract_violations(tmp_path, array, message):
         read_levels(tmp_path / "levels.npy", 8)
 
 
-def test_write_json_is_strict_json_with_undefined_figures_as_null(tmp_path):
+def test_write_json_is_strict_json_with_undefined_figures_as_null(tmp_path, read_strict_json):
     obj = {
         "corr": float("nan"),
         "inf": np.float64(np.inf),
@@ -72,7 +65,7 @@ def test_write_json_is_strict_json_with_undefined_figures_as_null(tmp_path):
     path = tmp_path / "f.json"
     write_json(path, obj)
     # a strict reader: Python's NaN / Infinity tokens would raise here
-    back = json.loads(path.read_text(), parse_constant=_strict)
+    back = read_strict_json(path)
     assert back == {
         "corr": None,
         "inf": None,

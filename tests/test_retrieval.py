@@ -381,11 +381,6 @@ def _psf_file(tmp_path, psf, name="psf.npy"):
     return path
 
 
-def _strict(token):
-    """json.loads hook: NaN and Infinity are not JSON, so a strict reader refuses them."""
-    raise ValueError(f"not JSON: {token}")
-
-
 def _run(args, capsys):
     code = main(["retrieve", *map(str, args)])
     return code, capsys.readouterr().err
@@ -416,14 +411,16 @@ def test_cli_writes_the_contract_files(tmp_path, capsys):
         assert (out / name).read_bytes() == (out2 / name).read_bytes(), name
 
 
-def test_cli_on_a_uniform_target_reports_the_correlation_as_undefined(tmp_path, capsys):
+def test_cli_on_a_uniform_target_reports_the_correlation_as_undefined(
+    tmp_path, capsys, read_strict_json
+):
     # a flat top filling the window: Pearson's correlation is undefined, the rmse decides
     psf = _psf_file(tmp_path, np.full((5, 5), 1 / 25))
     out = tmp_path / "out"
     code = main(["retrieve", str(psf), "--out", str(out), "--tile-pixels", "21"])
     printed = capsys.readouterr().out
     assert code == 0 and "correlation undefined (uniform target)" in printed
-    info = json.loads((out / "retrieval.json").read_text(), parse_constant=_strict)
+    info = read_strict_json(out / "retrieval.json")
     assert info["quantised"]["correlation"] is None
     assert 0 < info["quantised"]["rmse"] < 0.05
 
