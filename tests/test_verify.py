@@ -206,7 +206,7 @@ def test_ambiguous_zero_order_is_reported_not_passed(tmp_path, half_order_levels
     code, report, _ = run_verify(
         tmp_path,
         half_order_levels,
-        dict(seed=33, peak_fraction=0.1, faults=PlateFaults(conjugate=True)),
+        dict(seed=33, peak_fraction=0.06, faults=PlateFaults(conjugate=True)),
     )
     assert code == 1
     assert "zero_order_ambiguous" in report["diagnosis"]
