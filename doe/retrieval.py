@@ -641,8 +641,7 @@ def _finish(phase, gains, target, n_levels, rng, cd_weights, cap, quantised_iter
     ]
     ranked = []
     for start in (round_levels(soft, n_levels), roundings[int(np.argmin(scores))]):
-        levels, fid = _descend(start, target, n_levels, rng, cd_weights, cap, bar)
-        eff = fraunhofer.simulate_levels(levels, n_levels, k)[1]
+        levels, eff, fid = _descend(start, target, n_levels, rng, cd_weights, cap, bar)
         ranked.append((_rank(eff, fid, cap), len(ranked), levels))
     key, _, levels = min(ranked, key=lambda r: r[:2])
     return key, levels
@@ -654,21 +653,28 @@ def _rank(eff, fid, cap):
 
 
 def _descend(levels, target, n_levels, rng, cd_weights, cap, bar):
-    """Return (levels, exact fidelity) after the coordinate-descent sweeps of :func:`_finish`."""
-    k = target.shape[0]
-    eff = fraunhofer.simulate_levels(levels, n_levels, k)[1]
-    fid = fidelity(fraunhofer.level_phase(levels, n_levels), target)
+    """Return (levels, efficiency, exact fidelity) after the descent sweeps of :func:`_finish`."""
+    goal = _Goal.of(target)
+
+    def figures(levels):
+        """(efficiency, exact fidelity) of a level map."""
+        power = fraunhofer.window_power(fraunhofer.level_phase(levels, n_levels), target.shape[0])
+        return float(power.sum()), float(_values(power, goal, 0.0))
+
+    def sweep(levels, weight, mode):
+        return coordinate_descent(
+            levels, target, n_levels, weight, sweeps=1, rng=rng, cap=cap, mode=mode
+        )
+
+    eff, fid = figures(levels)
     bar.set_description("coordinate descent")
     for w in cd_weights:
         bar.update()
-        levels = coordinate_descent(
-            levels, target, n_levels, w, sweeps=1, rng=rng, cap=cap, mode="smooth"
-        )
-        new_eff = fraunhofer.simulate_levels(levels, n_levels, k)[1]
-        fid = fidelity(fraunhofer.level_phase(levels, n_levels), target)
-        if fid <= cap and new_eff - eff < MIN_GAIN:
+        levels = sweep(levels, w, "smooth")
+        new_eff, fid = figures(levels)
+        gain, eff = new_eff - eff, new_eff
+        if fid <= cap and gain < MIN_GAIN:
             break
-        eff = new_eff
     # The smooth stand-in for the peak normalisation can disagree with the exact
     # rmse on flat-topped targets, either way: the last sweeps use the exact figures.
     for _ in range(POLISH_SWEEPS):
@@ -676,25 +682,19 @@ def _descend(levels, target, n_levels, rng, cd_weights, cap, bar):
             break
         # over the cap: polish, sweep by sweep, still weighing efficiency (with
         # weight 0 the slack below the cap would trade efficiency for needless fidelity)
-        levels = coordinate_descent(
-            levels, target, n_levels, cd_weights[-1], sweeps=1, rng=rng, cap=cap
-        )
-        fid = fidelity(fraunhofer.level_phase(levels, n_levels), target)
-    eff = fraunhofer.simulate_levels(levels, n_levels, k)[1]
+        levels = sweep(levels, cd_weights[-1], "exact")
+        eff, fid = figures(levels)
     for _ in range(CLIMB_SWEEPS if fid <= cap else 0):
         # within the cap: climb into the budget the stand-in left unused (it reads
         # flat tops' rmse high); a sweep that ends over the cap is not kept
-        trial = coordinate_descent(
-            levels, target, n_levels, CLIMB_WEIGHT, sweeps=1, rng=rng, cap=cap
-        )
-        trial_fid = fidelity(fraunhofer.level_phase(trial, n_levels), target)
-        trial_eff = fraunhofer.simulate_levels(trial, n_levels, k)[1]
+        trial = sweep(levels, CLIMB_WEIGHT, "exact")
+        trial_eff, trial_fid = figures(trial)
         if trial_fid > cap or trial_eff <= eff:
             break
         levels, fid, gain, eff = trial, trial_fid, trial_eff - eff, trial_eff
         if gain < MIN_GAIN:
             break
-    return levels, fid
+    return levels, eff, fid
 
 
 def retrieve_phase(
