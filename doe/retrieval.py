@@ -724,8 +724,9 @@ def retrieve_phase(
     each start a coordinate descent on the level map: one sweep for each of the
     efficiency weights ``cd_weights`` in turn, with the fidelity capped at ``cap``
     (below it only :data:`SLACK` of it counts), until the fidelity is within
-    ``cap`` and a sweep gains less than :data:`MIN_GAIN` of efficiency; the most
-    efficient level map within the cap wins.
+    ``cap`` and a sweep gains less than :data:`MIN_GAIN` of efficiency, then
+    sweeps on the exact figures bring a map over the cap within it or spend the
+    budget left below it; the most efficient level map within the cap wins.
 
     Parameters
     ----------
