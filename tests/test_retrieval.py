@@ -375,7 +375,8 @@ def test_retrieval_quality_full_tile(name):
 
 # efficiency floors: the acceptance's 0.85, or for three dots (whose exact-shape
 # bound is 0.827 even with a continuous phase) what bench/retrieval.py measures
-ROBUST_FAST = {"dots_3": 0.78, "disc_r2.5": 0.85, "ring_r2": 0.85}
+# (0.806-0.810 over seeds 0-3), less a little
+ROBUST_FAST = {"dots_3": 0.80, "disc_r2.5": 0.85, "ring_r2": 0.85}
 
 
 @pytest.mark.parametrize("name", ROBUST_FAST)
@@ -406,8 +407,8 @@ def test_every_robustness_target_meets_the_fidelity_goals_at_full_size():
         res = retrieval.retrieve_phase(target, 175, 8, seed=0)
         assert res.quality_quantised["correlation"] >= 0.9999, name
         assert res.quality_quantised["rmse"] <= 0.005 * np.sqrt(retrieval.CAP) + 1e-6, name
-        # sparse dots are bound-limited (docs/retrieve.md), everything else meets 0.85
-        floor = 0.78 if name.startswith("dots") else 0.85
+        # sparse dots are bound-limited (docs/retrieve.md: 0.81-0.85 measured), all else meets 0.85
+        floor = 0.80 if name.startswith("dots") else 0.85
         assert res.quality_quantised["efficiency"] >= floor, name
 
 
