@@ -641,7 +641,7 @@ def _finish(phase, gains, target, n_levels, rng, cd_weights, cap, quantised_iter
     ]
     ranked = []
     for start in (round_levels(soft, n_levels), roundings[int(np.argmin(scores))]):
-        levels, eff, fid = _descend(start, target, n_levels, rng, cd_weights, cap, bar)
+        levels, eff, fid = _descend(start, target, goal, n_levels, rng, cd_weights, cap, bar)
         ranked.append((_rank(eff, fid, cap), len(ranked), levels))
     key, _, levels = min(ranked, key=lambda r: r[:2])
     return key, levels
@@ -652,9 +652,8 @@ def _rank(eff, fid, cap):
     return (0, -eff) if fid <= cap else (1, fid)
 
 
-def _descend(levels, target, n_levels, rng, cd_weights, cap, bar):
+def _descend(levels, target, goal, n_levels, rng, cd_weights, cap, bar):
     """Return (levels, efficiency, exact fidelity) after the descent sweeps of :func:`_finish`."""
-    goal = _Goal.of(target)
 
     def figures(levels):
         """(efficiency, exact fidelity) of a level map."""
