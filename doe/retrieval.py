@@ -30,7 +30,7 @@ import numpy as np
 import scipy.fft
 
 from doe import bounds, fraunhofer
-from doe.lbfgs import minimise as _lbfgs
+from doe.lbfgs import minimise
 
 DEFAULT_WEIGHT = 30.0
 """Weight of the efficiency term against the fidelity terms in :func:`objective`.
@@ -497,7 +497,7 @@ def refine_constrained(phase, target, cap=None, mus=PENALTIES, max_eval=35):
         def fun(v, mu=mu):
             return constrained_objective(v.reshape(shape), target, cap, mu, goal)
 
-        x, _ = _lbfgs(fun, x, max_eval)
+        x, _ = minimise(fun, x, max_eval)
     power = fraunhofer.window_power(x.reshape(shape), target.shape[0])
     fid = float(_values(power, goal, 0.0, mode="smooth"))
     return x.reshape(shape), fid, float(power.sum())
