@@ -26,8 +26,17 @@ def minimise(fun, x0, max_eval, ftol_rel=1e-10):
     opt.set_min_objective(f)
     opt.set_maxeval(int(max_eval))
     opt.set_ftol_rel(ftol_rel)
+    # nlopt >= 2.11 raises a generic failure (e.g. a line search that finds no
+    # descent) as its own nlopt.runtime_error, a subclass of nlopt.exception, not
+    # as Python's RuntimeError
+    stops = (
+        nlopt.RoundoffLimited,
+        ValueError,
+        RuntimeError,
+        getattr(nlopt, "exception", RuntimeError),
+    )
     try:
         opt.optimize(x0.ravel().copy())
-    except (nlopt.RoundoffLimited, ValueError, RuntimeError):
+    except stops:
         pass  # keep our own best point: nlopt drops it on these exceptions
     return best["x"], best["f"]

@@ -1,0 +1,28 @@
+"""doe.lbfgs.minimise: nlopt L-BFGS that never loses its best point."""
+
+import numpy as np
+import pytest
+
+from doe.lbfgs import minimise
+
+
+def test_a_quadratic_is_minimised():
+    x, value = minimise(lambda x: (float(((x - 3.0) ** 2).sum()), 2.0 * (x - 3.0)), np.zeros(4), 50)
+    np.testing.assert_allclose(x, 3.0, atol=1e-6)
+    assert value == pytest.approx(0.0, abs=1e-10)
+
+
+def test_a_failed_run_returns_the_best_point_seen():
+    # a gradient of the wrong sign makes nlopt's line search fail: nlopt >= 2.11
+    # raises its own runtime_error (not Python's RuntimeError) and drops its point
+    seen = []
+
+    def upside_down(x):
+        value = float((x**2).sum())
+        seen.append(value)
+        return value, -2.0 * x
+
+    x0 = np.array([1.0, 2.0])
+    x, value = minimise(upside_down, x0, 100)
+    assert value == min(seen)
+    assert float((x**2).sum()) == value
