@@ -54,3 +54,35 @@ def test_a_uniform_background_costs_exactly_its_rmse_and_no_correlation():
     assert padded.sum() == pytest.approx(1.0)
     assert fraunhofer.rmse(padded, target) == pytest.approx(0.004, rel=1e-9)
     assert fraunhofer.correlation(padded, target) == pytest.approx(1.0, abs=1e-12)
+
+
+def _bound_of_window(window, n_levels):
+    """(mean_x |g| cos d)^2 / |w|^2 of a window field, computed afresh (d: distance to a level)."""
+    spec = np.zeros((N, N), dtype=np.complex128)
+    idx = fraunhofer.window_indices(N, K)
+    spec[np.ix_(idx, idx)] = window
+    g = np.fft.ifft2(spec) * N * N
+    step = 2 * np.pi / n_levels
+    d = np.angle(g) - step * np.round(np.angle(g) / step)
+    return (np.mean(np.abs(g) * np.cos(d)) / np.linalg.norm(window)) ** 2
+
+
+def test_a_single_order_within_the_goals_is_still_bounded_by_one():
+    # Cauchy-Schwarz: mean |g| <= sqrt(mean |g|^2) = |w|, whatever the background
+    bound, _ = bounds.within_goals(_orders((0, 1)), N, None, cap=1.0)
+    assert 0.999 <= bound <= 1.0 + 1e-12
+
+
+def test_a_pattern_within_the_goals_passes_the_uniform_background_and_meets_them():
+    target = _orders((0, -2), (1, 1), (-2, 0))
+    cap = 0.81
+    rmse = 0.005 * np.sqrt(cap)
+    background = bounds.efficiency_bound(bounds.with_background(target, rmse), N, 8)
+    bound, window = bounds.within_goals(target, N, 8, cap=cap)
+    assert bound >= background - 1e-3
+    assert bound < bounds.efficiency_bound(target, N) + 0.2  # finite, near the physics
+    # the window it reports is a pattern within the goals, and its bound is the one reported
+    power = np.abs(window) ** 2 / (np.abs(window) ** 2).sum()
+    assert fraunhofer.rmse(power, target) <= rmse * (1 + 1e-9)
+    assert 1 - fraunhofer.correlation(power, target) <= cap * 1e-4 * (1 + 1e-9)
+    assert _bound_of_window(window, 8) == pytest.approx(bound, rel=1e-9)
