@@ -18,7 +18,8 @@ theta). Both maxima are found by L-BFGS from random phases, so the figures
 returned are estimates from below of the true bounds. A design within the
 fidelity goals need not have exactly the target's shape: a faint, nearly
 uniform background in the dark orders counts as window power, which lets a
-design pass the exact-shape bound by a few percent (docs/retrieve.md).
+design pass the exact-shape bound by a few percent (docs/retrieve.md);
+:func:`within_goals` bounds every design within the goals.
 """
 
 import numpy as np
