@@ -57,22 +57,17 @@ def best_flat_field(target, n_pixels, n_levels=None, rng=None, restarts=3, max_e
     amp = np.sqrt(target[lit])
 
     def field(theta):
-        spec = np.zeros((n_pixels, n_pixels), dtype=np.complex128)
         win = np.zeros((k, k), dtype=np.complex128)
         win[lit] = amp * np.exp(1j * theta)
-        spec[sel] = win
-        return scipy.fft.ifft2(spec) * n_pixels**2, win[lit]
+        return _band_field(win, sel, n_pixels), win[lit]
 
     def objective(step):
         def fun(theta):
             # mean Re(g conj q) with q the unit-modulus plate that best matches g (arg g,
             # or its nearest level); d/dtheta_u = Re(i w_u conj(Q_u)), Q the window of q
             g, w = field(theta)
-            if step is None:
-                q, matched = g / np.maximum(np.abs(g), 1e-300), np.abs(g)
-            else:
-                q = np.exp(1j * step * np.round(np.angle(g) / step))
-                matched = np.real(g * np.conj(q))
+            q = _best_plate(g, step)
+            matched = np.abs(g) if step is None else np.real(g * np.conj(q))
             h = scipy.fft.fft2(q)[sel][lit] / n_pixels**2
             return -float(np.mean(matched)), -np.real(1j * w * np.conj(h))
 
@@ -135,7 +130,7 @@ def within_goals(target, n_pixels, n_levels=None, cap=1.0, max_eval=150, mus=(10
     window : (K, K) complex128
         Its window field, unit norm.
     """
-    from doe.retrieval import RMSE_GOAL, _fidelity_parts, _Goal  # it imports this module
+    from doe.retrieval import RMSE_GOAL, _fidelity_parts, _Goal, _values  # it imports this module
 
     k = target.shape[0]
     sel = np.ix_(*[fraunhofer.window_indices(n_pixels, k)] * 2)
@@ -145,13 +140,8 @@ def within_goals(target, n_pixels, n_levels=None, cap=1.0, max_eval=150, mus=(10
 
     def fun(x, mu):
         w = x[: k * k].reshape(k, k) + 1j * x[k * k :].reshape(k, k)
-        spec = np.zeros((n_pixels, n_pixels), dtype=np.complex128)
-        spec[sel] = w
-        g = scipy.fft.ifft2(spec) * n_pixels**2
-        if step is None:
-            q = g / np.maximum(np.abs(g), 1e-300)
-        else:
-            q = np.exp(1j * step * np.round(np.angle(g) / step))
+        g = _band_field(w, sel, n_pixels)
+        q = _best_plate(g, step)
         big_q = scipy.fft.fft2(q)[sel] / n_pixels**2  # d mean Re(g conj q) / d w (re + i im)
         s = float((w.real**2 + w.imag**2).sum())
         m = float(np.real(np.vdot(big_q, w)))
@@ -164,7 +154,8 @@ def within_goals(target, n_pixels, n_levels=None, cap=1.0, max_eval=150, mus=(10
         grad = 2.0 * w * (d_p - (d_p * power).sum()) / s
         grad -= 2.0 * b * (big_q / np.sqrt(s) - m * w / s**1.5)
         bound = b * b
-        if bound > best["bound"] and _within(power, target, cap):
+        # only patterns whose exact figures (CONVENTIONS.md) are within the cap count
+        if bound > best["bound"] and _values(power, goal, 0.0) <= cap:
             best["bound"], best["w"] = bound, w / np.sqrt(s)
         return -bound + mu * (e_r * e_r + e_c * e_c), np.concatenate(
             [grad.real.ravel(), grad.imag.ravel()]
@@ -181,10 +172,15 @@ def within_goals(target, n_pixels, n_levels=None, cap=1.0, max_eval=150, mus=(10
     return best["bound"], best["w"]
 
 
-def _within(power, target, cap):
-    """Whether window power P meets each exact fidelity figure of CONVENTIONS.md within ``cap``."""
-    from doe.retrieval import CORRELATION_GOAL, RMSE_GOAL
+def _band_field(window, sel, n_pixels):
+    """Return the (N, N) field whose only orders are the K x K ``window`` (at ``sel``)."""
+    spec = np.zeros((n_pixels, n_pixels), dtype=np.complex128)
+    spec[sel] = window
+    return scipy.fft.ifft2(spec) * n_pixels**2
 
-    rmse = fraunhofer.rmse(power / power.sum(), target)
-    corr = fraunhofer.correlation(power / power.sum(), target)
-    return (rmse / RMSE_GOAL) ** 2 <= cap and (1.0 - corr) / (1.0 - CORRELATION_GOAL) <= cap
+
+def _best_plate(g, step):
+    """Return the unit-modulus plate that best matches g: arg g, or its nearest level (``step``)."""
+    if step is None:
+        return g / np.maximum(np.abs(g), 1e-300)
+    return np.exp(1j * step * np.round(np.angle(g) / step))
