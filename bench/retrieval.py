@@ -23,6 +23,7 @@ slmsuite is imported lazily; install it for the bench only with
 How it was run (the figures quoted in docs/retrieve.md)::
 
     python bench/retrieval.py            # N = 175, L = 8, seed 0
+    python bench/retrieval.py --drawn 20261122   # targets drawn afresh (docs/retrieve.md)
 
 on the shared 2-core development machine, idle (load below 1), 2 min 30 s in
 all; under load the seconds grow with it.
@@ -55,16 +56,17 @@ def acceptance(name, q, seconds):
     return [key for key, ok in checks.items() if not ok]
 
 
-def robustness(n, n_levels, seed):
-    """Print doefab's figures and PASS/FAIL on :func:`doe.targets.robustness_set`."""
+def robustness(n, n_levels, seed, title="robustness set", target_set=None):
+    """Print doefab's figures and PASS/FAIL on ``target_set`` (default: the robustness set)."""
+    target_set = targets.robustness_set(11) if target_set is None else target_set
     print(
-        f"\n== robustness set (doefab, quantised), N = {n}, L = {n_levels}, seed {seed}\n"
+        f"\n== {title} (doefab, quantised), N = {n}, L = {n_levels}, seed {seed}\n"
         f"{'target':16s} {'lit':>4s} {'correlation':>12s} {'rmse':>9s} {'efficiency':>10s} "
         f"{'cont eff':>8s} {'seconds':>8s}  acceptance"
     )
     fails = 0
     rows = []
-    for name, target in targets.robustness_set(11).items():
+    for name, target in target_set.items():
         res = retrieval.retrieve_phase(target, n, n_levels, seed=seed)
         q = fraunhofer.quality(fraunhofer.level_phase(res.levels, n_levels), target)
         bad = acceptance(name, q, res.seconds)
@@ -141,7 +143,17 @@ def main(argv=None):
         default="yes",
         help="also (or only) run doefab on doe.targets.robustness_set",
     )
+    ap.add_argument(
+        "--drawn",
+        type=int,
+        metavar="SEED",
+        help="only run doefab on doe.targets.drawn_set(SEED): targets drawn afresh",
+    )
     args = ap.parse_args(argv)
+    if args.drawn is not None:
+        drawn = targets.drawn_set(args.drawn, 11)
+        robustness(args.tile_pixels, args.levels, args.seed, f"drawn set {args.drawn}", drawn)
+        return 0
     if args.robustness == "only":
         robustness(args.tile_pixels, args.levels, args.seed)
         return 0

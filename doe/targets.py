@@ -152,6 +152,46 @@ def robustness_set(k=11):
     return out
 
 
+def drawn_set(seed, k=11):
+    """Return {name: PSF} of 34 targets of every kind drawn afresh from ``seed``.
+
+    For checks on targets nobody tuned the retrieval for: 4 shifted compact blobs
+    (sigma 0.8-1.6), 4 near-deltas (sigma 0.25-0.5), 4 rotated anisotropic
+    Gaussians, 4 discs (radius 1.5-4.5), 3 off-axis rectangles, 4 sums of three
+    elliptical blobs, 3 dense random kernels, 2 rings and 6 random-dot kernels.
+    """
+    rng = np.random.default_rng(seed)
+    out = {}
+    for i in range(4):
+        sigma = rng.uniform(0.8, 1.6)
+        out[f"compact_blob_d{i}"] = gaussian(k, sigma, centre=tuple(rng.uniform(-0.5, 0.5, 2)))
+    for i in range(4):
+        out[f"near_delta_d{i}"] = gaussian(k, rng.uniform(0.25, 0.5))
+    for i in range(4):
+        sigma, sigma_x = rng.uniform(0.5, 1.0), rng.uniform(1.5, 3.0)
+        out[f"anisotropic_d{i}"] = gaussian(k, sigma, sigma_x, angle=rng.uniform(0, np.pi))
+    for i in range(4):
+        out[f"disc_d{i}"] = flat_top(k, rng.uniform(1.5, 4.5))
+    y, x = _grid(k)
+    for i in range(3):
+        cy, hy = rng.uniform(-1, 1), rng.uniform(1, 3)
+        cx, hx = rng.uniform(-1, 1), rng.uniform(1, 3)
+        out[f"rectangle_d{i}"] = _normalise((np.abs(y - cy) <= hy) & (np.abs(x - cx) <= hx))
+    for i in range(4):
+        blobs = []
+        for _ in range(3):
+            w, sy, sx, angle = rng.uniform(0.3, 1), *rng.uniform(0.6, 1.5, 2), rng.uniform(0, np.pi)
+            blobs.append(w * gaussian(k, sy, sx, angle, centre=tuple(rng.uniform(-3, 3, 2))))
+        out[f"three_blobs_d{i}"] = _normalise(sum(blobs))
+    for i in range(3):
+        out[f"dense_d{i}"] = dense_random(k, seed=int(rng.integers(2**31)))
+    for i in range(2):
+        out[f"ring_d{i}"] = ring(k, rng.uniform(2, 4), rng.uniform(0.4, 0.9))
+    for i in range(6):
+        out[f"dots_d{i}"] = random_dots(k, seed=int(rng.integers(2**31)))
+    return out
+
+
 TARGETS = {
     "compact_blob": compact_blob,
     "near_delta": near_delta,
@@ -165,13 +205,13 @@ TARGETS = {
 """Name -> generator ``f(k) -> (K, K) PSF`` of every named target."""
 
 
-COMPACT = ("compact_blob", "near_delta", "paper_gaussian", "near_delta_0.3", "near_delta_0.4")
-"""The compact kernels among the named and robustness targets."""
+COMPACT = ("compact_blob", "near_delta", "paper_gaussian")
+"""Name prefixes of the compact kernels among the named, robustness and drawn targets."""
 
 
 def efficiency_floor(name):
     """Return the efficiency a design for target ``name`` must reach: 0.90 compact, else 0.85."""
-    return 0.90 if name in COMPACT else 0.85
+    return 0.90 if name.startswith(COMPACT) else 0.85
 
 
 def make_target(name, k=11):

@@ -50,6 +50,26 @@ def test_robustness_set_is_varied_seeded_and_satisfies_the_contract():
     assert lit["square_3x3"] == 9 and lit["square_7x7"] == 49 and lit["disc_r2"] == 13
 
 
+def test_drawn_set_is_seeded_varied_and_satisfies_the_contract():
+    one, again, other = targets.drawn_set(7), targets.drawn_set(7), targets.drawn_set(8)
+    assert len(one) == 34 and list(one) == list(other)
+    for name, t in one.items():
+        assert t.shape == (11, 11) and t.dtype == np.float64, name
+        assert np.all(t >= 0) and t.sum() == pytest.approx(1.0, abs=1e-12), name
+        np.testing.assert_array_equal(t, again[name])  # the seed fixes the set
+        if not name.startswith(("disc", "rectangle")):  # hard edges on a lattice may agree
+            assert not np.array_equal(t, other[name]), name  # another seed draws anew
+    compact = [n for n in one if targets.efficiency_floor(n) == 0.90]
+    assert len(compact) == 8 and all(n.startswith(("compact_blob", "near_delta")) for n in compact)
+    assert all(3 <= (one[n] > 0).sum() <= 9 for n in one if n.startswith("dots"))
+
+
+def test_efficiency_floor_is_090_on_compact_kernels_only():
+    assert targets.efficiency_floor("near_delta_0.3") == targets.efficiency_floor("paper_gaussian")
+    assert targets.efficiency_floor("compact_blob") == 0.90
+    assert targets.efficiency_floor("sparse_dots") == targets.efficiency_floor("disc_r2") == 0.85
+
+
 def test_random_dots_differ_by_seed_and_keep_their_count():
     a, b = targets.random_dots(11, seed=1, count=5), targets.random_dots(11, seed=2, count=5)
     assert (a > 0).sum() == (b > 0).sum() == 5
