@@ -116,7 +116,8 @@ def within_goals(target, n_pixels, n_levels=None, cap=1.0, max_eval=150, mus=(10
     nearest unit-modulus (or L-level) value, is maximised here over every order's
     amplitude *and* phase, subject to each fidelity term of
     :func:`doe.retrieval._fidelity_parts` staying within ``cap`` (1 = the goals
-    just met). Penalty method (weights ``mus``) with L-BFGS, started from the
+    just met). Penalty method (the penalty of
+    :func:`doe.retrieval.constrained_objective`, weights ``mus``) with L-BFGS, started from the
     target plus the uniform background that spends the rmse of ``cap``
     (:func:`with_background`; it beat random starts in trials); the exact shape's
     own bound (:func:`best_flat_field`) is the floor. Only points whose exact
@@ -130,7 +131,7 @@ def within_goals(target, n_pixels, n_levels=None, cap=1.0, max_eval=150, mus=(10
     window : (K, K) complex128
         Its window field, unit norm.
     """
-    from doe.retrieval import RMSE_GOAL, _fidelity_parts, _Goal, _values  # it imports this module
+    from doe.retrieval import RMSE_GOAL, _cap_penalty, _Goal, _values  # it imports this module
 
     k = target.shape[0]
     sel = np.ix_(*[fraunhofer.window_indices(n_pixels, k)] * 2)
@@ -147,9 +148,7 @@ def within_goals(target, n_pixels, n_levels=None, cap=1.0, max_eval=150, mus=(10
         m = float(np.real(np.vdot(big_q, w)))
         b = m / np.sqrt(s)
         power = (w.real**2 + w.imag**2) / s
-        (f_r, d_r), (f_c, d_c) = _fidelity_parts(power, goal)
-        e_r, e_c = max(f_r - cap, 0.0), max(f_c - cap, 0.0)
-        d_p = 2.0 * mu * (e_r * d_r + e_c * d_c)
+        penalty, d_p = _cap_penalty(power, goal, cap, mu)
         # chain rule through P = |w|^2 / s (complex gradient: d/d re + i d/d im)
         grad = 2.0 * w * (d_p - (d_p * power).sum()) / s
         grad -= 2.0 * b * (big_q / np.sqrt(s) - m * w / s**1.5)
@@ -157,9 +156,7 @@ def within_goals(target, n_pixels, n_levels=None, cap=1.0, max_eval=150, mus=(10
         # only patterns whose exact figures (CONVENTIONS.md) are within the cap count
         if bound > best["bound"] and _values(power, goal, 0.0) <= cap:
             best["bound"], best["w"] = bound, w / np.sqrt(s)
-        return -bound + mu * (e_r * e_r + e_c * e_c), np.concatenate(
-            [grad.real.ravel(), grad.imag.ravel()]
-        )
+        return -bound + penalty, np.concatenate([grad.real.ravel(), grad.imag.ravel()])
 
     def start(psf):
         w = scipy.fft.fft2(best_flat_field(psf, n_pixels, n_levels)[1])[sel] / n_pixels**2

@@ -354,10 +354,18 @@ def constrained_objective(phase, target, cap=None, mu=1.0, goal=None):
     field, w, idx = _window_of(phase, target.shape[0])
     goal = _Goal.of(target) if goal is None else goal
     power = w.real**2 + w.imag**2
+    penalty, d_penalty = _cap_penalty(power, goal, cap, mu)
+    return float(-power.sum() + penalty), _phase_gradient(field, w, idx, d_penalty - 1.0)
+
+
+def _cap_penalty(power, goal, cap, mu):
+    """Return (mu * sum of each fidelity term's squared excess over ``cap``, its dP).
+
+    The penalty of :func:`constrained_objective` and :func:`doe.bounds.within_goals`.
+    """
     (f_r, d_r), (f_c, d_c) = _fidelity_parts(power, goal)
     e_r, e_c = max(f_r - cap, 0.0), max(f_c - cap, 0.0)
-    value = float(-power.sum() + mu * (e_r * e_r + e_c * e_c))
-    return value, _phase_gradient(field, w, idx, 2.0 * mu * (e_r * d_r + e_c * d_c) - 1.0)
+    return mu * (e_r * e_r + e_c * e_c), 2.0 * mu * (e_r * d_r + e_c * d_c)
 
 
 # --------------------------------------------------------------------------- GS
