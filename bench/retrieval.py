@@ -24,6 +24,7 @@ How it was run (the figures quoted in docs/retrieve.md)::
 
     python bench/retrieval.py            # N = 175, L = 8, seed 0
     python bench/retrieval.py --drawn 20261122   # targets drawn afresh (docs/retrieve.md)
+    python bench/retrieval.py --shapes           # shapes of other kinds (docs/retrieve.md)
 
 on the shared 2-core development machine, idle (load below 1), 2 min 30 s in
 all; under load the seconds grow with it.
@@ -149,7 +150,16 @@ def main(argv=None):
         metavar="SEED",
         help="only run doefab on doe.targets.drawn_set(SEED): targets drawn afresh",
     )
+    ap.add_argument(
+        "--shapes",
+        action="store_true",
+        help="only run doefab on doe.targets.shape_set: 19 shapes of other kinds",
+    )
     args = ap.parse_args(argv)
+    if args.shapes:
+        shapes = targets.shape_set(11)
+        robustness(args.tile_pixels, args.levels, args.seed, "shape set", shapes)
+        return 0
     if args.drawn is not None:
         drawn = targets.drawn_set(args.drawn, 11)
         robustness(args.tile_pixels, args.levels, args.seed, f"drawn set {args.drawn}", drawn)

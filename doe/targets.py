@@ -7,6 +7,7 @@ sub-pixels of the sensor grid, the unit of the PSF kernel.
 """
 
 import numpy as np
+import scipy.special
 
 PAPER_SIGMA = 0.459
 """Standard deviation (sub-pixels) of the Gaussian PSF of Sun et al. 2020."""
@@ -190,6 +191,52 @@ def drawn_set(seed, k=11):
     for i in range(6):
         out[f"dots_d{i}"] = random_dots(k, seed=int(rng.integers(2**31)))
     return out
+
+
+def shape_set(k=11):
+    """Return {name: PSF} of 19 fixed shapes of other kinds than the named and drawn ones.
+
+    For checks beyond the kinds the retrieval was tuned on: lines (7-9 long, Gaussian
+    cross-profile of sigma 0.5) at 0, 30 and 45 degrees, a cross, a full-width bar, a
+    triangle, a hexagon, a Gaussian donut, a linear ramp, a checkerboard, an Airy
+    pattern, exponential and Lorentzian peaks, and letter strokes 1 and 2 sub-pixels
+    wide (L, F, a square outline and the two diagonals of a square). Needs K >= 9.
+    """
+    if k < 9:
+        raise ValueError(f"the shapes need K >= 9, got {k}")
+    y, x = _grid(k)
+    r = np.hypot(y, x)
+
+    def line(angle, length):
+        along, across = np.cos(angle) * x - np.sin(angle) * y, np.sin(angle) * x + np.cos(angle) * y
+        return np.exp(-0.5 * (across / 0.5) ** 2) * (np.abs(along) <= length / 2)
+
+    def box(y0, y1, x0, x1):
+        return (y >= y0) & (y <= y1) & (x >= x0) & (x <= x1)
+
+    airy_arg = 1.8 * np.maximum(r, 1e-12)
+    shapes = {
+        "line_0deg": line(0.0, 7),
+        "line_30deg": line(np.pi / 6, 9),
+        "line_45deg": line(np.pi / 4, 7),
+        "cross": np.maximum(line(0.0, 9), line(np.pi / 2, 9)),
+        "bar_full_width": y == 0,
+        "triangle": (y <= 3) & (y >= 2 * np.abs(x) - 5),
+        "hexagon": (np.abs(y) <= 3.5) & (0.5 * np.abs(y) + np.sqrt(3) / 2 * np.abs(x) <= 3.5),
+        "donut": r**2 * np.exp(-(r**2) / 4),
+        "ramp": x - x.min() + 1,
+        "checkerboard": (y + x) % 2 == 0,
+        "airy": (2 * scipy.special.j1(airy_arg) / airy_arg) ** 2,
+        "exponential_peak": np.exp(-r / 1.2),
+        "lorentzian_peak": 1 / (1 + (r / 0.8) ** 2),
+        "L_stroke1": box(-3, 3, -3, -3) | box(3, 3, -3, 3),
+        "L_stroke2": box(-4, 4, -3, -2) | box(3, 4, -3, 3),
+        "F_stroke1": box(-3, 3, -2, -2) | box(-3, -3, -2, 2) | box(0, 0, -2, 1),
+        "F_stroke2": box(-4, 4, -3, -2) | box(-4, -3, -3, 3) | box(0, 1, -3, 2),
+        "square_outline": np.maximum(np.abs(y), np.abs(x)) == 3,
+        "square_diagonals": (np.abs(y) == np.abs(x)) & (np.abs(x) <= 3),
+    }
+    return {name: _normalise(shape) for name, shape in shapes.items()}
 
 
 TARGETS = {

@@ -64,6 +64,27 @@ def test_drawn_set_is_seeded_varied_and_satisfies_the_contract():
     assert all(3 <= (one[n] > 0).sum() <= 9 for n in one if n.startswith("dots"))
 
 
+def test_shape_set_satisfies_the_contract_and_reads_upright():
+    shapes = targets.shape_set(11)
+    assert len(shapes) == 19
+    for name, t in shapes.items():
+        assert t.shape == (11, 11) and t.dtype == np.float64, name
+        assert np.all(t >= 0) and t.sum() == pytest.approx(1.0, abs=1e-12), name
+        assert targets.efficiency_floor(name) == 0.85, name
+    lit = {name: int((t > 0).sum()) for name, t in shapes.items()}
+    assert lit["bar_full_width"] == 11 and lit["square_outline"] == 24 and lit["checkerboard"] == 61
+    # CONVENTIONS orientation: rows grow downwards, so an upright L has its foot below the
+    # centre row and its stem left of the centre column, and an F its arms to the right
+    ell = shapes["L_stroke1"]
+    assert ell[8, 2:9].all() and ell[2:9, 2].all() and not ell[2, 8] and not ell[8, 1]
+    f = shapes["F_stroke2"]
+    assert f[:, 2:4].sum() > f[:, 7:9].sum() > 0 and f[1, 8] > 0 and f[9, 8] == 0
+    for name in ("triangle", "hexagon", "cross", "donut", "airy"):  # mirror-symmetric shapes
+        np.testing.assert_allclose(shapes[name], shapes[name][:, ::-1], atol=1e-15, err_msg=name)
+    with pytest.raises(ValueError, match="K >= 9"):
+        targets.shape_set(7)
+
+
 def test_efficiency_floor_is_090_on_compact_kernels_only():
     assert targets.efficiency_floor("near_delta_0.3") == targets.efficiency_floor("paper_gaussian")
     assert targets.efficiency_floor("compact_blob") == 0.90
