@@ -59,14 +59,14 @@ def main(argv=None):
         continuous = bounds.efficiency_bound(target, n, None, rng)
         levelled = bounds.efficiency_bound(target, n, n_levels, rng)
         row = f"{name:16s} {int((target > 0).sum()):4d} {continuous:10.4f} {levelled:10.4f}"
-        padded = levelled
+        bound = levelled  # the highest L-level bound, for the verdict
         if (target == 0).any():
             padded = bounds.efficiency_bound(
                 bounds.with_background(target, BACKGROUND_RMSE), n, n_levels, rng
             )
             free, _ = bounds.within_goals(target, n, n_levels, retrieval.CAP)
             row += f" {padded:11.4f} {free:8.4f}"
-            padded = max(padded, free)
+            bound = max(padded, free)
         else:
             row += f" {'-':>11s} {'-':>8s}"
         if not args.bounds_only:
@@ -76,10 +76,10 @@ def main(argv=None):
             floor = targets.efficiency_floor(name)
             if eff >= floor:
                 verdict = "meets the floor"
-            elif floor > padded:
-                verdict = f"floor {floor - padded:+.3f} above every {n_levels}-level bound"
+            elif floor > bound:
+                verdict = f"floor {floor - bound:+.3f} above every {n_levels}-level bound"
             else:
-                verdict = f"below the floor, {padded - eff:.3f} under a bound"
+                verdict = f"below the floor, {bound - eff:.3f} under a bound"
             row += f" {eff:8.4f} {floor:6.2f}  {verdict} ({time.perf_counter() - t0:.1f} s)"
         print(row, flush=True)
     return 0

@@ -144,25 +144,26 @@ def main(argv=None):
         default="yes",
         help="also (or only) run doefab on doe.targets.robustness_set",
     )
-    ap.add_argument(
+    unseen = ap.add_mutually_exclusive_group()
+    unseen.add_argument(
         "--drawn",
         type=int,
         metavar="SEED",
         help="only run doefab on doe.targets.drawn_set(SEED): targets drawn afresh",
     )
-    ap.add_argument(
+    unseen.add_argument(
         "--shapes",
         action="store_true",
         help="only run doefab on doe.targets.shape_set: 19 shapes of other kinds",
     )
     args = ap.parse_args(argv)
-    if args.shapes:
-        shapes = targets.shape_set(11)
-        robustness(args.tile_pixels, args.levels, args.seed, "shape set", shapes)
-        return 0
-    if args.drawn is not None:
-        drawn = targets.drawn_set(args.drawn, 11)
-        robustness(args.tile_pixels, args.levels, args.seed, f"drawn set {args.drawn}", drawn)
+    if args.shapes or args.drawn is not None:
+        title, chosen = (
+            ("shape set", targets.shape_set(11))
+            if args.shapes
+            else (f"drawn set {args.drawn}", targets.drawn_set(args.drawn, 11))
+        )
+        robustness(args.tile_pixels, args.levels, args.seed, title, chosen)
         return 0
     if args.robustness == "only":
         robustness(args.tile_pixels, args.levels, args.seed)

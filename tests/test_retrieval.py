@@ -33,12 +33,17 @@ def test_unknown_target_is_refused():
         targets.make_target("nope")
 
 
+def _assert_psf_contract(t, name):
+    """An 11 x 11 float64 PSF, non-negative, sum 1 (CONVENTIONS.md)."""
+    assert t.shape == (11, 11) and t.dtype == np.float64, name
+    assert np.all(t >= 0) and t.sum() == pytest.approx(1.0, abs=1e-12), name
+
+
 def test_robustness_set_is_varied_seeded_and_satisfies_the_contract():
     one, two = targets.robustness_set(11), targets.robustness_set(11)
     assert len(one) >= 20
     for name, t in one.items():
-        assert t.shape == (11, 11) and t.dtype == np.float64, name
-        assert np.all(t >= 0) and t.sum() == pytest.approx(1.0, abs=1e-12), name
+        _assert_psf_contract(t, name)
         np.testing.assert_array_equal(t, two[name])  # seeded: the same set every call
     lit = {name: int((t > 0).sum()) for name, t in one.items()}
     assert all(3 <= lit[n] <= 9 for n in one if n.startswith("dots"))
@@ -54,8 +59,7 @@ def test_drawn_set_is_seeded_varied_and_satisfies_the_contract():
     one, again, other = targets.drawn_set(7), targets.drawn_set(7), targets.drawn_set(8)
     assert len(one) == 34 and list(one) == list(other)
     for name, t in one.items():
-        assert t.shape == (11, 11) and t.dtype == np.float64, name
-        assert np.all(t >= 0) and t.sum() == pytest.approx(1.0, abs=1e-12), name
+        _assert_psf_contract(t, name)
         np.testing.assert_array_equal(t, again[name])  # the seed fixes the set
         if not name.startswith(("disc", "rectangle")):  # hard edges on a lattice may agree
             assert not np.array_equal(t, other[name]), name  # another seed draws anew
@@ -68,8 +72,7 @@ def test_shape_set_satisfies_the_contract_and_reads_upright():
     shapes = targets.shape_set(11)
     assert len(shapes) == 19
     for name, t in shapes.items():
-        assert t.shape == (11, 11) and t.dtype == np.float64, name
-        assert np.all(t >= 0) and t.sum() == pytest.approx(1.0, abs=1e-12), name
+        _assert_psf_contract(t, name)
         assert targets.efficiency_floor(name) == 0.85, name
     lit = {name: int((t > 0).sum()) for name, t in shapes.items()}
     assert lit["bar_full_width"] == 11 and lit["square_outline"] == 24 and lit["checkerboard"] == 61
