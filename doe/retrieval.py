@@ -146,6 +146,21 @@ CORRELATION_GOAL = 0.9999
 """Pearson correlation the fidelity term is measured against (the acceptance bound)."""
 
 
+def missed_goals(quality):
+    """Return the quality goals a design misses, one phrase each; empty when it meets them.
+
+    ``quality`` is a dict of :func:`doe.fraunhofer.quality`. A uniform target has
+    no correlation (None); its rmse alone decides.
+    """
+    missed = []
+    corr = quality["correlation"]
+    if corr is not None and not corr >= CORRELATION_GOAL:
+        missed.append(f"correlation {corr:.6f} < {CORRELATION_GOAL}")
+    if not quality["rmse"] <= RMSE_GOAL:
+        missed.append(f"rmse {quality['rmse']:.5f} > {RMSE_GOAL}")
+    return missed
+
+
 @dataclass(frozen=True)
 class _Goal:
     """The target's constants that the fidelity terms need (see :func:`objective`)."""

@@ -32,6 +32,7 @@ HEADLINES = (
     ("retrieve", "retrieval.json", ("quantised", "correlation"), "correlation (8 levels)"),
     ("retrieve", "retrieval.json", ("quantised", "rmse"), "rmse (8 levels)"),
     ("retrieve", "retrieval.json", ("quantised", "efficiency"), "efficiency (8 levels)"),
+    ("retrieve", "retrieval.json", ("goals", "met"), "correlation and rmse goals met"),
     ("fab", "fab_manifest.json", ("level_step_nm",), "level step (nm)"),
     ("fab", "fab_manifest.json", ("pixel_pitch_nm",), "mask pixel pitch (nm)"),
     ("fab", "fab_manifest.json", ("tiles",), "tiles across the aperture"),
@@ -108,7 +109,10 @@ def write_index(run_dir, design, stages):
     for stage, name, path, label in HEADLINES:
         value = _lookup(run_dir, stage, name, path)
         if value is not None:
-            shown = f"{value:.6g}" if isinstance(value, float) else str(value)
+            if isinstance(value, bool):
+                shown = "yes" if value else "NO: see retrieve/retrieval.json"
+            else:
+                shown = f"{value:.6g}" if isinstance(value, float) else str(value)
             rows.append(f"<tr><td>{e(label)}</td><td>{e(shown)}</td></tr>")
     parts = [
         "<!DOCTYPE html><html><head><meta charset='utf-8'>",

@@ -487,12 +487,45 @@ def test_cli_writes_the_contract_files(tmp_path, capsys):
     assert set(info["versions"]) == {"numpy", "scipy", "nlopt", "doefab"}
     again = fraunhofer.quality(fraunhofer.level_phase(levels, 8), target)
     assert info["quantised"] == pytest.approx(again, rel=1e-12)
+    goals = {"correlation_min": 0.9999, "rmse_max": 0.005, "met": True, "missed": []}
+    assert info["goals"] == goals
+    assert "warning" not in err
     assert (out / "retrieval.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # same seed -> byte-identical level map and figure
     out2 = tmp_path / "out2"
     assert _run([psf, "--out", out2, "--tile-pixels", 31, "--seed", 2], capsys)[0] == 0
     for name in ("levels.npy", "phase.npy", "retrieval.png"):
         assert (out / name).read_bytes() == (out2 / name).read_bytes(), name
+
+
+def test_cli_warns_when_the_design_misses_the_goals(tmp_path, capsys):
+    # a binary plate's PSF is point-symmetric (|F(-u)| = |F(u)| for a real field),
+    # so it cannot form an asymmetric target: the plate is written, with a warning
+    target = targets.asymmetric(7)
+    psf = _psf_file(tmp_path, target)
+    out = tmp_path / "out"
+    code, err = _run([psf, "--out", out, "--tile-pixels", 31, "--levels", 2], capsys)
+    assert code == 0, err
+    info = json.loads((out / "retrieval.json").read_text())
+    q = info["quantised"]
+    assert q["correlation"] < 0.9999 and q["rmse"] > 0.005
+    assert info["goals"]["met"] is False
+    assert info["goals"]["missed"] == [
+        f"correlation {q['correlation']:.6f} < 0.9999",
+        f"rmse {q['rmse']:.5f} > 0.005",
+    ]
+    assert "warning: the 2-level design misses the quality goals" in err
+    assert f"rmse {q['rmse']:.5f} > 0.005" in err
+
+
+def test_missed_goals_at_and_beyond_each_bound():
+    met = {"correlation": 0.9999, "rmse": 0.005, "efficiency": 0.5}
+    assert retrieval.missed_goals(met) == []
+    assert retrieval.missed_goals({**met, "correlation": None}) == []
+    low = {**met, "correlation": 0.99989}
+    assert retrieval.missed_goals(low) == ["correlation 0.999890 < 0.9999"]
+    assert retrieval.missed_goals({**met, "rmse": 0.00501}) == ["rmse 0.00501 > 0.005"]
+    assert len(retrieval.missed_goals({**met, "rmse": float("nan")})) == 1
 
 
 def test_cli_on_a_uniform_target_reports_the_correlation_as_undefined(

@@ -64,6 +64,9 @@ def test_run_writes_the_whole_package(finished):
     assert manifest["versions"]["numpy"]
     index = (finished / "index.html").read_text()
     assert "fab/fab_report.html" in index and "retrieve/retrieval.png" in index
+    met = json.loads((finished / "retrieve/retrieval.json").read_text())["goals"]["met"]
+    verdict = "yes" if met else "NO: see retrieve/retrieval.json"
+    assert f"<td>correlation and rmse goals met</td><td>{verdict}</td>" in index
 
 
 def test_rerun_skips_every_stage_and_changes_nothing(config, finished, capsys):
