@@ -150,11 +150,11 @@ def missed_goals(quality):
     """Return the quality goals a design misses, one phrase each; empty when it meets them.
 
     ``quality`` is a dict of :func:`doe.fraunhofer.quality`. A uniform target has
-    no correlation (None); its rmse alone decides.
+    no correlation (NaN, or None as read back from JSON); its rmse alone decides.
     """
     missed = []
     corr = quality["correlation"]
-    if corr is not None and not corr >= CORRELATION_GOAL:
+    if corr is not None and not np.isnan(corr) and not corr >= CORRELATION_GOAL:
         missed.append(f"correlation {corr:.6f} < {CORRELATION_GOAL}")
     if not quality["rmse"] <= RMSE_GOAL:
         missed.append(f"rmse {quality['rmse']:.5f} > {RMSE_GOAL}")

@@ -12,8 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
+from doe.figures import correlation_text
 from doe.files import atomic_write_bytes, write_json
 from doe.fraunhofer import correlation, level_phase, rmse
+from doe.retrieval import CORRELATION_GOAL, RMSE_GOAL, missed_goals
 
 REPORT_MD = "fab_report.md"
 REPORT_HTML = "fab_report.html"
@@ -128,6 +130,8 @@ def report_blocks(context, figures=()):
     tol = context.get("tolerance")
     target = np.asarray(context["target_psf"], float)
     sim = np.asarray(context["simulated_psf"], float)
+    fit = {"correlation": correlation(sim, target), "rmse": rmse(sim, target)}
+    missed = missed_goals(fit)
     step = man["level_step_nm"]
     n_levels = man["levels"]
     b = []
@@ -161,7 +165,11 @@ def report_blocks(context, figures=()):
                 ["window efficiency (nominal)", f"{context['efficiency']:.4f}"],
                 [
                     "correlation / rmse vs target (nominal)",
-                    f"{correlation(sim, target):.4f} / {rmse(sim, target):.4f}",
+                    f"{correlation_text(fit['correlation'])} / {fit['rmse']:.5f}",
+                ],
+                [
+                    f"design goals (correlation >= {CORRELATION_GOAL}, rmse <= {RMSE_GOAL})",
+                    "met" if not missed else "MISSED: " + "; ".join(missed),
                 ],
             ],
         )

@@ -175,3 +175,18 @@ def test_report_without_tolerance_analysis(tmp_path):
     text = (tmp_path / "out" / REPORT_MD).read_text()
     assert "No tolerance analysis" in text
     assert context["files"][0]["sha256"] in text
+
+
+def test_summary_states_whether_the_design_meets_the_goals(written, tmp_path):
+    # random levels against a random target: both goals missed, each named with its value
+    _, out, _ = written
+    text = (out / REPORT_MD).read_text()
+    assert "design goals (correlation >= 0.9999, rmse <= 0.005) | MISSED: correlation" in text
+    assert re.search(r"MISSED: correlation 0\.\d{6} < 0\.9999; rmse 0\.\d{5} > 0\.005", text)
+    # the same plate against its own simulated PSF: met
+    context = make_context(tmp_path, with_tolerance=False)
+    context["target_psf"] = context["simulated_psf"]
+    write_fab_report(tmp_path / "own", context)
+    text = (tmp_path / "own" / REPORT_MD).read_text()
+    assert "design goals (correlation >= 0.9999, rmse <= 0.005) | met |" in text
+    assert "1.000000 / 0.00000" in text

@@ -522,6 +522,7 @@ def test_missed_goals_at_and_beyond_each_bound():
     met = {"correlation": 0.9999, "rmse": 0.005, "efficiency": 0.5}
     assert retrieval.missed_goals(met) == []
     assert retrieval.missed_goals({**met, "correlation": None}) == []
+    assert retrieval.missed_goals({**met, "correlation": float("nan")}) == []
     low = {**met, "correlation": 0.99989}
     assert retrieval.missed_goals(low) == ["correlation 0.999890 < 0.9999"]
     assert retrieval.missed_goals({**met, "rmse": 0.00501}) == ["rmse 0.00501 > 0.005"]
@@ -540,6 +541,7 @@ def test_cli_on_a_uniform_target_reports_the_correlation_as_undefined(
     info = read_strict_json(out / "retrieval.json")
     assert info["quantised"]["correlation"] is None
     assert 0 < info["quantised"]["rmse"] < 0.05
+    assert not any(m.startswith("correlation") for m in info["goals"]["missed"])
 
 
 def test_cli_levels_and_tile_default_from_the_design(tmp_path, capsys):
