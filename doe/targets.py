@@ -19,6 +19,12 @@ def _grid(k):
     return np.meshgrid(c.astype(float), c.astype(float), indexing="ij")
 
 
+def _rotated(y, x, angle):
+    """Return (u, v): the x and y axes turned by ``angle``, counter-clockwise on the sensor."""
+    c, s = np.cos(angle), np.sin(angle)
+    return c * x - s * y, s * x + c * y
+
+
 def _normalise(psf):
     psf = np.clip(np.asarray(psf, dtype=np.float64), 0.0, None)
     return psf / psf.sum()
@@ -43,9 +49,7 @@ def gaussian(k=11, sigma=1.0, sigma_x=None, angle=0.0, centre=(0.0, 0.0)):
     y, x = _grid(k)
     y, x = y - centre[0], x - centre[1]
     sx = sigma if sigma_x is None else sigma_x
-    c, s = np.cos(angle), np.sin(angle)
-    u = c * x - s * y
-    v = s * x + c * y
+    u, v = _rotated(y, x, angle)
     return _normalise(np.exp(-0.5 * ((u / sx) ** 2 + (v / sigma) ** 2)))
 
 
@@ -208,7 +212,7 @@ def shape_set(k=11):
     r = np.hypot(y, x)
 
     def line(angle, length):
-        along, across = np.cos(angle) * x - np.sin(angle) * y, np.sin(angle) * x + np.cos(angle) * y
+        along, across = _rotated(y, x, angle)
         return np.exp(-0.5 * (across / 0.5) ** 2) * (np.abs(along) <= length / 2)
 
     def box(y0, y1, x0, x1):
