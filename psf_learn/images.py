@@ -58,16 +58,34 @@ def to_gray(image, source):
 
 def read_image(path):
     """Read one image file as float32 (H, W) in [0, 1] (raises InputError if unreadable)."""
-    from skimage import io
+    path = Path(path)
+    return to_gray(decode(path), path)
 
+
+def decode(path):
+    """Decode an image file as stored (uint8/uint16/float, (H, W) or (H, W, C)).
+
+    The decoder follows the suffix: tifffile for TIFF, Pillow for everything
+    else. Naming it keeps imageio from trying its other plugins (DICOM, ...)
+    on a damaged file, which costs time and raises their deprecation warnings.
+    """
     path = Path(path)
     try:
-        a = io.imread(path)
+        if path.suffix.lower() in (".tif", ".tiff"):
+            import tifffile
+
+            a = tifffile.imread(path)
+        else:
+            import imageio.v3 as iio
+
+            a = iio.imread(path, plugin="pillow")
     except FileNotFoundError:
         raise InputError(path, "no such file") from None
     except Exception as e:  # the decoders raise many types on corrupt data
         raise InputError(path, f"not a readable image ({type(e).__name__}: {e})") from None
-    return to_gray(a, path)
+    if a.ndim > 2 and a.shape[-1] not in (3, 4) and a.shape[-3] in (3, 4):
+        a = np.moveaxis(a, -3, -1)  # planar TIFF: channels last, as skimage.io.imread does
+    return a
 
 
 def image_files(folder):
@@ -158,14 +176,7 @@ def read_raw(path):
                 path, f"raw frames must be numeric (H, W) or (T, H, W), got {a.dtype} {a.shape}"
             )
     else:
-        from skimage import io
-
-        try:
-            a = io.imread(path)
-        except FileNotFoundError:
-            raise InputError(path, "no such file") from None
-        except Exception as e:
-            raise InputError(path, f"not a readable image ({type(e).__name__}: {e})") from None
+        a = decode(path)
         if a.ndim == 3 and a.shape[2] in (3, 4):
             a = a[..., :3].astype(np.float64) @ np.array([0.299, 0.587, 0.114])
         if a.ndim == 3 and a.shape[2] == 1:
