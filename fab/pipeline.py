@@ -3,10 +3,11 @@
 Each stage is one ``doefab`` subcommand writing into its own folder of the run
 directory. A stage's key is the SHA-256 of its arguments and the contents of its
 input files; ``run_state.json`` records, per finished stage, the key and the
-SHA-256 of every file it wrote. A re-run skips a stage whose key and files are
-unchanged (so an interrupted run resumes at the first unfinished stage), redoes
-it when an input changed, and never overwrites a file that the run did not
-write itself (or that was edited since) unless ``force``.
+SHA-256 of every file it wrote and of the files those replaced. A re-run
+skips a stage whose key and files are unchanged (so an interrupted run resumes
+at the first unfinished stage), redoes it when an input changed, and never
+overwrites a file that the run did not write itself (or that was edited since)
+unless ``force``.
 """
 
 import hashlib
@@ -96,8 +97,9 @@ def check_overwrite(stage, state, run_dir, force):
     folder = Path(run_dir) / stage.name
     if force or not folder.exists():
         return
-    recorded = state.get(stage.name, {}).get("files", {})
-    foreign = [p for p, h in stage_files(folder).items() if recorded.get(p) != h]
+    rec = state.get(stage.name, {})
+    ours = [rec.get("files", {}), rec.get("replaces", {})]
+    foreign = [p for p, h in stage_files(folder).items() if all(f.get(p) != h for f in ours)]
     if foreign:
         raise InputError(
             folder / foreign[0],
@@ -125,17 +127,21 @@ def run_stage(stage, run_dir, state, invoke):
     if code != 0:
         return code
     seconds = move_timings(new)
-    final = run_dir / stage.name
-    old = run_dir / f".{stage.name}.old"
-    if old.exists():
-        _remove_tree(old)
-    if final.exists():
-        final.rename(old)
-    new.rename(final)
-    if old.exists():
-        _remove_tree(old)
-    state[stage.name] = {"key": key, "files": stage_files(final), "seconds": seconds}
+    # Record the new files before swapping them in, keeping the record of the
+    # files they replace: a run killed during the swap then finds only files it
+    # can account for, and resumes instead of refusing them as foreign.
+    replaced = state.get(stage.name, {}).get("files", {})
+    state[stage.name] = {
+        "key": key,
+        "files": stage_files(new),
+        "replaces": replaced,
+        "seconds": seconds,
+    }
     save_state(run_dir, state)
+    final = run_dir / stage.name
+    if final.exists():
+        _remove_tree(final)
+    new.rename(final)
     return 0
 
 

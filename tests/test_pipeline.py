@@ -3,6 +3,7 @@
 import pytest
 
 from doe.errors import InputError
+from fab import pipeline
 from fab.pipeline import Stage, check_overwrite, is_current, load_state, run_stage
 
 
@@ -74,6 +75,24 @@ def test_interrupted_run_resumes_at_the_failed_stage(tmp_path):
     fake = FakeDoefab()
     assert run_all(tmp_path, fake) == 0
     assert fake.calls == ["second"]
+
+
+def test_run_killed_while_swapping_a_stage_in_resumes(tmp_path, monkeypatch):
+    (tmp_path / "input.txt").write_text("abc")
+    assert run_all(tmp_path, FakeDoefab()) == 0
+    (tmp_path / "input.txt").write_text("xyz")  # both stages are redone next
+
+    def killed(path):  # a SIGKILL or power cut between the two steps of the swap
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pipeline, "_remove_tree", killed)
+    with pytest.raises(KeyboardInterrupt):
+        run_all(tmp_path, FakeDoefab())
+    monkeypatch.undo()
+    fake = FakeDoefab()
+    assert run_all(tmp_path, fake) == 0  # not refused: every file there is the run's
+    assert fake.calls == ["first", "second"]
+    assert (tmp_path / "run" / "second" / "second.txt").read_text() == "XYZ"
 
 
 def test_edited_output_is_not_overwritten_without_force(tmp_path):
