@@ -73,11 +73,15 @@ def plan(args, run_dir, design):
 
 
 def _run(args):
+    from doe import flags
     from doe.cli import main as doefab
     from doe.design import load_design
     from fab.pipeline import check_overwrite, is_current, load_state, run_stage, save_state
     from fab.run_report import write_index, write_manifest
 
+    # Checked here, not by the stages: a bad value must stop the run before any stage.
+    flags.positive("--minutes", args.minutes)
+    flags.non_negative("--seed", args.seed)
     design = load_design(args.config)
     run_dir = Path(args.out)
     if run_dir.exists() and not run_dir.is_dir():

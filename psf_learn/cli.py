@@ -82,6 +82,7 @@ def _learn(args):
     import numpy as np
     import torch
 
+    from doe import flags
     from doe.design import load_design
     from doe.files import read_psf, save_npy, staged_output, write_json
     from psf_learn import images as imgio
@@ -90,22 +91,16 @@ def _learn(args):
     from psf_learn.sensor import sensor_from_design
     from psf_learn.train import TrainConfig, augment_scales, train, with_overrides
 
+    for flag in ("steps", "minutes", "batch", "patch", "features", "stages", "threads"):
+        flags.positive(f"--{flag}", getattr(args, flag))
+    flags.positive("--lr", args.lr)
+    flags.positive("--psf-lr", args.psf_lr)
+    flags.non_negative("--photons", args.photons)
+    flags.non_negative("--dark-counts", args.dark_counts)
+    flags.non_negative("--seed", args.seed)
     torch.set_num_threads(args.threads or idle_cores())
     design = load_design(args.config)
     k = design.kernel_size
-    for flag, value in (
-        ("--steps", args.steps),
-        ("--minutes", args.minutes),
-        ("--batch", args.batch),
-        ("--patch", args.patch),
-        ("--features", args.features),
-        ("--stages", args.stages),
-        ("--threads", args.threads),
-    ):
-        if value is not None and value <= 0:
-            raise InputError(flag, f"must be > 0, got {value}")
-    if args.photons is not None and args.photons < 0:
-        raise InputError("--photons", f"must be >= 0, got {args.photons}")
     sensor = sensor_from_design(design, photons=args.photons, dark_counts=args.dark_counts)
     config = with_overrides(
         TrainConfig(minutes=design.learning.minutes, seed=design.learning.seed),
@@ -240,11 +235,13 @@ def _version():
 def _evaluate(args):
     import torch
 
+    from doe import flags
     from doe.files import read_psf, write_json
     from psf_learn import images as imgio
     from psf_learn.evaluate import EVAL_SEED, evaluate
     from psf_learn.sr import load_model
 
+    flags.non_negative("--seed", args.seed)
     torch.set_num_threads(1)
     out = Path(args.out) if args.out else None
     if out is not None and out.exists() and not args.force:
@@ -273,10 +270,12 @@ def _evaluate(args):
 def _sr(args):
     import torch
 
+    from doe import flags
     from doe.files import save_npy, staged_output
     from psf_learn import images as imgio
     from psf_learn.sr import load_model, super_resolve
 
+    flags.positive("--photons", args.photons)
     torch.set_num_threads(1)
     model = load_model(args.model_dir)
     stems = [Path(r).stem for r in args.raw]

@@ -55,9 +55,10 @@ def super_resolve(model, frames, photons=None, chunk=16):
     frames : (..., h, w) array
         Photon counts per SPAD pixel and frame (any h, w >= 2).
     photons : float, optional
-        Counts that mean a white scene (default: the photon level the model was
-        trained at). Counts are divided by it (after removing the model's dark
-        counts) before the network and multiplied back afterwards.
+        Counts that mean a white scene, > 0 (default: the photon level the model
+        was trained at, or 1 for a model trained without noise). Counts are
+        divided by it (after removing the model's dark counts) before the
+        network and multiplied back afterwards.
 
     Returns
     -------
@@ -70,9 +71,12 @@ def super_resolve(model, frames, photons=None, chunk=16):
     frames = np.asarray(frames, dtype=np.float64)
     if frames.ndim < 2:
         raise ValueError(f"frames must be (..., h, w), got shape {frames.shape}")
-    photons = model.sensor.photons if photons is None else float(photons)
-    if photons <= 0:
-        photons = 1.0
+    if photons is None:
+        # A model trained without noise (photons 0) saw frames scaled to white = 1.
+        photons = model.sensor.photons or 1.0
+    elif not (np.isfinite(photons) and photons > 0):
+        raise ValueError(f"photons must be a finite number > 0, got {photons}")
+    photons = float(photons)
     f = model.sensor.factor
     lead, (h, w) = frames.shape[:-2], frames.shape[-2:]
     flat = frames.reshape(-1, 1, h, w)

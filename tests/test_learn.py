@@ -216,6 +216,10 @@ def test_super_resolve_shapes_and_photon_scaling():
         rtol=1e-5,
         atol=1e-6,
     )
+    # A white level of 0 or NaN has no meaning: refused, not replaced or spread as NaN.
+    for white in (0.0, -5.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="photons"):
+            super_resolve(model, frames, photons=white)
 
 
 # --- command line ----------------------------------------------------------------------------
@@ -362,6 +366,48 @@ def test_learn_refuses_bad_inputs_with_exit_2(tmp_path, capsys, kind):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and str(culprit) in err
     assert not out.exists() or not any(out.iterdir())
+
+
+@pytest.mark.parametrize(
+    "flag, value",
+    [
+        ("--lr", "nan"),
+        ("--lr", "0"),
+        ("--psf-lr", "inf"),
+        ("--photons", "nan"),
+        ("--dark-counts", "-1"),
+        ("--threads", "-1"),
+        ("--seed", "-1"),
+        ("--minutes", "nan"),
+    ],
+)
+def test_learn_refuses_bad_numbers_with_exit_2(tmp_path, capsys, flag, value):
+    # NaN passes "value <= 0"; each of these once trained on NaN or raised a traceback.
+    out = tmp_path / "out"
+    budget = [] if flag == "--minutes" else SMALL
+    assert main(["learn", "--out", str(out), *budget, flag, value]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and flag in err
+    assert not out.exists()
+
+
+def test_evaluate_and_sr_refuse_bad_numbers(trained, tmp_path, capsys):
+    out, images = trained
+    raw = tmp_path / "raw.npy"
+    np.save(raw, np.ones((6, 6)))
+    for photons in ("nan", "0", "-1"):
+        assert (
+            main(["sr", str(out), str(raw), "--photons", photons, "--out", str(tmp_path / "sr")])
+            == 2
+        )
+        assert "--photons" in capsys.readouterr().err
+    assert not (tmp_path / "sr").exists()
+    res = tmp_path / "e.json"
+    assert (
+        main(["evaluate", str(out), "--images", str(images), "--seed", "-1", "--out", str(res)])
+        == 2
+    )
+    assert "--seed" in capsys.readouterr().err and not res.exists()
 
 
 def test_evaluate_and_sr_refuse_bad_inputs(trained, tmp_path, capsys):

@@ -135,3 +135,8 @@ def test_bad_inputs_exit_2(tmp_path, capsys):
     (stranger / "thesis.tex").write_text("precious")
     assert main(["run", "--out", str(stranger), "--psf", str(tmp_path / "none.npy")]) == 2
     assert (stranger / "thesis.tex").read_text() == "precious"
+    # Bad numbers stop the run before its first stage, leaving nothing behind.
+    for flag, value in (("--seed", "-1"), ("--minutes", "nan")):
+        fresh = tmp_path / f"o{flag}"
+        assert main(["run", "--out", str(fresh), flag, value]) == 2
+        assert flag in capsys.readouterr().err and not fresh.exists()
