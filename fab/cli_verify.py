@@ -152,6 +152,7 @@ def read_design_dir(path):
 def _verify(args):
     import numpy as np
 
+    from doe import flags
     from doe.files import save_npy, staged_output, write_json
     from doe.fraunhofer import correlation, simulate_levels
     from fab.capture import read_capture
@@ -163,13 +164,11 @@ def _verify(args):
     )
     from fab.verify import analyse, design_order_power, resolve_thresholds
 
-    if not (args.pixel_pitch_um > 0 and math.isfinite(args.pixel_pitch_um)):
-        raise InputError("--pixel-pitch-um", f"must be > 0, got {args.pixel_pitch_um}")
+    flags.positive("--pixel-pitch-um", args.pixel_pitch_um)
+    flags.positive("--lattice-pitch-um", args.lattice_pitch_um)
     design = read_design_dir(args.design_dir)
     lattice_pitch = design.lattice_pitch
     if args.lattice_pitch_um is not None:
-        if not args.lattice_pitch_um > 0:
-            raise InputError("--lattice-pitch-um", f"must be > 0, got {args.lattice_pitch_um}")
         lattice_pitch = args.lattice_pitch_um * 1e-6
     nominal_px = lattice_pitch / (args.pixel_pitch_um * 1e-6)
     capture = read_capture(args.capture, args.dark)

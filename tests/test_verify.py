@@ -278,6 +278,24 @@ def test_truncated_capture_exits_2_naming_the_file(tmp_path, levels, capsys):
     assert not (tmp_path / "o").exists()
 
 
+def test_dots_too_close_to_measure_exit_2(tmp_path, levels, capsys):
+    # At 3 px apart the aperture overlaps its background annulus: this capture of a good
+    # plate once failed as conjugate_plate; a pixel pitch in nm (1000x) once ran out of memory.
+    design = make_design_dir(tmp_path / "design", levels)
+    sim = simulate_capture(levels, L, pitch_px=3.0, shape=(300, 300), seed=16)
+    write_image(tmp_path / "cap.png", sim["capture"], exposure=0.01)
+    out = tmp_path / "o"
+    for pixel_um in (PITCH_UM / 3.0, CAMERA_UM * 1000):
+        argv = ["verify", str(design), str(tmp_path / "cap.png"), "--out", str(out)]
+        assert main([*argv, "--pixel-pitch-um", str(pixel_um)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "cap.png" in err and "px apart" in err and len(err.splitlines()) == 1
+        assert not out.exists()
+    for flag, value in (("--pixel-pitch-um", "nan"), ("--lattice-pitch-um", "inf")):
+        assert main([*argv, flag, value]) == 2
+        assert flag in capsys.readouterr().err and not out.exists()
+
+
 def test_dark_frame_of_another_size_or_exposure_exits_2(tmp_path, levels, capsys):
     design = make_design_dir(tmp_path / "design", levels)
     sim = simulate_capture(levels, L, pitch_px=PITCH_PX, shape=(300, 300), seed=15)
