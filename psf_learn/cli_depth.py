@@ -55,7 +55,6 @@ def register(sub):
     p.add_argument(
         "--irf-t0-ps",
         type=float,
-        default=0.0,
         help="arrival time of the IRF's reference target (default 0)",
     )
     p.add_argument(
@@ -118,12 +117,12 @@ def _response(args):
                 + ", ".join("--" + a.replace("_", "-") for a in given),
             )
         irf = read_irf(args.irf)
-        if not np.isfinite(args.irf_t0_ps):
+        t0 = 0.0 if args.irf_t0_ps is None else args.irf_t0_ps
+        if not np.isfinite(t0):
             raise InputError("--irf-t0-ps", "must be a finite number")
-        return response_from_irf(irf, shift, args.irf_t0_ps * 1e-12), {
-            "irf": str(args.irf),
-            "irf_t0_ps": args.irf_t0_ps,
-        }
+        return response_from_irf(irf, shift, t0 * 1e-12), {"irf": str(args.irf), "irf_t0_ps": t0}
+    if args.irf_t0_ps is not None:
+        raise InputError("--irf-t0-ps", "only applies with --irf")
     params = {}
     for attr, (default, name, _) in GATE_FLAGS.items():
         value = default if getattr(args, attr) is None else getattr(args, attr)
@@ -142,7 +141,10 @@ def _response(args):
     model = GateModel(pulse=pulse, tau=tau * 1e-12, **params)
     summary = {f"{k}_ps": v / 1e-12 for k, v in params.items()}
     summary.update(pulse=pulse, tau_ps=tau)
-    return gate_response(model), summary
+    try:
+        return gate_response(model), summary
+    except ValueError as e:
+        raise InputError("gate model", f"{e}; check the gate flags (ps)") from None
 
 
 def _super_resolve_cube(model_dir, cube):
@@ -166,12 +168,17 @@ def _super_resolve_cube(model_dir, cube):
 def _depth(args):
     from doe.files import save_npy, staged_output, write_json
     from psf_learn.cubes import read_cube
+    from psf_learn.depth import check_scan
 
     response, gate_summary = _response(args)
     if not np.isfinite(args.min_significance) or args.min_significance < 0:
         raise InputError("--min-significance", "must be a number >= 0")
     cube = read_cube(args.cube)
     shift = args.shift_ps * 1e-12
+    try:
+        check_scan(cube.shape[-1], shift, response)
+    except ValueError as e:
+        raise InputError(args.cube, f"{e}; check --shift-ps and the gate flags") from None
     cubes = {"": cube}
     if args.sr:
         cubes["sr/"] = _super_resolve_cube(args.sr, cube)
@@ -288,10 +295,13 @@ def _transient(args):
     from doe.files import save_npy, staged_output, write_json
     from psf_learn.cubes import read_cube, write_frame_png16
     from psf_learn.depth import scan_times
-    from psf_learn.depth_plots import save_gif
+    from psf_learn.depth_plots import check_gif_fps, save_gif
 
     shift = _positive(args.shift_ps, "--shift-ps") * 1e-12
-    _positive(args.fps, "--fps")
+    try:
+        check_gif_fps(args.fps)
+    except ValueError as e:
+        raise InputError("--fps", str(e)) from None
     cube = read_cube(args.cube)
     if args.sr:
         cube = _super_resolve_cube(args.sr, cube)

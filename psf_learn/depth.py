@@ -30,6 +30,8 @@ FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
 _PS = 1e-12
 # Below this fraction of the peak the response is treated as zero (grid extent).
 _TAIL = 1e-9
+# The fine grid of a gate response holds at most this many samples (10 us at 1 ps).
+MAX_RESPONSE_SAMPLES = 10_000_000
 
 
 @dataclass(frozen=True)
@@ -177,6 +179,11 @@ def gate_response(model=None, step=1e-12):
     blur = np.hypot(sigma_pulse, model.band_sigma)
     lo = -8 * blur - step
     hi = model.width + 25 * max(model.fall, step) + 8 * blur + 25 * model.tau
+    if not (hi - lo) / step <= MAX_RESPONSE_SAMPLES:
+        raise ValueError(
+            f"the response would span {(hi - lo) / 1e-9:.3g} ns, more than the "
+            f"{MAX_RESPONSE_SAMPLES * step / 1e-9:.3g} ns its {step / 1e-12:g} ps grid holds"
+        )
     t = np.arange(np.floor(lo / step), np.ceil(hi / step) + 1) * step
 
     gate = np.zeros_like(t)
@@ -194,9 +201,9 @@ def gate_response(model=None, step=1e-12):
 
     # Kernels centred on the grid so that the convolution keeps the time origin.
     kt = np.arange(-np.ceil(10 * blur / step), np.ceil(10 * blur / step) + 1) * step
-    kernel = _gauss(kt, sigma_pulse) * step
+    kernel = _gauss(kt, sigma_pulse)
     if model.band_sigma > 0:
-        kernel = np.convolve(kernel, _gauss(kt, model.band_sigma) * step, mode="same")
+        kernel = np.convolve(kernel, _gauss(kt, model.band_sigma), mode="same")
     if model.pulse == "emg":
         n_tau = int(np.ceil(25 * model.tau / step))
         tail = np.concatenate([np.zeros(n_tau), np.exp(-np.arange(n_tau + 1) * step / model.tau)])
@@ -213,7 +220,11 @@ def gate_response(model=None, step=1e-12):
 
 
 def _gauss(t, sigma):
-    return np.exp(-0.5 * (t / sigma) ** 2) / (sigma * np.sqrt(2 * np.pi))
+    """A Gaussian sampled at ``t``, normalised to sum 1 (a pulse far shorter than the
+    grid step becomes a single sample instead of 0 * inf)."""
+    with np.errstate(over="ignore"):
+        g = np.exp(-0.5 * (t / sigma) ** 2)
+    return g / g.sum()
 
 
 def _rise(t, rise):
@@ -415,8 +426,7 @@ def fit_profiles(
     """
     cube = np.asarray(cube, dtype=np.float64)
     shape, n_t = cube.shape[:-1], cube.shape[-1]
-    if n_t < 4:
-        raise ValueError(f"a profile needs at least 4 samples, got {n_t}")
+    check_scan(n_t, shift, response)
     y = cube.reshape(-1, n_t)
     if y.shape[0] == 0:
         raise ValueError("the cube has no pixels")
@@ -455,6 +465,28 @@ def fit_profiles(
         significance=significance.reshape(shape),
         valid=valid.reshape(shape),
     )
+
+
+def check_scan(n_samples, shift, response):
+    """Raise ValueError unless a scan of ``n_samples`` at ``shift`` (s) can time ``response``.
+
+    It needs 4 samples, at least one per FWHM of the response (a pulse between two
+    farther samples has no timing), and must cover one FWHM (a shorter scan sees a
+    nearly flat slice of h, where amplitude and background are one unknown).
+    """
+    fwhm = response.fwhm
+    if n_samples < 4:
+        raise ValueError(f"a profile needs at least 4 samples, got {n_samples}")
+    if not shift <= fwhm:
+        raise ValueError(
+            f"the scan step {shift / _PS:.3g} ps exceeds the response's FWHM "
+            f"{fwhm / _PS:.3g} ps: a return between two samples has no timing"
+        )
+    if (n_samples - 1) * shift < fwhm:
+        raise ValueError(
+            f"the scan covers {(n_samples - 1) * shift / _PS:.3g} ps, less than the "
+            f"response's FWHM {fwhm / _PS:.3g} ps"
+        )
 
 
 def _fit_chunk(y, t, table, lo_mu, hi_mu, grid, floor, max_iter):

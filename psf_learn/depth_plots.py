@@ -7,6 +7,8 @@ on the data.
 import numpy as np
 
 PNG_META = {"Software": None}
+# A GIF frame lasts a whole number of centiseconds, 1 to 65535 (a 16-bit field).
+GIF_FPS_RANGE = (100 / 65535, 100.0)
 
 
 def _figure(figsize):
@@ -71,6 +73,13 @@ def save_pixel_fits(path, times, profiles, models, labels):
     fig.savefig(path, dpi=100, metadata=PNG_META)
 
 
+def check_gif_fps(fps):
+    """Raise ValueError unless a GIF can play ``fps`` frames per second."""
+    lo, hi = GIF_FPS_RANGE
+    if not lo <= fps <= hi:
+        raise ValueError(f"a GIF plays {lo:.4g} to {hi:g} frames per second, got {fps:g}")
+
+
 def save_gif(path, frames, fps=10, min_width=256):
     """Save an animated GIF of (T, H, W) frames on one common grey scale.
 
@@ -80,6 +89,7 @@ def save_gif(path, frames, fps=10, min_width=256):
     """
     from PIL import Image
 
+    check_gif_fps(fps)
     frames = np.asarray(frames, dtype=np.float64)
     vmax = float(frames.max()) or 1.0
     zoom = max(1, int(np.ceil(min_width / frames.shape[2])))

@@ -14,6 +14,7 @@ from psf_learn.depth import (
     FWHM_PER_SIGMA,
     SPEED_OF_LIGHT,
     GateModel,
+    check_scan,
     expected_counts,
     fit_profiles,
     gate_response,
@@ -276,12 +277,42 @@ def test_bad_cubes_are_refused(tmp_path, kind):
     assert not out.exists()
 
 
-def test_bad_flags_are_refused(tmp_path, response):
+def test_bad_flags_are_refused(tmp_path, response, capsys):
     path, _ = write_scene_cube(tmp_path, response, shape=(2, 2))
+    # The last four once ended in tracebacks or were silently ignored: a 1 ms fall
+    # time needs a 25 us response, a 1 ns step samples the ~312 ps response less
+    # than once, 0.1 ps steps scan 12 ps of it.
     for flags in (["--shift-ps", "0"], ["--gate-width-ps", "-5"], ["--tau-ps", "10"],
-                  ["--pulse", "emg"], ["--irf", str(tmp_path / "missing.npy")]):  # fmt: skip
+                  ["--pulse", "emg"], ["--irf", str(tmp_path / "missing.npy")],
+                  ["--fall-ps", "1e9"], ["--shift-ps", "1000"], ["--shift-ps", "0.1"],
+                  ["--irf-t0-ps", "5"]):  # fmt: skip
         assert main(["depth", str(path), "--out", str(tmp_path / "o"), *flags]) == 2
+        assert len(capsys.readouterr().err.strip().splitlines()) == 1
     assert not (tmp_path / "o").exists()
+    for fps in ("0", "1000"):
+        assert main(["transient", str(path), "--out", str(tmp_path / "t"), "--fps", fps]) == 2
+        assert "--fps" in capsys.readouterr().err
+    assert not (tmp_path / "t").exists()
+
+
+def test_scan_must_sample_the_response():
+    fwhm = gate_response(GateModel()).fwhm
+    ok = gate_response(GateModel())
+    check_scan(4, fwhm / 3, ok)
+    check_scan(120, fwhm, ok)
+    for n, shift in ((3, SHIFT), (120, 1.01 * fwhm), (4, fwhm / 3.1)):
+        with pytest.raises(ValueError):
+            check_scan(n, shift, ok)
+
+
+def test_gate_model_limits():
+    # A pulse far shorter than the 1 ps grid is a single sample (once 0 * inf = NaN).
+    delta = gate_response(GateModel(pulse_fwhm=1e-300))
+    short = gate_response(GateModel(pulse_fwhm=1e-14))
+    assert np.all(np.isfinite(delta.values)) and delta.start == pytest.approx(short.start)
+    np.testing.assert_allclose(delta.values, short.values, atol=1e-12)
+    with pytest.raises(ValueError, match="span"):
+        gate_response(GateModel(fall=1e-3))
 
 
 def test_frame_folder_is_read_as_uint16_in_name_order(tmp_path):
