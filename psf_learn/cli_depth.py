@@ -4,6 +4,7 @@ from pathlib import Path
 
 import numpy as np
 
+from doe import flags
 from doe.errors import InputError
 
 DEPTH_ARRAYS = (
@@ -96,18 +97,12 @@ def _common(p):
     p.add_argument("--force", action="store_true", help="overwrite existing outputs")
 
 
-def _positive(value, flag):
-    if not (np.isfinite(value) and value > 0):
-        raise InputError(flag, f"must be a positive number, got {value:g}")
-    return value
-
-
 def _response(args):
     """The temporal response from the gate flags or from --irf."""
     from psf_learn.cubes import read_irf
     from psf_learn.depth import GateModel, gate_response, response_from_irf
 
-    shift = _positive(args.shift_ps, "--shift-ps") * 1e-12
+    shift = flags.positive("--shift-ps", args.shift_ps) * 1e-12
     if args.irf:
         given = [a for a in [*GATE_FLAGS, "pulse", "tau_ps"] if getattr(args, a) is not None]
         if given:
@@ -127,15 +122,13 @@ def _response(args):
     for attr, (default, name, _) in GATE_FLAGS.items():
         value = default if getattr(args, attr) is None else getattr(args, attr)
         flag = "--" + attr.replace("_", "-")
-        if name in ("width", "pulse_fwhm"):
-            _positive(value, flag)
-        elif not (np.isfinite(value) and value >= 0):
-            raise InputError(flag, f"must be >= 0, got {value:g}")
+        check = flags.positive if name in ("width", "pulse_fwhm") else flags.non_negative
+        check(flag, value)
         params[name] = value * 1e-12
     pulse = args.pulse or "gaussian"
     tau = 0.0 if args.tau_ps is None else args.tau_ps
     if pulse == "emg":
-        _positive(tau, "--tau-ps")
+        flags.positive("--tau-ps", tau)
     elif args.tau_ps is not None:
         raise InputError("--tau-ps", "only applies with --pulse emg")
     model = GateModel(pulse=pulse, tau=tau * 1e-12, **params)
@@ -171,8 +164,7 @@ def _depth(args):
     from psf_learn.depth import check_scan
 
     response, gate_summary = _response(args)
-    if not np.isfinite(args.min_significance) or args.min_significance < 0:
-        raise InputError("--min-significance", "must be a number >= 0")
+    flags.non_negative("--min-significance", args.min_significance)
     cube = read_cube(args.cube)
     shift = args.shift_ps * 1e-12
     try:
@@ -297,7 +289,7 @@ def _transient(args):
     from psf_learn.depth import scan_times
     from psf_learn.depth_plots import check_gif_fps, save_gif
 
-    shift = _positive(args.shift_ps, "--shift-ps") * 1e-12
+    shift = flags.positive("--shift-ps", args.shift_ps) * 1e-12
     try:
         check_gif_fps(args.fps)
     except ValueError as e:
