@@ -20,6 +20,11 @@ from doe.errors import InputError
 
 FORMATS = ("ply", "glb", "3mf", "stl", "step")
 INSTANCED = ("glb", "3mf", "step")
+# GLB and STL store float32 coordinates; at z = thickness they round heights by half
+# a float32 spacing, which must stay within the 1 nm the mesh checks hold z to
+# (float32 spacing is 1.9 nm up to 32 mm, 3.8 nm beyond).
+FLOAT32_FORMATS = ("glb", "stl")
+Z_ROUNDING_LIMIT_NM = 1.0
 # Peak memory of a merged body per triangle of the estimate: numpy arrays plus the Python
 # lists of the builder (measured ~150 B), with a safety factor of two.
 BYTES_PER_TRIANGLE = 300
@@ -95,7 +100,9 @@ def read_fab_dir(fab_dir, thickness_mm=None):
         thickness = float(thickness_mm) * 1e-3
     except (TypeError, ValueError):
         raise InputError(where, f"not a number: {thickness_mm!r}") from None
-    if not np.isfinite(thickness) or thickness <= (n_levels - 1) * step:
+    if not np.isfinite(thickness):
+        raise InputError(where, f"must be a finite number of mm, got {thickness_mm!r}")
+    if thickness <= (n_levels - 1) * step:
         raise InputError(
             where,
             f"{thickness * 1e3:g} mm is not thicker than the deepest etch "
@@ -149,6 +156,30 @@ def check_crop(relief, crop, tiles):
     return est
 
 
+def check_float32_heights(relief, formats, fab_dir, thickness_flag):
+    """Refuse float32 formats whose rounding at the top surface exceeds the z tolerance."""
+    import numpy as np
+
+    single = [f for f in formats if f in FLOAT32_FORMATS]
+    thickness_mm = relief.thickness * 1e3
+    with np.errstate(over="ignore"):
+        rounding_nm = float(np.spacing(np.float32(thickness_mm))) / 2 * 1e6
+    if not single or rounding_nm <= Z_ROUNDING_LIMIT_NM:
+        return
+    where = "--thickness-mm" if thickness_flag is not None else Path(fab_dir) / "fab_manifest.json"
+    detail = (
+        f"round heights at that z by up to {rounding_nm:.2g} nm"
+        if np.isfinite(rounding_nm)
+        else "cannot hold that z"
+    )
+    raise InputError(
+        where,
+        f"{thickness_mm:g} mm: {' and '.join(single)} store float32 coordinates, which "
+        f"{detail} (limit {Z_ROUNDING_LIMIT_NM:g} nm); use a thinner substrate or drop "
+        "them from --formats",
+    )
+
+
 def run_mesh(args):
     import numpy as np
 
@@ -157,6 +188,7 @@ def run_mesh(args):
 
     formats = _parse_formats(args.formats)
     relief, info = read_fab_dir(args.fab_dir, args.thickness_mm)
+    check_float32_heights(relief, formats, args.fab_dir, args.thickness_mm)
     tiles, origin = info["tiles"], info["origin_mm"]
     if args.crop is not None:
         if formats == ["step"]:

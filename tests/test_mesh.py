@@ -314,6 +314,29 @@ def test_cli_refuses_merged_full_aperture(tmp_path, capsys):
     assert not out.exists() or not any(out.iterdir())
 
 
+def test_cli_refuses_float32_formats_on_a_thick_substrate(tmp_path, capsys):
+    # At 40 mm a float32 z is 3.8 nm coarse: GLB/STL heights would be off by up to
+    # 1.9 nm, beyond the 1 nm the independent mesh check allows (it failed at 100 mm).
+    levels = random_levels(3, seed=16)
+    fab = write_fab_dir(tmp_path / "fab", levels)
+    out = tmp_path / "out"
+    for formats in ("ply,glb,3mf,stl", "stl"):
+        argv = ["mesh", str(fab), "--out", str(out), "--thickness-mm", "40", "--formats", formats]
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "--thickness-mm" in err and "float32" in err
+        assert not out.exists()
+    for bad in ("nan", "inf", "1e300"):
+        assert main(["mesh", str(fab), "--out", str(out), "--thickness-mm", bad]) == 2
+        assert "--thickness-mm" in capsys.readouterr().err and not out.exists()
+    # PLY (float64) and 3MF (9 decimals) hold the heights at any thickness.
+    argv = ["mesh", str(fab), "--out", str(out), "--thickness-mm", "40", "--formats", "ply,3mf"]
+    assert main(argv) == 0
+    z = np.unique(trimesh.load(out / "tile.ply", process=False).vertices[:, 2])
+    tops = 40.0 - (L - 1 - np.unique(levels)) * STEP * 1e3
+    np.testing.assert_allclose(z, np.concatenate([[0.0], tops]), rtol=0, atol=1e-12)
+
+
 def test_cli_refuses_crop_beyond_aperture(tmp_path, capsys):
     fab = write_fab_dir(tmp_path / "fab", random_levels(4, seed=12), tiles=(2, 2))
     assert main(["mesh", str(fab), "--out", str(tmp_path / "o"), "--crop", "3"]) == 2
