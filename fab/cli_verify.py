@@ -295,9 +295,9 @@ def _mtf(args):
         raise InputError(args.image, str(e)) from None
     result["image"] = Path(args.image).name
     with staged_output(args.out, args.force, names=MTF_FILES) as stage:
-        from fab.verify_figures import write_mtf_plot
+        from fab.verify_figures import mtf50_text, write_mtf_plot
 
         write_json(stage / "mtf.json", result)
         write_mtf_plot(stage / "mtf.png", result)
-    print(f"MTF50 {result['mtf50_cycles_per_pixel']:.4f} cycles/pixel -> {args.out}")
+    print(f"MTF50 {mtf50_text(result)} -> {args.out}")
     return 0

@@ -12,9 +12,14 @@ edge normal.
 
 import numpy as np
 
+from fab.capture import robust_sigma
+
 # Rows whose derivative carries less than this fraction of the mean edge
 # contrast are left out of the line fit (e.g. rows where the edge leaves the frame).
 MIN_ROW_CONTRAST = 0.2
+# The edge's step must exceed this many times the pixel noise on its two sides; a
+# noise image otherwise passes for an edge anywhere.
+MIN_EDGE_SNR = 5.0
 
 
 class EdgeNotFound(ValueError):
@@ -35,7 +40,8 @@ def slanted_edge_mtf(image, oversample=4):
     Returns
     -------
     dict
-        "frequencies_cycles_per_pixel", "mtf" (lists, MTF 1 at 0), "mtf50_cycles_per_pixel",
+        "frequencies_cycles_per_pixel", "mtf" (lists, MTF 1 at 0), "mtf50_cycles_per_pixel"
+        (None when the MTF stays above 0.5 over the measured frequencies),
         "edge_angle_deg" (from the pixel column axis, or the row axis for a
         horizontal edge), "edge_orientation" ("vertical"/"horizontal"), "oversample".
 
@@ -68,6 +74,14 @@ def slanted_edge_mtf(image, oversample=4):
     if half < 4:
         raise EdgeNotFound("the edge runs too close to the image border")
     keep = (np.abs(dist) < half) & use[:, None]
+    dark, bright = img[keep & (dist < -half / 2)], img[keep & (dist > half / 2)]
+    step = abs(float(bright.mean() - dark.mean()))
+    noise = 0.5 * (robust_sigma(dark) + robust_sigma(bright))
+    if not step > MIN_EDGE_SNR * noise:
+        raise EdgeNotFound(
+            f"no edge stands out of the noise: step {step:.3g} against a pixel noise "
+            f"of {noise:.3g} (at least {MIN_EDGE_SNR:g} times needed)"
+        )
     bins = np.floor(dist[keep] * oversample).astype(np.int64)
     lo = bins.min()
     n_bins = bins.max() - lo + 1
@@ -132,8 +146,14 @@ def _fit_line(rows, centres, deriv):
 
 
 def _crossing(freq, mtf, level):
-    """Return the first frequency where the MTF falls to ``level`` (linear interpolation)."""
-    below = np.nonzero(np.nan_to_num(mtf, nan=0.0) < level)[0]
+    """Return the first frequency where the MTF falls to ``level`` (linear interpolation).
+
+    None when the MTF stays above ``level`` wherever it is measured (finite), as it
+    does for an edge sharper than the pixel grid resolves.
+    """
+    finite = np.isfinite(mtf)
+    freq, mtf = freq[finite], mtf[finite]
+    below = np.nonzero(mtf < level)[0]
     if below.size == 0:
         return None
     i = int(below[0])

@@ -216,6 +216,16 @@ def _fmt(v):
     return "n/a" if v is None else f"{v:+.4f}"
 
 
+def mtf50_text(result):
+    """MTF50 of a ``slanted_edge_mtf`` result in words (it may lie beyond the measured range)."""
+    mtf50 = result["mtf50_cycles_per_pixel"]
+    if mtf50 is None:
+        top = max(f for f, m in zip(result["frequencies_cycles_per_pixel"], result["mtf"],
+                                    strict=True) if np.isfinite(m))  # fmt: skip
+        return f"> {top:.3g} cycles/pixel (above 0.5 wherever measured)"
+    return f"{mtf50:.4f} cycles/pixel"
+
+
 def write_mtf_plot(path, result):
     """Plot the MTF of ``result`` (from ``fab.mtf.slanted_edge_mtf``) to a PNG."""
     plt = _pyplot()
@@ -229,7 +239,7 @@ def write_mtf_plot(path, result):
     ax.set_xlabel("spatial frequency (cycles/pixel)")
     ax.set_ylabel("MTF")
     ax.set_ylim(0, 1.05)
-    ax.set_title(f"slanted-edge MTF, MTF50 = {result['mtf50_cycles_per_pixel']:.4f} cycles/pixel")
+    ax.set_title(f"slanted-edge MTF, MTF50 {mtf50_text(result)}")
     fig.tight_layout()
     fig.savefig(path, dpi=90, metadata=_PNG_META)
     plt.close(fig)

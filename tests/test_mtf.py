@@ -77,3 +77,29 @@ def test_mtf_cli_flat_image_exits_2(tmp_path, capsys):
     assert main(["mtf", str(tmp_path / "flat.tif"), "--out", str(tmp_path / "o")]) == 2
     assert "flat.tif" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_edge_sharper_than_the_grid_has_mtf50_beyond_the_range(tmp_path, capsys):
+    # Analytic MTF50 of sigma 0.15 px is 1.25 cycles/pixel, beyond the measured 1.0:
+    # MTF50 is None (this once crashed the plot title), never NaN.
+    r = slanted_edge_mtf(gaussian_edge(0.15, 5))
+    f, m = np.array(r["frequencies_cycles_per_pixel"]), np.array(r["mtf"])
+    measured = np.isfinite(m)
+    assert r["mtf50_cycles_per_pixel"] is None
+    assert np.all(m[measured] >= 0.5) and f[measured].max() > 0.9
+    img = np.clip(gaussian_edge(0.15, 5, high=3000), 0, 65535).astype(np.uint16)
+    write_image(tmp_path / "sharp.png", img)
+    assert main(["mtf", str(tmp_path / "sharp.png"), "--out", str(tmp_path / "o")]) == 0
+    assert "MTF50 >" in capsys.readouterr().out
+    assert json.loads((tmp_path / "o" / "mtf.json").read_text())["mtf50_cycles_per_pixel"] is None
+
+
+@pytest.mark.parametrize("contrast, found", [(0.0, False), (4.0, False), (30.0, True)])
+def test_edge_must_stand_out_of_the_noise(contrast, found):
+    # Pixel noise 1: a pure-noise image once passed as an edge with MTF50 NaN.
+    img = gaussian_edge(1.0, 5, low=100.0, high=100.0 + contrast, noise=1.0, seed=3)
+    if found:
+        assert slanted_edge_mtf(img)["mtf50_cycles_per_pixel"] > 0
+    else:
+        with pytest.raises(EdgeNotFound, match="noise"):
+            slanted_edge_mtf(img)
