@@ -82,7 +82,8 @@ def read_raw_image(path):
     ------
     InputError
         Missing, truncated or corrupt files, colour images whose channels
-        differ, unsupported pixel formats; the message names the file.
+        differ, unsupported pixel formats, multi-page files; the message names
+        the file.
     """
     import OpenImageIO as oiio
 
@@ -105,6 +106,8 @@ def read_raw_image(path):
         if pixels is None or inp.has_error:
             raise InputError(path, f"truncated or corrupt image ({_one_line(inp.geterror())})")
         exposure = spec.get_float_attribute("ExposureTime", 0.0) or None
+        if inp.seek_subimage(1, 0):  # a multi-page TIFF: which page is the capture?
+            raise InputError(path, "holds several images (pages); give one capture per file")
     finally:
         inp.close()
     pixels = np.asarray(pixels)

@@ -98,6 +98,8 @@ def read_frame(path):
         else:
             raise InputError(path, f"unsupported pixel type {spec.format}; use 8/16-bit or float")
         pixels = inp.read_image(0, 0, 0, 1, fmt)
+        if inp.seek_subimage(1, 0):  # a multi-page TIFF: which page is this shift's frame?
+            raise InputError(path, "holds several images (pages); give one frame per file")
     finally:
         inp.close()
     if pixels is None:

@@ -74,15 +74,22 @@ def decode(path):
         if path.suffix.lower() in (".tif", ".tiff"):
             import tifffile
 
-            a = tifffile.imread(path)
+            with tifffile.TiffFile(path) as tif:
+                pages = sum(not page.is_reduced for page in tif.pages)  # thumbnails aside
+                a = tif.series[0].asarray()
         else:
             import imageio.v3 as iio
+            from PIL import Image
 
+            with Image.open(path) as im:  # reads the header only
+                pages = getattr(im, "n_frames", 1)
             a = iio.imread(path, plugin="pillow")
     except FileNotFoundError:
         raise InputError(path, "no such file") from None
     except Exception as e:  # the decoders raise many types on corrupt data
         raise InputError(path, f"not a readable image ({type(e).__name__}: {e})") from None
+    if pages > 1:  # a stack or an animation: which page is the image?
+        raise InputError(path, f"holds {pages} images (pages or frames); give one per file")
     if a.ndim > 2 and a.shape[-1] not in (3, 4) and a.shape[-3] in (3, 4):
         a = np.moveaxis(a, -3, -1)  # planar TIFF: channels last, as skimage.io.imread does
     return a

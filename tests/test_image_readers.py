@@ -92,3 +92,18 @@ def test_damaged_signature_is_refused_plainly(good_files, tmp_path, reader):
         warnings.simplefilter("error")
         with pytest.raises(InputError, match=r"damaged_signature\.png"):
             read(damaged)
+
+
+@pytest.mark.parametrize("reader", [*READERS, "raw frame"])
+def test_multi_page_tiff_is_refused(tmp_path, reader):
+    # Which page is the capture (or frame, or image)? Each reader once took the first
+    # page silently; the training reader took a 5-page stack for one image.
+    import tifffile
+
+    path = tmp_path / "burst.tif"
+    pages = np.random.default_rng(1).integers(0, 4000, (2, 24, 32)).astype(np.uint16)
+    with tifffile.TiffWriter(path) as tif:
+        for page in pages:
+            tif.write(page)
+    with pytest.raises(InputError, match=r"burst\.tif.*pages"):
+        READERS.get(reader, read_raw)(path)
