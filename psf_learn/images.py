@@ -171,7 +171,9 @@ def read_raw(path):
     """Read raw SPAD data: .npy (H, W) or (T, H, W), or an image file (8/16 bit or float).
 
     Returns float64 counts: npy values as stored, integer images as their integer
-    values (a 16-bit frame keeps its counts, not a [0, 1] scaling).
+    values (a 16-bit frame keeps its counts, not a [0, 1] scaling). Grey stored as
+    RGB(A) is read from its first channel; colour images and negative counts are
+    refused.
     """
     path = Path(path)
     if path.suffix.lower() == ".npy":
@@ -185,7 +187,12 @@ def read_raw(path):
     else:
         a = decode(path)
         if a.ndim == 3 and a.shape[2] in (3, 4):
-            a = a[..., :3].astype(np.float64) @ np.array([0.299, 0.587, 0.114])
+            # Grey saved as RGB(A) holds the counts in each channel; colour holds no counts.
+            if not np.all(a[..., :3] == a[..., :1]):
+                raise InputError(
+                    path, f"{a.shape[2]}-channel colour image; give the counts in grey"
+                )
+            a = a[..., :1]
         if a.ndim == 3 and a.shape[2] == 1:
             a = a[..., 0]
         if a.ndim != 2:
@@ -193,6 +200,8 @@ def read_raw(path):
     a = np.asarray(a, dtype=np.float64)
     if not np.all(np.isfinite(a)):
         raise InputError(path, "raw frames contain NaN or infinite values")
+    if np.any(a < 0):
+        raise InputError(path, f"raw frames contain negative counts (min {a.min():g})")
     if a.shape[-1] < 2 or a.shape[-2] < 2:
         raise InputError(path, f"frames of {a.shape} are too small")
     return a

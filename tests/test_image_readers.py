@@ -107,3 +107,20 @@ def test_multi_page_tiff_is_refused(tmp_path, reader):
             tif.write(page)
     with pytest.raises(InputError, match=r"burst\.tif.*pages"):
         READERS.get(reader, read_raw)(path)
+
+
+def test_raw_frames_are_counts(tmp_path):
+    # Grey saved as RGB keeps its counts; colour (once blended to luminance) and
+    # negative values (once passed to the network) are no counts.
+    from PIL import Image
+
+    grey = np.random.default_rng(2).integers(0, 256, (12, 10)).astype(np.uint8)
+    Image.fromarray(np.repeat(grey[..., None], 3, axis=2)).save(tmp_path / "grey_rgb.png")
+    np.testing.assert_array_equal(read_raw(tmp_path / "grey_rgb.png"), grey)
+    colour = np.stack([grey, grey, 255 - grey], axis=2)
+    Image.fromarray(colour).save(tmp_path / "colour.png")
+    with pytest.raises(InputError, match=r"colour\.png.*colour"):
+        read_raw(tmp_path / "colour.png")
+    np.save(tmp_path / "dark_subtracted.npy", grey.astype(float) - 128.0)
+    with pytest.raises(InputError, match="negative"):
+        read_raw(tmp_path / "dark_subtracted.npy")
