@@ -41,6 +41,11 @@ def to_gray(image, source):
         a = a.astype(np.float32) / 65535.0
     elif a.dtype.kind == "f":
         a = a.astype(np.float32)
+        if np.nanmin(a, initial=0) < 0 or np.nanmax(a, initial=1) > 1:
+            raise InputError(
+                source,
+                f"float pixels must lie in [0, 1] (white = 1), got {a.min():g} .. {a.max():g}",
+            )
     elif a.dtype == bool:
         a = a.astype(np.float32)
     else:

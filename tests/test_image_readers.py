@@ -124,3 +124,15 @@ def test_raw_frames_are_counts(tmp_path):
     np.save(tmp_path / "dark_subtracted.npy", grey.astype(float) - 128.0)
     with pytest.raises(InputError, match="negative"):
         read_raw(tmp_path / "dark_subtracted.npy")
+
+
+def test_float_training_images_must_lie_in_zero_one(tmp_path):
+    # Images are grey in [0, 1]; a float TIFF of [-0.5, 0.5] once went into PSNRs as is.
+    import tifffile
+
+    rng = np.random.default_rng(3)
+    tifffile.imwrite(tmp_path / "ok.tif", rng.random((20, 20)).astype(np.float32))
+    assert 0 <= read_image(tmp_path / "ok.tif").min() <= read_image(tmp_path / "ok.tif").max() <= 1
+    tifffile.imwrite(tmp_path / "signed.tif", (rng.random((20, 20)) - 0.5).astype(np.float32))
+    with pytest.raises(InputError, match=r"signed\.tif.*\[0, 1\]"):
+        read_image(tmp_path / "signed.tif")
