@@ -81,14 +81,20 @@ def read_levels(path, n_levels):
 
 
 def read_json(path):
-    """Read a JSON file, raising InputError naming it if missing or malformed."""
+    """Read a JSON object (every doefab JSON file is one) as a dict.
+
+    Raises InputError naming the file if it is missing, malformed or not an object.
+    """
     path = Path(path)
     try:
-        return json.loads(path.read_text())
+        obj = json.loads(path.read_text())
     except FileNotFoundError:
         raise InputError(path, "no such file") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise InputError(path, f"not readable JSON ({e})") from None
+    if not isinstance(obj, dict):
+        raise InputError(path, f"expected a JSON object, got {type(obj).__name__}")
+    return obj
 
 
 def write_json(path, obj):

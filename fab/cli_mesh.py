@@ -71,8 +71,6 @@ def read_fab_dir(fab_dir, thickness_mm=None):
         raise InputError(fab_dir, "no such folder (expected the output of doefab fab)")
     path = fab_dir / "fab_manifest.json"
     man = read_json(path)
-    if not isinstance(man, dict):
-        raise InputError(path, "not a JSON object")
     for key in ("levels", "level_step_nm", "pixel_pitch_nm", "tile_pixels", "tiles", "levels_file"):
         if key not in man:
             raise InputError(path, f"missing key {key!r}")

@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
+from doe.cli import main
 from doe.errors import InputError
-from doe.files import read_levels, read_psf, save_npy, staged_output, write_json
+from doe.files import read_json, read_levels, read_psf, save_npy, staged_output, write_json
 
 
 def test_staged_output_leaves_nothing_on_failure(tmp_path):
@@ -74,3 +75,16 @@ def test_write_json_is_strict_json_with_undefined_figures_as_null(tmp_path, read
         "t": [1, 2.5],
         "nested": [{"x": 0.25}],
     }
+
+
+@pytest.mark.parametrize("text", ["[]", "3", '"levels"', "null"])
+def test_json_that_is_not_an_object_is_refused(tmp_path, text, capsys):
+    # A list as retrieval.json once crashed doefab fab with an AttributeError.
+    bad = tmp_path / "retrieval.json"
+    bad.write_text(text)
+    with pytest.raises(InputError, match="JSON object"):
+        read_json(bad)
+    save_npy(tmp_path / "levels.npy", np.zeros((15, 15), np.uint8))
+    out = tmp_path / "fab"
+    assert main(["fab", str(tmp_path), "--out", str(out)]) == 2
+    assert "retrieval.json" in capsys.readouterr().err and not out.exists()
