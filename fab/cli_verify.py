@@ -103,6 +103,7 @@ def read_design_dir(path):
             deep = float(masks[0]["etch_depth_nm"]) * 1e-9 if masks else None
             acceptance = man.get("acceptance")
             target_file = path / man.get("target_psf_file", "target_psf.npy")
+            target_named = "target_psf_file" in man
         except (KeyError, TypeError, ValueError) as e:
             raise InputError(source, f"malformed manifest ({e!r} missing or wrong)") from None
         kind = "fab"
@@ -119,6 +120,7 @@ def read_design_dir(path):
             focal = float(design["optics"]["focal_length_mm"]) * 1e-3
             deep = float(derived["etch_depths_nm"][0]) * 1e-9
             target_file = path / "target_psf.npy"
+            target_named = False
             acceptance = None
         except (KeyError, TypeError, ValueError, IndexError) as e:
             raise InputError(source, f"malformed retrieval.json ({e!r} missing or wrong)") from None
@@ -129,6 +131,8 @@ def read_design_dir(path):
             "neither fab_manifest.json nor retrieval.json found; give a "
             "doefab fab or doefab retrieve output folder",
         )
+    if n_levels < 2 or n_levels & (n_levels - 1):
+        raise InputError(source, f"levels {n_levels} must be a power of two >= 2")
     levels = read_levels(levels_file, n_levels)
     if kind == "retrieve":
         # The mask pixel pitch snaps to the GDS grid for this N (as doe.design.derive does).
@@ -138,6 +142,8 @@ def read_design_dir(path):
         lattice = wavelength * focal / (n * pitch)
     if kernel > levels.shape[0] or kernel % 2 == 0:
         raise InputError(source, f"kernel_size {kernel} must be odd and <= N {levels.shape[0]}")
+    if target_named and not target_file.is_file():
+        raise InputError(target_file, f"named by {source.name} but missing")
     target = read_psf(target_file) if target_file.is_file() else None
     if acceptance is not None and not isinstance(acceptance, dict):
         raise InputError(source, "acceptance must be a table of thresholds")

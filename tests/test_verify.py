@@ -327,6 +327,24 @@ def test_blank_capture_exits_2(tmp_path, levels, capsys):
     assert code == 2 and "blank.tif" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize(
+    "change, culprit",
+    [({"levels": 0}, "fab_manifest.json"), ({"target_psf_file": "gone.npy"}, "gone.npy")],
+)
+def test_inconsistent_manifest_exits_2(tmp_path, levels, capsys, change, culprit):
+    # levels 0 was blamed on levels.npy ("must lie in 0..-1"); a target the manifest
+    # names but that is missing was skipped, verifying without it.
+    design = make_design_dir(tmp_path / "design", levels)
+    manifest = json.loads((design / "fab_manifest.json").read_text())
+    write_json(design / "fab_manifest.json", {**manifest, **change})
+    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, shape=(200, 200), seed=20)
+    write_image(tmp_path / "cap.png", sim["capture"])
+    out = tmp_path / "o"
+    assert main(["verify", str(design), str(tmp_path / "cap.png"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert culprit in err and len(err.splitlines()) == 1 and not out.exists()
+
+
 def test_manifest_acceptance_is_used(tmp_path, levels):
     acc = {
         "correlation_min": 0.999999,
