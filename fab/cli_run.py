@@ -111,6 +111,12 @@ def _run(args):
         if code != 0:
             print(f"doefab run: stage {stage.name} failed (exit {code})", file=sys.stderr)
             return code
+        # The stage itself reported its staging folder, which is now renamed.
+        print(
+            f"[{i}/{len(stages)}] {stage.name}: done in {timings[stage.name]:.0f} s "
+            f"-> {run_dir / stage.name}",
+            file=sys.stderr,
+        )
     save_state(run_dir, state)
     write_index(run_dir, design, [s.name for s in stages])
     write_manifest(

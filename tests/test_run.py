@@ -78,10 +78,14 @@ def test_rerun_skips_every_stage_and_changes_nothing(config, finished, capsys):
     assert (finished / "manifest.json").read_bytes() == before
 
 
-def test_a_second_run_gives_byte_identical_outputs(config, finished, tmp_path):
+def test_a_second_run_gives_byte_identical_outputs(config, finished, tmp_path, capsys):
     out = tmp_path / "again"
     assert run(config, out) == 0
     assert (out / "manifest.json").read_bytes() == (finished / "manifest.json").read_bytes()
+    # Each stage reports its staging folder; the run then names where the files are.
+    err = capsys.readouterr().err
+    for i, name in enumerate(("learn", "retrieve", "fab", "mesh"), 1):
+        assert f"[{i}/4] {name}: done in " in err and f"-> {out / name}\n" in err
 
 
 def test_killed_run_resumes_to_the_same_outputs(config, finished, tmp_path):
