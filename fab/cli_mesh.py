@@ -121,7 +121,8 @@ def read_fab_dir(fab_dir, thickness_mm=None):
     }
 
 
-def _parse_formats(text):
+def parse_formats(text):
+    """Return the formats named in a comma-separated ``--formats`` value, in FORMATS order."""
     formats = [f.strip().lower() for f in text.split(",") if f.strip()]
     bad = [f for f in formats if f not in FORMATS]
     if bad or not formats:
@@ -154,17 +155,15 @@ def check_crop(relief, crop, tiles):
     return est
 
 
-def check_float32_heights(relief, formats, fab_dir, thickness_flag):
+def check_float32_heights(thickness_mm, formats, where):
     """Refuse float32 formats whose rounding at the top surface exceeds the z tolerance."""
     import numpy as np
 
     single = [f for f in formats if f in FLOAT32_FORMATS]
-    thickness_mm = relief.thickness * 1e3
     with np.errstate(over="ignore"):
         rounding_nm = float(np.spacing(np.float32(thickness_mm))) / 2 * 1e6
     if not single or rounding_nm <= Z_ROUNDING_LIMIT_NM:
         return
-    where = "--thickness-mm" if thickness_flag is not None else Path(fab_dir) / "fab_manifest.json"
     detail = (
         f"round heights at that z by up to {rounding_nm:.2g} nm"
         if np.isfinite(rounding_nm)
@@ -184,9 +183,15 @@ def run_mesh(args):
     from doe.files import atomic_write_bytes, staged_output, write_json
     from fab import mesh, mesh_io
 
-    formats = _parse_formats(args.formats)
+    formats = parse_formats(args.formats)
     relief, info = read_fab_dir(args.fab_dir, args.thickness_mm)
-    check_float32_heights(relief, formats, args.fab_dir, args.thickness_mm)
+    check_float32_heights(
+        relief.thickness * 1e3,
+        formats,
+        "--thickness-mm"
+        if args.thickness_mm is not None
+        else Path(args.fab_dir) / "fab_manifest.json",
+    )
     tiles, origin = info["tiles"], info["origin_mm"]
     if args.crop is not None:
         if formats == ["step"]:

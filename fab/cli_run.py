@@ -76,6 +76,7 @@ def _run(args):
     from doe import flags
     from doe.cli import main as doefab
     from doe.design import load_design
+    from fab.cli_mesh import check_float32_heights, parse_formats
     from fab.pipeline import check_overwrite, is_current, load_state, run_stage, save_state
     from fab.run_report import write_index, write_manifest
 
@@ -83,6 +84,9 @@ def _run(args):
     flags.positive("--minutes", args.minutes)
     flags.non_negative("--seed", args.seed)
     design = load_design(args.config)
+    formats = parse_formats(args.formats)
+    where = f"{args.config or 'default preset'}: [material] thickness_mm"
+    check_float32_heights(design.material.thickness * 1e3, formats, where)
     run_dir = Path(args.out)
     if run_dir.exists() and not run_dir.is_dir():
         raise InputError(run_dir, "exists and is not a folder")

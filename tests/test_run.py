@@ -139,8 +139,13 @@ def test_bad_inputs_exit_2(tmp_path, capsys):
     (stranger / "thesis.tex").write_text("precious")
     assert main(["run", "--out", str(stranger), "--psf", str(tmp_path / "none.npy")]) == 2
     assert (stranger / "thesis.tex").read_text() == "precious"
-    # Bad numbers stop the run before its first stage, leaving nothing behind.
-    for flag, value in (("--seed", "-1"), ("--minutes", "nan")):
+    # Bad values stop the run before its first stage, leaving nothing behind (a mesh
+    # format typo once failed the last stage, after minutes of learning).
+    for flag, value in (("--seed", "-1"), ("--minutes", "nan"), ("--formats", "ply,obj")):
         fresh = tmp_path / f"o{flag}"
         assert main(["run", "--out", str(fresh), flag, value]) == 2
         assert flag in capsys.readouterr().err and not fresh.exists()
+    thick = tmp_path / "thick.toml"
+    thick.write_text("[material]\nthickness_mm = 50\n")
+    assert main(["run", "--config", str(thick), "--out", str(tmp_path / "o3")]) == 2
+    assert "thickness_mm" in capsys.readouterr().err and not (tmp_path / "o3").exists()
