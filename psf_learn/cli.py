@@ -130,6 +130,14 @@ def _learn(args):
         init_state = base.net.state_dict()
         record, _, _ = store.load_model_dir(args.init)
         net = record["network"]
+        for key in ("features", "stages", "arch"):
+            given = getattr(args, key)
+            if given is not None and given != net[key]:
+                raise InputError(
+                    f"--{key}",
+                    f"{given} differs from the --init model's {net[key]}; "
+                    "fine-tuning keeps the network, drop the flag",
+                )
         config = with_overrides(
             config, features=net["features"], stages=net["stages"], arch=net["arch"]
         )

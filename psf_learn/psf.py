@@ -53,10 +53,12 @@ def gaussian_psf(k, sigma=GAUSSIAN_SIGMA, centre=(0.0, 0.0)):
     to the widest window symmetric about that centre, so its centroid stays there.
     """
     r = np.arange(k) - k // 2
+    with np.errstate(over="ignore"):  # a huge sigma is a flat window: variance inf
+        two_var = 2 * np.float64(sigma) ** 2
 
     def profile(c):
         d = np.abs(r - c)
-        return np.where(d <= k // 2 - abs(c), np.exp(-(d**2) / (2 * sigma**2)), 0.0)
+        return np.where(d <= k // 2 - abs(c), np.exp(-(d**2) / two_var), 0.0)
 
     g = profile(centre[0])[:, None] * profile(centre[1])[None, :]
     return g / g.sum()
@@ -89,8 +91,8 @@ def baseline_psf(name, k, factor=4, sample_cell=(2, 2)):
             sigma = float(name.split(":", 1)[1])
         except ValueError:
             sigma = -1.0
-        if not sigma > 0:
-            raise ValueError(f"gaussian:SIGMA needs a sigma > 0 in sub-pixels, got {name!r}")
+        if not (np.isfinite(sigma) and sigma > 0):
+            raise ValueError(f"gaussian:SIGMA needs a finite sigma > 0 in sub-pixels, got {name!r}")
         return gaussian_psf(k, sigma, centre)
     raise ValueError(f"unknown baseline PSF {name!r}")
 

@@ -290,6 +290,11 @@ def test_learn_with_fixed_psf_file_and_fine_tuning(trained, tmp_path):
     assert main(argv) == 0
     np.testing.assert_allclose(np.load(tuned / "psf.npy"), gaussian_psf(K, 1.0), atol=1e-6)
     assert json.loads((tuned / "learn.json").read_text())["config"]["features"] == 4
+    # Fine-tuning keeps the network: a different --features/--arch was once ignored.
+    for flag, value in (("--features", "8"), ("--arch", "dbpn")):
+        again = tmp_path / f"again{flag}"
+        assert main([*argv[:2], str(again), *argv[3:], flag, value]) == 2
+        assert not again.exists()
 
 
 def test_evaluate_writes_json(trained, tmp_path, capsys):
@@ -444,5 +449,8 @@ def test_gaussian_sigma_spec(tmp_path, capsys):
     np.testing.assert_allclose(baseline_psf("gaussian:1.5", K), gaussian_psf(K, 1.5, (0.5, 0.5)))
     np.testing.assert_allclose(baseline_psf("gaussian", K), gaussian_psf(K, 0.459, (0.5, 0.5)))
     out = tmp_path / "out"
-    assert main(["learn", "--out", str(out), "--psf", "gaussian:-1", *SMALL]) == 2
-    assert "--psf" in capsys.readouterr().err and not out.exists()
+    for spec in ("gaussian:-1", "gaussian:inf", "gaussian:nan"):
+        assert main(["learn", "--out", str(out), "--psf", spec, *SMALL]) == 2
+        assert "--psf" in capsys.readouterr().err and not out.exists()
+    # A sigma far beyond the window is its flat limit (1e300 ** 2 once overflowed).
+    np.testing.assert_array_equal(gaussian_psf(K, 1e300), np.full((K, K), 1 / K**2))
