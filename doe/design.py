@@ -287,6 +287,15 @@ def _check_consistency(d, source):
         raise InputError(
             f"{source}: [sensor] active_area_um", "the active area is larger than the pixel pitch"
         )
+    reach = max(abs(v) for v in sensor.active_offset) + sensor.active_area / 2
+    if reach > sensor.pixel_pitch / 2 * (1 + 1e-9):
+        # The sensor model would clamp it into the pixel's corner cell without a word.
+        raise InputError(
+            f"{source}: [sensor] active_offset_um",
+            f"the active area ({sensor.active_area * 1e6:g} um across, centre offset "
+            f"({sensor.active_offset[0] * 1e6:g}, {sensor.active_offset[1] * 1e6:g}) um) "
+            f"leaves its {sensor.pixel_pitch * 1e6:g} um pixel",
+        )
     try:
         refractive_index(d.material.name, d.optics.wavelength)
     except InputError as e:

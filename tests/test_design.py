@@ -89,6 +89,9 @@ def test_every_material_refuses_wavelengths_outside_its_fit():
         ("psf", "kernel_size", 10, "odd"),
         ("psf", "kernel_size", 401, "exceeds"),
         ("sensor", "active_area_um", 200.0, "larger than the pixel pitch"),
+        # once clamped into the pixel's corner cell by the sensor model, without a word
+        ("sensor", "active_offset_um", [100.0, 0.0], "leaves its 150 um pixel"),
+        ("sensor", "active_offset_um", [0.0, -61.0], "leaves its 150 um pixel"),
         ("material", "name", "unobtainium", "must be one of"),
         ("sensor", "columns", 64.5, "must be int"),
         ("optics", "focal_length_mm", float("nan"), "finite"),
@@ -149,3 +152,9 @@ def test_missing_config_file_exits_2(tmp_path, capsys):
     missing = tmp_path / "nope.toml"
     assert main(["config", "show", "--config", str(missing)]) == 2
     assert str(missing) in capsys.readouterr().err
+
+
+def test_active_area_may_touch_the_pixel_edge():
+    # 30 um across, offset 60 um: its edge lies on the 150 um pixel's edge.
+    d = parse_design(with_value("sensor", "active_offset_um", [60.0, -60.0]), "edge.toml")
+    assert d.sensor.active_offset == pytest.approx((60e-6, -60e-6))
