@@ -22,7 +22,7 @@ def register(sub):
         "--levels",
         type=int,
         default=None,
-        help="phase levels L, a power of two >= 2 (default: the design's)",
+        help="phase levels L, a power of two from 2 to 256 (default: the design's)",
     )
     p.add_argument(
         "--tile-pixels",
@@ -42,13 +42,20 @@ def run(args):
     from doe import fraunhofer
     from doe.design import derive, design_summary, load_design
     from doe.figures import correlation_text, save_retrieval_figure
-    from doe.files import read_psf, save_npy, staged_output, write_json
+    from doe.files import (
+        LEVEL_COUNT_RULE,
+        is_level_count,
+        read_psf,
+        save_npy,
+        staged_output,
+        write_json,
+    )
     from doe.retrieval import CORRELATION_GOAL, RMSE_GOAL, missed_goals, retrieve_phase
 
     design = load_design(args.config)
     n_levels = design.fabrication.levels if args.levels is None else args.levels
-    if n_levels < 2 or n_levels & (n_levels - 1):
-        raise InputError("--levels", f"must be a power of two >= 2, got {n_levels}")
+    if not is_level_count(n_levels):
+        raise InputError("--levels", f"must be {LEVEL_COUNT_RULE}, got {n_levels}")
     n = derive(design).tile_pixels if args.tile_pixels is None else args.tile_pixels
     if n < 1:
         raise InputError("--tile-pixels", f"must be a positive number of pixels, got {n}")

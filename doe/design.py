@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Literal
 
 from doe.errors import InputError
+from doe.files import LEVEL_COUNT_RULE, is_level_count
 from doe.materials import MATERIALS, refractive_index
 
 
@@ -132,14 +133,7 @@ _SCHEMA = {
         "thickness_mm": (float, 1e-3, _POSITIVE),
     },
     "fabrication": {
-        "levels": (
-            int,
-            None,
-            (
-                lambda v: v >= 2 and v & (v - 1) == 0,
-                "must be a power of two >= 2 (one binary mask per bit)",
-            ),
-        ),
+        "levels": (int, None, (is_level_count, f"must be {LEVEL_COUNT_RULE}")),
         "feature_size_um": (float, 1e-6, _POSITIVE),
         "aperture_mm": (float, 1e-3, _POSITIVE),
         "grid_nm": (int, 1e-9, _POSITIVE),

@@ -63,6 +63,16 @@ def read_psf(path):
     return check_psf(load_npy(path), path)
 
 
+# levels.npy is uint8 (CONVENTIONS.md), so a design has at most 256 levels (8 masks).
+MAX_LEVELS = 256
+LEVEL_COUNT_RULE = "a power of two from 2 to 256 (one binary mask per bit; levels.npy is uint8)"
+
+
+def is_level_count(n_levels):
+    """True for a phase-level count L that masks and ``levels.npy`` can hold."""
+    return 2 <= n_levels <= MAX_LEVELS and n_levels & (n_levels - 1) == 0
+
+
 def check_levels(levels, n_levels, source):
     """Validate a level map against the contract; return it as uint8 (N, N)."""
     levels = np.asarray(levels)

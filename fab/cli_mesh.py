@@ -63,7 +63,7 @@ def read_fab_dir(fab_dir, thickness_mm=None):
     """Read the manifest and levels of FAB_DIR; return (Relief, manifest dict)."""
     import numpy as np
 
-    from doe.files import read_json, read_levels
+    from doe.files import LEVEL_COUNT_RULE, is_level_count, read_json, read_levels
     from fab.mesh import Relief
 
     fab_dir = Path(fab_dir)
@@ -83,8 +83,10 @@ def read_fab_dir(fab_dir, thickness_mm=None):
         raise InputError(path, f"malformed value ({e})") from None
     if len(tiles) != 2 or min(tiles) < 1 or len(origin) != 2:
         raise InputError(path, "tiles must be [nx, ny] >= 1 and array_origin_nm [x0, y0]")
-    if not (n_levels >= 2 and step > 0 and pitch > 0 and n >= 1):
-        raise InputError(path, "levels >= 2, level_step_nm > 0, pixel_pitch_nm > 0 required")
+    if not is_level_count(n_levels):
+        raise InputError(path, f"levels {n_levels} must be {LEVEL_COUNT_RULE}")
+    if not (step > 0 and pitch > 0 and n >= 1):
+        raise InputError(path, "level_step_nm > 0, pixel_pitch_nm > 0 required")
     if thickness_mm is None:
         if "substrate_thickness_mm" not in man:
             raise InputError(

@@ -79,7 +79,7 @@ def read_design_dir(path):
     """
     import numpy as np
 
-    from doe.files import read_json, read_levels, read_psf
+    from doe.files import LEVEL_COUNT_RULE, is_level_count, read_json, read_levels, read_psf
 
     path = Path(path)
     if not path.is_dir():
@@ -131,8 +131,8 @@ def read_design_dir(path):
             "neither fab_manifest.json nor retrieval.json found; give a "
             "doefab fab or doefab retrieve output folder",
         )
-    if n_levels < 2 or n_levels & (n_levels - 1):
-        raise InputError(source, f"levels {n_levels} must be a power of two >= 2")
+    if not is_level_count(n_levels):
+        raise InputError(source, f"levels {n_levels} must be {LEVEL_COUNT_RULE}")
     levels = read_levels(levels_file, n_levels)
     if kind == "retrieve":
         # The mask pixel pitch snaps to the GDS grid for this N (as doe.design.derive does).

@@ -579,6 +579,8 @@ def _bad_inputs(tmp_path):
         "missing": (tmp_path / "missing.npy", [], "no such file"),
         "levels 6": (_psf_file(tmp_path, good, "l6.npy"), ["--levels", 6], "--levels"),
         "levels 1": (_psf_file(tmp_path, good, "l1.npy"), ["--levels", 1], "--levels"),
+        # 512 levels once wrapped around in uint8 levels.npy (correlation -0.07, exit 0)
+        "levels 512": (_psf_file(tmp_path, good, "l512.npy"), ["--levels", 512], "--levels"),
         "tile 0": (_psf_file(tmp_path, good, "t0.npy"), ["--tile-pixels", 0], "--tile-pixels"),
         "bad config": (
             _psf_file(tmp_path, good, "c.npy"),
