@@ -40,7 +40,7 @@ def run(args):
     import numpy as np
 
     from doe import fraunhofer
-    from doe.design import derive, design_summary, load_design
+    from doe.design import MAX_TILE_PIXELS, derive, design_summary, load_design
     from doe.figures import correlation_text, save_retrieval_figure
     from doe.files import (
         LEVEL_COUNT_RULE,
@@ -57,8 +57,11 @@ def run(args):
     if not is_level_count(n_levels):
         raise InputError("--levels", f"must be {LEVEL_COUNT_RULE}, got {n_levels}")
     n = derive(design).tile_pixels if args.tile_pixels is None else args.tile_pixels
-    if n < 1:
-        raise InputError("--tile-pixels", f"must be a positive number of pixels, got {n}")
+    if not 1 <= n <= MAX_TILE_PIXELS:
+        raise InputError(
+            "--tile-pixels",
+            f"must be 1 to {MAX_TILE_PIXELS} pixels (time and memory grow as N^2), got {n}",
+        )
     if args.seed < 0:
         raise InputError("--seed", f"must be >= 0, got {args.seed}")
     target = read_psf(args.psf)

@@ -80,6 +80,7 @@ def test_every_material_refuses_wavelengths_outside_its_fit():
         ("fabrication", "levels", 6, "power of two"),
         ("fabrication", "levels", 1, "power of two"),
         ("fabrication", "levels", 512, "levels.npy is uint8"),
+        ("fabrication", "feature_size_um", 0.1, "N = 8733 pixels, more than 4096"),
         ("fabrication", "aperture_mm", 0.5, "larger than the aperture"),
         ("optics", "wavelength_nm", 5000.0, "outside the Sellmeier range"),
         ("sensor", "pixel_pitch_um", -150.0, "must be > 0"),

@@ -582,6 +582,12 @@ def _bad_inputs(tmp_path):
         # 512 levels once wrapped around in uint8 levels.npy (correlation -0.07, exit 0)
         "levels 512": (_psf_file(tmp_path, good, "l512.npy"), ["--levels", 512], "--levels"),
         "tile 0": (_psf_file(tmp_path, good, "t0.npy"), ["--tile-pixels", 0], "--tile-pixels"),
+        # N = 5000 once started a retrieval of hours and tens of GB
+        "tile 5000": (
+            _psf_file(tmp_path, good, "t5k.npy"),
+            ["--tile-pixels", 5000],
+            "--tile-pixels",
+        ),
         "bad config": (
             _psf_file(tmp_path, good, "c.npy"),
             ["--config", tmp_path / "no.toml"],
