@@ -40,9 +40,16 @@ def main(argv=None):
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        if getattr(args, "out", None) is not None and not args.out.strip():
+            # An unset shell variable ($OUT) would otherwise mean the current folder.
+            raise InputError("--out", "is empty")
         return int(args.func(args) or 0)
     except InputError as e:
         print(f"doefab {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:  # the file system refused: an unwritable --out, a full disk
+        where = e.filename if e.filename is not None else "file system"
+        print(f"doefab {args.command}: error: {where}: {e.strerror or e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"doefab {args.command}: interrupted", file=sys.stderr)

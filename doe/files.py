@@ -183,8 +183,11 @@ def staged_output(out_dir, force=False, names=None):
     if names is not None and not force:
         _refuse_overwrite(out_dir, names)
     parent = out_dir.parent
-    parent.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(dir=parent, prefix=f".{out_dir.name}.staging-"))
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+        stage = Path(tempfile.mkdtemp(dir=parent, prefix=f".{out_dir.name}.staging-"))
+    except OSError as e:
+        raise InputError(out_dir, f"cannot write here ({e.strerror})") from None
     try:
         yield stage
         written = sorted(p.relative_to(stage) for p in stage.rglob("*") if p.is_file())

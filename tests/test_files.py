@@ -88,3 +88,19 @@ def test_json_that_is_not_an_object_is_refused(tmp_path, text, capsys):
     out = tmp_path / "fab"
     assert main(["fab", str(tmp_path), "--out", str(out)]) == 2
     assert "retrieval.json" in capsys.readouterr().err and not out.exists()
+
+
+def test_empty_or_unwritable_out_exits_2(tmp_path, capsys, monkeypatch):
+    # An empty --out (an unset $OUT) once wrote into the current folder; an
+    # unwritable one ended in a FileNotFoundError traceback.
+    monkeypatch.chdir(tmp_path)
+    psf = tmp_path / "psf.npy"
+    save_npy(psf, np.full((3, 3), 1 / 9))
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    for command in (["retrieve", str(psf), "--tile-pixels", "7"], ["run", "--psf", str(psf)]):
+        for out in ("", str(blocker / "sub")):
+            assert main([*command, "--out", out]) == 2
+            err = capsys.readouterr().err.strip()
+            assert len(err.splitlines()) == 1 and ("--out" in err if not out else out in err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "psf.npy"]
