@@ -200,9 +200,20 @@ def train(
         groups.append({"params": [camera.psf.logits], "lr": config.psf_lr, "base": config.psf_lr})
     opt = torch.optim.Adam(groups)
     step, elapsed, history = 0, 0.0, []
+    # A checkpoint resumes only the same run: hyper-parameters, sensor and starting PSF
+    # (a new --photons or kernel size once resumed the old weights, or crashed on them).
+    identity = {
+        "config": config.identity(),
+        "sensor": [
+            np.asarray(sensor.weights, dtype=np.float64).tolist(),
+            float(sensor.photons),
+            float(sensor.dark_counts),
+        ],
+        "psf_init": np.asarray(psf_init, dtype=np.float64).tolist(),
+    }
     if checkpoint is not None and os.path.exists(checkpoint):
         state = store.load_checkpoint(checkpoint)
-        if state.get("config") == config.identity():
+        if state.get("identity") == identity:
             camera.load_state_dict(state["camera"])
             opt.load_state_dict(state["optimizer"])
             step, elapsed, history = state["step"], state["elapsed"], list(state["history"])
@@ -224,7 +235,7 @@ def train(
             store.save_checkpoint(
                 checkpoint,
                 {
-                    "config": config.identity(),
+                    "identity": identity,
                     "camera": camera.state_dict(),
                     "optimizer": opt.state_dict(),
                     "step": step,
