@@ -65,13 +65,17 @@ def _read_frame_folder(folder):
     if not files:
         raise InputError(folder, f"no frames ({', '.join(FRAME_SUFFIXES)}) in this folder")
     frames = [read_frame(p) for p in files]
-    shape = frames[0].shape
+    shape, dtype = frames[0].shape, frames[0].dtype
     for p, f in zip(files, frames, strict=True):
         if f.shape != shape:
             raise InputError(
                 p,
                 f"frame is {f.shape[1]} x {f.shape[0]}, the first frame "
                 f"{files[0].name} is {shape[1]} x {shape[0]}",
+            )
+        if f.dtype != dtype:  # e.g. float frames in [0, 1] among 16-bit counts
+            raise InputError(
+                p, f"frame is stored as {f.dtype}, the first frame {files[0].name} as {dtype}"
             )
     return np.stack(frames, axis=-1)
 

@@ -352,9 +352,15 @@ def test_frame_folder_8bit_tiff_and_bad_folders(tmp_path):
     sizes.mkdir()
     for k in range(4):
         write_frame(sizes / f"{k}.png", np.zeros((3, 4 + (k == 2), 1), np.uint8), oiio.UINT8)
+    # A float frame among 16-bit counts (once stacked as if both were counts).
+    mixed = tmp_path / "mixed"
+    mixed.mkdir()
+    for k in range(4):
+        frame = np.full((3, 4, 1), 0.5 if k == 3 else 2000, np.float32 if k == 3 else np.uint16)
+        write_frame(mixed / f"{k}.tif", frame, oiio.FLOAT if k == 3 else oiio.UINT16)
     empty = tmp_path / "empty"
     empty.mkdir()
-    for folder, culprit in ((rgb, "0.png"), (sizes, "2.png"), (empty, "empty")):
+    for folder, culprit in ((rgb, "0.png"), (sizes, "2.png"), (mixed, "3.tif"), (empty, "empty")):
         proc = subprocess.run(
             [sys.executable, "-m", "doe.cli", "depth", str(folder), "--out", str(tmp_path / "o")],
             capture_output=True,
