@@ -7,6 +7,7 @@ build123d, klayout) happen inside the commands, so ``doefab --help`` is fast and
 
 import argparse
 import importlib
+import os
 import sys
 
 from doe.errors import InputError
@@ -43,10 +44,15 @@ def main(argv=None):
         if getattr(args, "out", None) is not None and not args.out.strip():
             # An unset shell variable ($OUT) would otherwise mean the current folder.
             raise InputError("--out", "is empty")
-        return int(args.func(args) or 0)
+        code = int(args.func(args) or 0)
+        sys.stdout.flush()  # a closed pipe shows here, in the handlers below, not at exit
+        return code
     except InputError as e:
         print(f"doefab {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # the reader of stdout stopped (| head): end quietly, as SIGPIPE would
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 128 + 13
     except OSError as e:  # the file system refused: an unwritable --out, a full disk
         where = e.filename if e.filename is not None else "file system"
         print(f"doefab {args.command}: error: {where}: {e.strerror or e}", file=sys.stderr)

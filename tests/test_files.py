@@ -1,5 +1,8 @@
 """Contract readers and the staged (all-or-nothing) output folder."""
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -104,3 +107,17 @@ def test_empty_or_unwritable_out_exits_2(tmp_path, capsys, monkeypatch):
             err = capsys.readouterr().err.strip()
             assert len(err.splitlines()) == 1 and ("--out" in err if not out else out in err)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "psf.npy"]
+
+
+def test_closed_stdout_ends_quietly(tmp_path):
+    # `doefab config show | head`: the reader goes away. Like a tool killed by SIGPIPE:
+    # status 141 and nothing on stderr (this once read "error: file system: Broken pipe").
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "doe.cli", "config", "show"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        cwd=tmp_path,
+    )
+    proc.stdout.close()
+    err = proc.stderr.read()
+    assert proc.wait() == 141 and err == b""
