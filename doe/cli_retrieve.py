@@ -39,7 +39,7 @@ def register(sub):
 def run(args):
     import numpy as np
 
-    from doe import fraunhofer
+    from doe import flags, fraunhofer
     from doe.design import MAX_TILE_PIXELS, derive, design_summary, load_design
     from doe.figures import correlation_text, save_retrieval_figure
     from doe.files import (
@@ -62,8 +62,7 @@ def run(args):
             "--tile-pixels",
             f"must be 1 to {MAX_TILE_PIXELS} pixels (time and memory grow as N^2), got {n}",
         )
-    if args.seed < 0:
-        raise InputError("--seed", f"must be >= 0, got {args.seed}")
+    flags.non_negative("--seed", args.seed)
     target = read_psf(args.psf)
     k = target.shape[0]
     if k > n:

@@ -60,7 +60,11 @@ def register(sub):
 
 
 def read_fab_dir(fab_dir, thickness_mm=None):
-    """Read the manifest and levels of FAB_DIR; return (Relief, manifest dict)."""
+    """Read the manifest and levels of FAB_DIR; return (Relief, manifest dict).
+
+    The dict's ``thickness_source`` names where the thickness came from (the flag
+    or the manifest key), for messages about it.
+    """
     import numpy as np
 
     from doe.files import LEVEL_COUNT_RULE, is_level_count, read_json, read_levels
@@ -120,6 +124,7 @@ def read_fab_dir(fab_dir, thickness_mm=None):
         "origin_mm": [v for v in origin],
         "design_name": man.get("design_name"),
         "material": man.get("material"),
+        "thickness_source": where,
     }
 
 
@@ -187,13 +192,7 @@ def run_mesh(args):
 
     formats = parse_formats(args.formats)
     relief, info = read_fab_dir(args.fab_dir, args.thickness_mm)
-    check_float32_heights(
-        relief.thickness * 1e3,
-        formats,
-        "--thickness-mm"
-        if args.thickness_mm is not None
-        else Path(args.fab_dir) / "fab_manifest.json",
-    )
+    check_float32_heights(relief.thickness * 1e3, formats, info["thickness_source"])
     tiles, origin = info["tiles"], info["origin_mm"]
     if args.crop is not None:
         if formats == ["step"]:

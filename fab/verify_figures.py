@@ -220,8 +220,8 @@ def mtf50_text(result):
     """MTF50 of a ``slanted_edge_mtf`` result in words (it may lie beyond the measured range)."""
     mtf50 = result["mtf50_cycles_per_pixel"]
     if mtf50 is None:
-        top = max(f for f, m in zip(result["frequencies_cycles_per_pixel"], result["mtf"],
-                                    strict=True) if np.isfinite(m))  # fmt: skip
+        f = np.asarray(result["frequencies_cycles_per_pixel"], float)
+        top = f[np.isfinite(np.asarray(result["mtf"], float))].max()
         return f"> {top:.3g} cycles/pixel (above 0.5 wherever measured)"
     return f"{mtf50:.4f} cycles/pixel"
 

@@ -470,18 +470,26 @@ def _run(args, capsys):
     return code, capsys.readouterr().err
 
 
+def _retrieve_asymmetric(tmp_path, capsys, *flags):
+    """Retrieve the 7 x 7 asymmetric target at N = 31 into tmp_path/out (exit 0).
+
+    Returns (PSF file, out folder, retrieval.json as a dict, stderr).
+    """
+    psf = _psf_file(tmp_path, targets.asymmetric(7))
+    out = tmp_path / "out"
+    code, err = _run([psf, "--out", out, "--tile-pixels", 31, *flags], capsys)
+    assert code == 0, err
+    return psf, out, json.loads((out / "retrieval.json").read_text()), err
+
+
 def test_cli_writes_the_contract_files(tmp_path, capsys):
     target = targets.asymmetric(7)
-    psf = _psf_file(tmp_path, target)
-    out = tmp_path / "out"
-    code, err = _run([psf, "--out", out, "--tile-pixels", 31, "--seed", 2], capsys)
-    assert code == 0, err
+    psf, out, info, err = _retrieve_asymmetric(tmp_path, capsys, "--seed", 2)
     levels = np.load(out / "levels.npy")
     assert levels.dtype == np.uint8 and levels.shape == (31, 31) and levels.max() < 8
     phase = np.load(out / "phase.npy")
     assert phase.dtype == np.float64 and phase.shape == (31, 31)
     np.testing.assert_array_equal(np.load(out / "target_psf.npy"), target)
-    info = json.loads((out / "retrieval.json").read_text())
     assert info["levels"] == 8 and info["tile_pixels"] == 31 and info["kernel_size"] == 7
     assert info["seed"] == 2 and info["design"]["name"] == "sun2020"
     assert set(info["versions"]) == {"numpy", "scipy", "nlopt", "doefab"}
@@ -501,12 +509,7 @@ def test_cli_writes_the_contract_files(tmp_path, capsys):
 def test_cli_warns_when_the_design_misses_the_goals(tmp_path, capsys):
     # a binary plate's PSF is point-symmetric (|F(-u)| = |F(u)| for a real field),
     # so it cannot form an asymmetric target: the plate is written, with a warning
-    target = targets.asymmetric(7)
-    psf = _psf_file(tmp_path, target)
-    out = tmp_path / "out"
-    code, err = _run([psf, "--out", out, "--tile-pixels", 31, "--levels", 2], capsys)
-    assert code == 0, err
-    info = json.loads((out / "retrieval.json").read_text())
+    _, _, info, err = _retrieve_asymmetric(tmp_path, capsys, "--levels", 2)
     q = info["quantised"]
     assert q["correlation"] < 0.9999 and q["rmse"] > 0.005
     assert info["goals"]["met"] is False
