@@ -40,7 +40,9 @@ def register(sub):
     p.add_argument("--arch", choices=("resnet", "dbpn"), help="network design (default resnet)")
     p.add_argument("--batch", type=int, help="patches per step (default 16)")
     p.add_argument(
-        "--patch", type=int, help="patch size in sub-pixels, a multiple of the factor (default 64)"
+        "--patch",
+        type=int,
+        help="patch size in sub-pixels, a multiple of the factor (default: the largest up to 64)",
     )
     p.add_argument("--lr", type=float, help="network learning rate (default 2e-3)")
     p.add_argument("--psf-lr", type=float, help="PSF logit learning rate (default 0.05)")
@@ -89,7 +91,7 @@ def _learn(args):
     from psf_learn import store
     from psf_learn.psf import baseline_psf, gaussian_psf
     from psf_learn.sensor import sensor_from_design
-    from psf_learn.train import TrainConfig, augment_scales, train, with_overrides
+    from psf_learn.train import TrainConfig, augment_scales, default_patch, train, with_overrides
 
     for flag in ("steps", "minutes", "batch", "patch", "features", "stages", "threads"):
         flags.positive(f"--{flag}", getattr(args, flag))
@@ -108,7 +110,7 @@ def _learn(args):
         minutes=None if args.steps else args.minutes,
         seed=args.seed,
         batch=args.batch,
-        patch=args.patch,
+        patch=args.patch or default_patch(sensor.factor),
         lr=args.lr,
         psf_lr=args.psf_lr,
         features=args.features,

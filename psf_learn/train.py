@@ -41,7 +41,7 @@ class TrainConfig:
     minutes: float | None = 3.0
     seed: int = 0
     batch: int = 16
-    patch: int = 64
+    patch: int = 64  # sub-pixels; learn takes default_patch(factor) when not given
     lr: float = 2e-3
     psf_lr: float = 0.05
     features: int = 24
@@ -304,6 +304,15 @@ def train(
         float(np.mean([h[1] for h in recent])),
         history,
     )
+
+
+def default_patch(factor, limit=64):
+    """Return the largest multiple of ``factor`` up to ``limit`` sub-pixels (64 at factor 4).
+
+    The patch must hold whole SPAD pixels; keeping it near 64 keeps a step's cost
+    about the same for every super-resolution factor.
+    """
+    return max(factor, limit // factor * factor)
 
 
 def with_overrides(config, **overrides):

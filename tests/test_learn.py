@@ -17,7 +17,7 @@ from psf_learn.network import SRNet
 from psf_learn.psf import LearnedPSF, baseline_psf, box_psf, delta_psf, gaussian_psf
 from psf_learn.sensor import SensorModel
 from psf_learn.sr import SRModel, load_model, super_resolve
-from psf_learn.train import TrainConfig, make_batch, train
+from psf_learn.train import TrainConfig, default_patch, make_batch, train
 
 K = 11
 POINT = tuple(map(tuple, np.eye(4)[[2]].T @ np.eye(4)[[2]]))
@@ -234,11 +234,11 @@ def test_super_resolve_shapes_and_photon_scaling():
 SMALL = ["--steps", "3", "--features", "4", "--stages", "1", "--batch", "2", "--patch", "16"]
 
 
-def _image_folder(path, n=2):
+def _image_folder(path, n=2, size=40):
     path.mkdir()
     rng = np.random.default_rng(0)
     for i in range(n):
-        img = (dead_leaves(40, rng, n_disks=100) * 255).astype(np.uint8)
+        img = (dead_leaves(size, rng, n_disks=100) * 255).astype(np.uint8)
         io.imsave(path / f"img{i}.png", img, check_contrast=False)
     return path
 
@@ -262,6 +262,19 @@ def test_learn_writes_the_contract_files(trained):
     assert info["steps"] == 3 and info["seed"] == 0 and info["config"]["psf"] == "learned"
     assert {"final_loss", "final_psnr_db", "seconds", "versions"} <= set(info)
     torch.load(out / "model.pt", weights_only=True)
+
+
+def test_default_patch_holds_whole_pixels_of_any_factor(tmp_path):
+    # 64 sub-pixels, the prototype's patch, is no whole number of 3 x 3 SPAD pixels
+    design = tmp_path / "factor3.toml"
+    design.write_text("[sensor]\nsuperres_factor = 3\n[psf]\nkernel_size = 9\n")
+    images = _image_folder(tmp_path / "images", size=80)
+    out = tmp_path / "model"
+    tiny = ["--steps", "1", "--features", "4", "--stages", "1", "--batch", "2"]
+    args = ["learn", "--out", str(out), "--images", str(images), "--config", str(design)]
+    assert main([*args, *tiny]) == 0
+    assert json.loads((out / "learn.json").read_text())["config"]["patch"] == 63
+    assert [default_patch(f) for f in (1, 2, 3, 4, 5, 8, 100)] == [64, 64, 63, 64, 60, 64, 100]
 
 
 def test_learn_refuses_to_overwrite_without_force(trained, capsys):
