@@ -411,3 +411,48 @@ def design_summary(d, tile_pixels=None):
             "masks": der.masks,
         },
     }
+
+
+# What a phase tile is made for: the sub-pixel grid its PSF is sampled on, the
+# optics that map the tile onto that grid, and the glass, levels and grid it is
+# etched in. Aperture, substrate thickness, sensor size and learning do not
+# change the tile.
+TILE_KEYS = (
+    ("sensor", "pixel_pitch_um"),
+    ("sensor", "superres_factor"),
+    ("optics", "wavelength_nm"),
+    ("optics", "focal_length_mm"),
+    ("material", "name"),
+    ("fabrication", "levels"),
+    ("fabrication", "grid_nm"),
+)
+
+
+def tile_design_differences(recorded, d):
+    """Return "key recorded -> d's" for each TILE_KEYS value where ``d`` differs from ``recorded``.
+
+    ``recorded`` is a :func:`design_summary` dict read from a file (e.g. the
+    ``design`` of retrieval.json); keys it lacks are not compared. Numbers agree
+    to 1e-9 relative, which absorbs the round trip through the file's units.
+    """
+    now = design_summary(d)
+    differences = []
+    for section, key in TILE_KEYS:
+        table = recorded.get(section) if isinstance(recorded, dict) else None
+        then = table.get(key) if isinstance(table, dict) else None
+        if then is None or _same_value(then, now[section][key]):
+            continue
+        differences.append(f"{section}.{key} {_shown(then)} -> {_shown(now[section][key])}")
+    return differences
+
+
+def _is_number(v):
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _same_value(a, b):
+    return math.isclose(a, b, rel_tol=1e-9) if _is_number(a) and _is_number(b) else a == b
+
+
+def _shown(v):
+    return f"{v:g}" if _is_number(v) else repr(v)

@@ -57,8 +57,8 @@ def _fab(args):
     return 0
 
 
-def load_design_dir(design_dir, n_levels):
-    """Read and validate DESIGN_DIR's levels and target PSF.
+def load_design_dir(design_dir, design):
+    """Read and validate DESIGN_DIR's levels and target PSF, made for ``design``.
 
     Returns
     -------
@@ -66,19 +66,30 @@ def load_design_dir(design_dir, n_levels):
     target : (K, K) float64 or None
         None when DESIGN_DIR has no target_psf.npy.
     """
+    from doe.design import tile_design_differences
     from doe.files import read_json, read_levels, read_psf
 
     d = Path(design_dir)
+    n_levels = design.fabrication.levels
     if not d.is_dir():
         raise InputError(d, "no such design folder (expected doefab retrieve's output)")
     info = d / "retrieval.json"
     if info.is_file():
-        got = read_json(info).get("levels")
+        record = read_json(info)
+        got = record.get("levels")
         if got is not None and int(got) != n_levels:
             raise InputError(
                 info,
                 f"the design was quantised to {got} levels but the "
                 f"configuration has {n_levels}; pass the matching --config",
+            )
+        # a tile etched for another wavelength, glass or sub-pixel grid is a wrong plate
+        differences = tile_design_differences(record.get("design"), design)
+        if differences:
+            raise InputError(
+                info,
+                f"the tile was designed for another design than {design.name!r} "
+                f"({'; '.join(differences)}); pass the design it was made for with --config",
             )
     levels = read_levels(d / "levels.npy", n_levels)
     target_path = d / "target_psf.npy"
@@ -140,7 +151,7 @@ def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=Tru
 
     design = load_design(config)
     n_levels = design.fabrication.levels
-    levels, target = load_design_dir(design_dir, n_levels)
+    levels, target = load_design_dir(design_dir, design)
     n = levels.shape[0]
     der = tile_derived(design, n)
     pitch_nm = round(der.mask_pixel_pitch * 1e9)

@@ -5,7 +5,15 @@ import math
 import pytest
 
 from doe.cli import main
-from doe.design import _read_preset, derive, load_design, parse_design, preset_names
+from doe.design import (
+    _read_preset,
+    derive,
+    design_summary,
+    load_design,
+    parse_design,
+    preset_names,
+    tile_design_differences,
+)
 from doe.errors import InputError
 from doe.materials import MATERIALS, refractive_index
 
@@ -160,3 +168,27 @@ def test_active_area_may_touch_the_pixel_edge():
     # 30 um across, offset 60 um: its edge lies on the 150 um pixel's edge.
     d = parse_design(with_value("sensor", "active_offset_um", [60.0, -60.0]), "edge.toml")
     assert d.sensor.active_offset == pytest.approx((60e-6, -60e-6))
+
+
+def test_tile_design_differences_name_what_changes_the_tile():
+    default = load_design()
+    recorded = design_summary(default)
+    assert tile_design_differences(recorded, default) == []
+    # aperture, substrate, sensor size and active area do not change the tile
+    for section, key, value in (
+        ("fabrication", "aperture_mm", 10.0),
+        ("material", "thickness_mm", 1.0),
+        ("sensor", "columns", 32),
+        ("sensor", "active_area_um", 50.0),
+    ):
+        same_tile = parse_design(with_value(section, key, value))
+        assert tile_design_differences(recorded, same_tile) == []
+    green = parse_design(with_value("optics", "wavelength_nm", 532.0))
+    assert tile_design_differences(recorded, green) == ["optics.wavelength_nm 655 -> 532"]
+    factor3 = parse_design(with_value("sensor", "superres_factor", 3))
+    assert tile_design_differences(recorded, factor3) == ["sensor.superres_factor 4 -> 3"]
+    # a value read back through the file's units agrees; a record without a key is not compared
+    recorded["optics"]["wavelength_nm"] *= 1 + 1e-12
+    del recorded["sensor"]["superres_factor"]
+    assert tile_design_differences(recorded, factor3) == []
+    assert tile_design_differences(None, green) == []

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from doe.cli import main
-from doe.design import derive, load_design
+from doe.design import derive, design_summary, load_design
 from doe.fraunhofer import simulate_levels
 from fab.layer_images import read_image
 from fab.masks import masks_from_levels
@@ -175,6 +175,24 @@ def test_levels_mismatch_with_retrieval_json_exit_2(tmp_path, capsys):
     assert main(["fab", str(d), "--out", str(tmp_path / "out")]) == 2
     assert "retrieval.json" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_tile_made_for_another_design_exit_2(tmp_path, capsys):
+    # a tile retrieved for a 532 nm design, fabricated with the default (655 nm) design,
+    # would get the wrong etch depths and dot pitch
+    cfg = tmp_path / "green.toml"
+    cfg.write_text('name = "green"\n[optics]\nwavelength_nm = 532.0\n')
+    d = tmp_path / "design"
+    make_design_dir(d, n=15)
+    record = {"levels": 8, "design": design_summary(load_design(cfg))}
+    (d / "retrieval.json").write_text(json.dumps(record))
+    out = tmp_path / "out"
+    assert main(["fab", str(d), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "retrieval.json" in err and "wavelength_nm 532 -> 655" in err
+    assert not out.exists()
+    assert main(["fab", str(d), "--out", str(out), "--config", str(cfg)]) == 0
+    assert json.loads((out / "fab_manifest.json").read_text())["wavelength_nm"] == 532.0
 
 
 def test_missing_target_uses_the_simulated_psf_and_says_so(tmp_path, capsys):
