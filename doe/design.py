@@ -426,10 +426,12 @@ TILE_KEYS = (
     ("fabrication", "levels"),
     ("fabrication", "grid_nm"),
 )
+# What a PSF is made for: the sub-pixel grid it is sampled on.
+PSF_GRID_KEYS = (("sensor", "pixel_pitch_um"), ("sensor", "superres_factor"))
 
 
-def tile_design_differences(recorded, d):
-    """Return "key recorded -> d's" for each TILE_KEYS value where ``d`` differs from ``recorded``.
+def design_differences(recorded, d, keys):
+    """Return "key recorded -> d's" for each of ``keys`` where ``d`` differs from ``recorded``.
 
     ``recorded`` is a :func:`design_summary` dict read from a file (e.g. the
     ``design`` of retrieval.json); keys it lacks are not compared. Numbers agree
@@ -437,7 +439,7 @@ def tile_design_differences(recorded, d):
     """
     now = design_summary(d)
     differences = []
-    for section, key in TILE_KEYS:
+    for section, key in keys:
         table = recorded.get(section) if isinstance(recorded, dict) else None
         then = table.get(key) if isinstance(table, dict) else None
         if then is None or _same_value(then, now[section][key]):

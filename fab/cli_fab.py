@@ -66,7 +66,7 @@ def load_design_dir(design_dir, design):
     target : (K, K) float64 or None
         None when DESIGN_DIR has no target_psf.npy.
     """
-    from doe.design import tile_design_differences
+    from doe.design import TILE_KEYS, design_differences
     from doe.files import read_json, read_levels, read_psf
 
     d = Path(design_dir)
@@ -84,7 +84,7 @@ def load_design_dir(design_dir, design):
                 f"configuration has {n_levels}; pass the matching --config",
             )
         # a tile etched for another wavelength, glass or sub-pixel grid is a wrong plate
-        differences = tile_design_differences(record.get("design"), design)
+        differences = design_differences(record.get("design"), design, TILE_KEYS)
         if differences:
             raise InputError(
                 info,

@@ -85,7 +85,7 @@ def _learn(args):
     import torch
 
     from doe import flags
-    from doe.design import load_design
+    from doe.design import design_summary, load_design
     from doe.files import read_psf, save_npy, staged_output, write_json
     from psf_learn import images as imgio
     from psf_learn import store
@@ -193,6 +193,7 @@ def _learn(args):
             "design": design.name,
             "init": str(args.init) if args.init else None,
         },
+        "design": design_summary(design),
         "images": {"source": source, "count": len(names)},
         "steps": result.steps,
         "seconds": round(result.seconds, 3),

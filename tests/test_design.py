@@ -6,13 +6,15 @@ import pytest
 
 from doe.cli import main
 from doe.design import (
+    PSF_GRID_KEYS,
+    TILE_KEYS,
     _read_preset,
     derive,
+    design_differences,
     design_summary,
     load_design,
     parse_design,
     preset_names,
-    tile_design_differences,
 )
 from doe.errors import InputError
 from doe.materials import MATERIALS, refractive_index
@@ -170,10 +172,10 @@ def test_active_area_may_touch_the_pixel_edge():
     assert d.sensor.active_offset == pytest.approx((60e-6, -60e-6))
 
 
-def test_tile_design_differences_name_what_changes_the_tile():
+def test_design_differences_name_what_changes_the_tile():
     default = load_design()
     recorded = design_summary(default)
-    assert tile_design_differences(recorded, default) == []
+    assert design_differences(recorded, default, TILE_KEYS) == []
     # aperture, substrate, sensor size and active area do not change the tile
     for section, key, value in (
         ("fabrication", "aperture_mm", 10.0),
@@ -182,13 +184,18 @@ def test_tile_design_differences_name_what_changes_the_tile():
         ("sensor", "active_area_um", 50.0),
     ):
         same_tile = parse_design(with_value(section, key, value))
-        assert tile_design_differences(recorded, same_tile) == []
+        assert design_differences(recorded, same_tile, TILE_KEYS) == []
     green = parse_design(with_value("optics", "wavelength_nm", 532.0))
-    assert tile_design_differences(recorded, green) == ["optics.wavelength_nm 655 -> 532"]
+    assert design_differences(recorded, green, TILE_KEYS) == ["optics.wavelength_nm 655 -> 532"]
     factor3 = parse_design(with_value("sensor", "superres_factor", 3))
-    assert tile_design_differences(recorded, factor3) == ["sensor.superres_factor 4 -> 3"]
+    assert design_differences(recorded, factor3, TILE_KEYS) == ["sensor.superres_factor 4 -> 3"]
     # a value read back through the file's units agrees; a record without a key is not compared
     recorded["optics"]["wavelength_nm"] *= 1 + 1e-12
     del recorded["sensor"]["superres_factor"]
-    assert tile_design_differences(recorded, factor3) == []
-    assert tile_design_differences(None, green) == []
+    assert design_differences(recorded, factor3, TILE_KEYS) == []
+    assert design_differences(None, green, TILE_KEYS) == []
+    # a PSF is made for its sub-pixel grid only
+    assert design_differences(design_summary(default), green, PSF_GRID_KEYS) == []
+    assert design_differences(design_summary(default), factor3, PSF_GRID_KEYS) == [
+        "sensor.superres_factor 4 -> 3"
+    ]

@@ -260,6 +260,7 @@ def test_learn_writes_the_contract_files(trained):
     check_psf(psf, "psf.npy")
     info = json.loads((out / "learn.json").read_text())
     assert info["steps"] == 3 and info["seed"] == 0 and info["config"]["psf"] == "learned"
+    assert info["design"]["sensor"]["superres_factor"] == 4  # the grid psf.npy is sampled on
     assert {"final_loss", "final_psnr_db", "seconds", "versions"} <= set(info)
     torch.load(out / "model.pt", weights_only=True)
 

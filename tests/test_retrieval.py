@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 
 from doe import fraunhofer, retrieval, targets
 from doe.cli import main
+from doe.design import design_summary, load_design
 
 # ----------------------------------------------------------------------------- targets
 
@@ -556,6 +557,20 @@ def test_cli_levels_and_tile_default_from_the_design(tmp_path, capsys):
     assert code == 0, err
     assert json.loads((out / "retrieval.json").read_text())["levels"] == 4
     assert np.load(out / "levels.npy").max() < 4
+
+
+def test_cli_refuses_a_psf_learned_for_another_sub_pixel_grid(tmp_path, capsys):
+    # learn.json beside psf.npy says the PSF is sampled on a factor-3 grid (50 um)
+    cfg = tmp_path / "factor3.toml"
+    cfg.write_text("[sensor]\nsuperres_factor = 3\n")
+    psf = _psf_file(tmp_path, targets.compact_blob(5))
+    (tmp_path / "learn.json").write_text(json.dumps({"design": design_summary(load_design(cfg))}))
+    out = tmp_path / "out"
+    code, err = _run([psf, "--out", out, "--tile-pixels", 21], capsys)
+    assert code == 2 and "learn.json" in err and "superres_factor 3 -> 4" in err
+    assert not out.exists()
+    code, err = _run([psf, "--out", out, "--tile-pixels", 21, "--config", cfg], capsys)
+    assert code == 0, err
 
 
 def _bad_inputs(tmp_path):
