@@ -132,6 +132,12 @@ def _learn(args):
         init_state = base.net.state_dict()
         record, _, _ = store.load_model_dir(args.init)
         net = record["network"]
+        if net["factor"] != sensor.factor:
+            raise InputError(
+                args.init,
+                f"the model super-resolves by {net['factor']}, the design by {sensor.factor}; "
+                "pass the design it was trained for with --config",
+            )
         for key in ("features", "stages", "arch"):
             given = getattr(args, key)
             if given is not None and given != net[key]:

@@ -286,7 +286,7 @@ def test_learn_refuses_to_overwrite_without_force(trained, capsys):
     assert (out / "psf.npy").read_bytes() == before
 
 
-def test_learn_with_fixed_psf_file_and_fine_tuning(trained, tmp_path):
+def test_learn_with_fixed_psf_file_and_fine_tuning(trained, tmp_path, capsys):
     out, images = trained
     psf_file = tmp_path / "plate.npy"
     np.save(psf_file, gaussian_psf(K, 1.0))
@@ -316,6 +316,13 @@ def test_learn_with_fixed_psf_file_and_fine_tuning(trained, tmp_path):
         again = tmp_path / f"again{flag}"
         assert main([*argv[:2], str(again), *argv[3:], flag, value]) == 2
         assert not again.exists()
+    # a network that super-resolves by 4 cannot be fine-tuned for a factor-3 design
+    factor3 = tmp_path / "factor3.toml"
+    factor3.write_text("[sensor]\nsuperres_factor = 3\n")
+    other = tmp_path / "factor3"
+    assert main([*argv[:2], str(other), *argv[3:-1], "15", "--config", str(factor3)]) == 2
+    assert str(out) in capsys.readouterr().err
+    assert not other.exists()
 
 
 def test_evaluate_writes_json(trained, tmp_path, capsys):
