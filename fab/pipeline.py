@@ -126,6 +126,7 @@ def run_stage(stage, run_dir, state, invoke):
     code = invoke([*stage.argv, "--out", str(new), "--force"])
     if code != 0:
         return code
+    key_file.unlink()  # it marks an unfinished stage; the package holds only the stage's files
     seconds = move_timings(new)
     # Record the new files before swapping them in, keeping the record of the
     # files they replace: a run killed during the swap then finds only files it

@@ -54,6 +54,7 @@ def test_run_writes_the_whole_package(finished):
         "index.html",
     ):
         assert (finished / rel).is_file(), rel
+    assert not list(finished.glob("*/.*"))  # no bookkeeping left inside the packages
     manifest = json.loads((finished / "manifest.json").read_text())
     listed = {f["path"]: f["sha256"] for f in manifest["files"]}
     assert "index.html" in listed and "fab/mask.gds" in listed
