@@ -42,9 +42,8 @@ def run(args):
     from doe import flags, fraunhofer
     from doe.design import (
         MAX_TILE_PIXELS,
-        PSF_GRID_KEYS,
+        check_psf_grid,
         derive,
-        design_differences,
         design_summary,
         load_design,
     )
@@ -52,7 +51,6 @@ def run(args):
     from doe.files import (
         LEVEL_COUNT_RULE,
         is_level_count,
-        read_json,
         read_psf,
         save_npy,
         staged_output,
@@ -72,16 +70,7 @@ def run(args):
         )
     flags.non_negative("--seed", args.seed)
     target = read_psf(args.psf)
-    # learn writes learn.json beside its psf.npy; a PSF on another sub-pixel grid is a wrong tile
-    learned = Path(args.psf).with_name("learn.json")
-    if learned.is_file():
-        differences = design_differences(read_json(learned).get("design"), design, PSF_GRID_KEYS)
-        if differences:
-            raise InputError(
-                learned,
-                f"the PSF was learned for another sub-pixel grid than design {design.name!r}'s "
-                f"({'; '.join(differences)}); pass the design it was learned for with --config",
-            )
+    check_psf_grid(args.psf, design)
     k = target.shape[0]
     if k > n:
         raise InputError(

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Literal
 
 from doe.errors import InputError
-from doe.files import LEVEL_COUNT_RULE, is_level_count
+from doe.files import LEVEL_COUNT_RULE, is_level_count, read_json
 from doe.materials import MATERIALS, refractive_index
 
 
@@ -446,6 +446,23 @@ def design_differences(recorded, d, keys):
             continue
         differences.append(f"{section}.{key} {_shown(then)} -> {_shown(now[section][key])}")
     return differences
+
+
+def check_psf_grid(psf_path, d):
+    """Refuse a psf.npy whose learn.json (written beside it by learn) records another grid than d's.
+
+    A PSF sampled on another sub-pixel grid makes a wrong tile or a wrong sensor model.
+    """
+    learned = Path(psf_path).with_name("learn.json")
+    if not learned.is_file():
+        return
+    differences = design_differences(read_json(learned).get("design"), d, PSF_GRID_KEYS)
+    if differences:
+        raise InputError(
+            learned,
+            f"the PSF was learned for another sub-pixel grid than design {d.name!r}'s "
+            f"({'; '.join(differences)}); pass the design it was learned for with --config",
+        )
 
 
 def _is_number(v):

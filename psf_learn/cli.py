@@ -85,7 +85,7 @@ def _learn(args):
     import torch
 
     from doe import flags
-    from doe.design import design_summary, load_design
+    from doe.design import check_psf_grid, design_summary, load_design
     from doe.files import read_psf, save_npy, staged_output, write_json
     from psf_learn import images as imgio
     from psf_learn import store
@@ -161,6 +161,7 @@ def _learn(args):
         learn_psf = False
     else:
         psf0, learn_psf = read_psf(spec), False
+        check_psf_grid(spec, design)
     config = with_overrides(config, learn_psf=learn_psf)
 
     margin = psf0.shape[0] - 1

@@ -10,6 +10,7 @@ import torch
 from skimage import io
 
 from doe.cli import main
+from doe.design import design_summary, load_design
 from doe.files import check_psf
 from psf_learn.evaluate import evaluate, evaluate_image
 from psf_learn.images import dead_leaves
@@ -276,6 +277,20 @@ def test_default_patch_holds_whole_pixels_of_any_factor(tmp_path):
     assert main([*args, *tiny]) == 0
     assert json.loads((out / "learn.json").read_text())["config"]["patch"] == 63
     assert [default_patch(f) for f in (1, 2, 3, 4, 5, 8, 100)] == [64, 64, 63, 64, 60, 64, 100]
+
+
+def test_fixed_psf_learned_for_another_grid_is_refused(tmp_path, capsys):
+    # learn.json beside the PSF says it is sampled on a factor-3 grid, not the design's 4
+    factor3 = tmp_path / "factor3.toml"
+    factor3.write_text("[sensor]\nsuperres_factor = 3\n")
+    np.save(tmp_path / "psf.npy", gaussian_psf(K))
+    record = {"design": design_summary(load_design(factor3))}
+    (tmp_path / "learn.json").write_text(json.dumps(record))
+    out = tmp_path / "model"
+    assert main(["learn", "--out", str(out), "--psf", str(tmp_path / "psf.npy"), *SMALL]) == 2
+    err = capsys.readouterr().err
+    assert "learn.json" in err and "superres_factor 3 -> 4" in err
+    assert not out.exists()
 
 
 def test_learn_refuses_to_overwrite_without_force(trained, capsys):
