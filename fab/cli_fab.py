@@ -161,11 +161,17 @@ def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=Tru
             f"N = {n} pixels per tile gives a pixel pitch below the "
             f"{design.fabrication.grid * 1e9:.0f} nm grid",
         )
+    if target is not None and target.shape[0] > n:
+        raise InputError(
+            Path(design_dir) / "target_psf.npy",
+            f"PSF size K = {target.shape[0]} exceeds the tile's N = {n} pixels",
+        )
     k = target.shape[0] if target is not None else design.kernel_size
     if k > n:
         raise InputError(
-            Path(design_dir) / "target_psf.npy",
-            f"PSF size K = {k} exceeds the tile's N = {n} pixels",
+            Path(design_dir) / "levels.npy",
+            f"the tile's N = {n} pixels is smaller than the design's PSF size K = {k} "
+            "(psf.kernel_size; there is no target_psf.npy)",
         )
     simulated, efficiency = simulate_levels(levels, n_levels, k)
     extra = {}

@@ -254,7 +254,14 @@ def test_kernel_larger_than_tile_exit_2(tmp_path, capsys):
     d = tmp_path / "design"
     make_design_dir(d, n=9, k=11)
     assert main(["fab", str(d), "--out", str(tmp_path / "out")]) == 2
-    assert "exceeds" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "exceeds" in err and "target_psf.npy" in err
+    assert not (tmp_path / "out").exists()
+    # without a target the design's kernel size is too large: blame what exists
+    (d / "target_psf.npy").unlink()
+    assert main(["fab", str(d), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "levels.npy" in err and "K = 11" in err and "target_psf.npy:" not in err
     assert not (tmp_path / "out").exists()
 
 
