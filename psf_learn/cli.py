@@ -262,6 +262,8 @@ def _evaluate(args):
     flags.non_negative("--seed", args.seed)
     torch.set_num_threads(1)
     out = Path(args.out) if args.out else None
+    if out is not None and out.is_dir():
+        raise InputError(out, "is a folder; --out names the JSON file to write")
     if out is not None and out.exists() and not args.force:
         raise InputError(out, "exists; use --force or another --out")
     model = load_model(args.model_dir)

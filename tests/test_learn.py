@@ -481,6 +481,11 @@ def test_evaluate_and_sr_refuse_bad_inputs(trained, tmp_path, capsys):
     assert str(psf_file) in capsys.readouterr().err and not res.exists()
     assert main(["evaluate", str(tmp_path), "--images", str(images)]) == 2
     assert "model.pt" in capsys.readouterr().err
+    # --out names a file; a folder there is refused by name, --force or not
+    for force in ([], ["--force"]):
+        args = ["evaluate", str(out), "--images", str(images), "--out", str(tmp_path), *force]
+        assert main(args) == 2
+        assert f"{tmp_path}: is a folder" in capsys.readouterr().err
     bad = tmp_path / "raw.npy"
     np.save(bad, np.zeros((2, 3, 4, 5)))
     assert main(["sr", str(out), str(bad), "--out", str(tmp_path / "sr")]) == 2
