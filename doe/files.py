@@ -178,8 +178,7 @@ def staged_output(out_dir, force=False, names=None):
         happens at the end against what was actually written.
     """
     out_dir = Path(out_dir)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise InputError(out_dir, "output path exists and is not a folder")
+    check_out_folder(out_dir)
     if names is not None and not force:
         _refuse_overwrite(out_dir, names)
     parent = out_dir.parent
@@ -200,6 +199,12 @@ def staged_output(out_dir, force=False, names=None):
             os.replace(stage / rel, dest)
     finally:
         shutil.rmtree(stage, ignore_errors=True)
+
+
+def check_out_folder(out_dir):
+    """Refuse an output folder path that is taken by a file."""
+    if Path(out_dir).exists() and not Path(out_dir).is_dir():
+        raise InputError(out_dir, "output path exists and is not a folder")
 
 
 def _refuse_overwrite(out_dir, names):

@@ -174,8 +174,9 @@ def _learn(args):
     images = augment_scales(images, config.patch + margin)
 
     out = Path(args.out)
-    from doe.files import _refuse_overwrite
+    from doe.files import _refuse_overwrite, check_out_folder
 
+    check_out_folder(out)
     if not args.force:
         _refuse_overwrite(out, OUTPUTS)
     checkpoint = out / "checkpoint.pt"

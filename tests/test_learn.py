@@ -299,6 +299,12 @@ def test_learn_refuses_to_overwrite_without_force(trained, capsys):
     assert main(["learn", "--out", str(out), "--images", str(images), *SMALL]) == 2
     assert "--force" in capsys.readouterr().err
     assert (out / "psf.npy").read_bytes() == before
+    # an --out taken by a file is named as such, --force or not
+    for force in ([], ["--force"]):
+        args = ["learn", "--out", str(out / "psf.npy"), "--images", str(images), *SMALL, *force]
+        assert main(args) == 2
+        assert "psf.npy: output path exists and is not a folder" in capsys.readouterr().err
+    assert (out / "psf.npy").read_bytes() == before
 
 
 def test_learn_with_fixed_psf_file_and_fine_tuning(trained, tmp_path, capsys):
