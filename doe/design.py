@@ -414,16 +414,16 @@ def design_summary(d, tile_pixels=None):
 
 
 # What a phase tile is made for: the sub-pixel grid its PSF is sampled on, the
-# optics that map the tile onto that grid, and the glass, levels and grid it is
-# etched in. Aperture, substrate thickness, sensor size and learning do not
-# change the tile.
+# optics that map the tile onto that grid, and the glass and grid it is etched
+# in. Aperture, substrate thickness, sensor size and learning do not change the
+# tile. Its level count is not here: retrieve --levels may differ from the
+# design's, so retrieval.json's own "levels" is what a tile is checked against.
 TILE_KEYS = (
     ("sensor", "pixel_pitch_um"),
     ("sensor", "superres_factor"),
     ("optics", "wavelength_nm"),
     ("optics", "focal_length_mm"),
     ("material", "name"),
-    ("fabrication", "levels"),
     ("fabrication", "grid_nm"),
 )
 # What a PSF is made for: the sub-pixel grid it is sampled on.

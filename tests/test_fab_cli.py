@@ -193,6 +193,13 @@ def test_tile_made_for_another_design_exit_2(tmp_path, capsys):
     assert not out.exists()
     assert main(["fab", str(d), "--out", str(out), "--config", str(cfg)]) == 0
     assert json.loads((out / "fab_manifest.json").read_text())["wavelength_nm"] == 532.0
+    # retrieve --levels 4 under the default design, fabricated with a 4-level design
+    four = tmp_path / "four.toml"
+    four.write_text("[fabrication]\nlevels = 4\n")
+    make_design_dir(d, n=15, n_levels=4)
+    record = {"levels": 4, "design": design_summary(load_design())}
+    (d / "retrieval.json").write_text(json.dumps(record))
+    assert main(["fab", str(d), "--out", str(tmp_path / "four"), "--config", str(four)]) == 0
 
 
 def test_missing_target_uses_the_simulated_psf_and_says_so(tmp_path, capsys):
