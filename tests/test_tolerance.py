@@ -316,6 +316,20 @@ def test_cd_bias_of_half_a_pixel_is_refused():
         window_amplitudes(model, PlateErrors(cd_bias=PITCH / 2))
 
 
+@pytest.mark.parametrize("pitch, tabulated", [(0.3e-6, [0.1e-6]), (0.15e-6, [])])
+def test_fine_pitch_tabulates_only_cd_biases_below_half_a_pixel(pitch, tabulated):
+    # the table's 0.25 um bias closes a 0.3 um pixel's gaps; 0.1 um does too at 0.15 um
+    levels = gs_levels(16, np.full((3, 3), 1 / 9))
+    masks = masks_from_levels(levels, L, STEP)
+    own = simulate_levels(levels, L, 3)[0]
+    result = tolerance_analysis(levels, L, own, masks, pitch, STEP, WAVELENGTH, N_INDEX)
+    rows = {abs(r["value"]) * 1e-6 for r in result["rows"] if r["kind"] == "cd_bias"}
+    assert sorted(rows) == pytest.approx(tabulated)
+    budget = [b for b in result["budget"] if b["kind"] == "cd_bias"]
+    assert len(budget) == len(tabulated)
+    assert f"{pitch / 2 * 1e6:.4g} um" in result["model"]["cd_bias"]
+
+
 @pytest.mark.slow
 def test_full_size_tile_nominal_row_is_the_enveloped_contract_model():
     from doe.design import derive, load_design
