@@ -66,7 +66,8 @@ class ToleranceSpec:
     overlay : tuple of float
         Overlay errors (m) of each later mask relative to the first, along +x and +y.
     cd_bias : tuple of float
-        Edge displacement (m) applied to all masks at once, with both signs.
+        Edge displacement (m) applied to all masks at once, with both signs; only
+        the values below half the mask pixel pitch are tabulated.
     rmse_allowance : float
         How much peak-normalised RMS a fabrication error may add to the nominal
         plate's rmse before it is out of budget. 0.01 is ~1 % of the peak per PSF
@@ -191,14 +192,13 @@ def window_amplitudes(model, errors=PlateErrors()):
     n_masks, n = model.bitmaps.shape[0], model.bitmaps.shape[-1]
     etch = np.asarray(errors.etch or (0.0,) * n_masks, dtype=float)
     shift = np.asarray(errors.shift or ((0.0, 0.0),) * n_masks, dtype=float).reshape(n_masks, 2)
-    bias = errors.cd_bias / model.pixel_pitch
+    bias = _bias_pixels(errors.cd_bias, model)
     # Shifts in pixels along array axes: columns follow +x, rows grow towards -y.
     col_shift, row_shift = shift[:, 0] / model.pixel_pitch, -shift[:, 1] / model.pixel_pitch
     if model.supersample is not None:
         s = model.supersample
-        bias = round(bias * s) / s
         col_shift, row_shift = np.round(col_shift * s) / s, np.round(row_shift * s) / s
-    if not _bias_fits(errors.cd_bias, model):
+    if not abs(bias) < 0.5:
         raise ValueError(f"CD bias {errors.cd_bias:.3g} m must be below half the pixel pitch")
     rows = _axis_cells(row_shift, bias, model.supersample)
     cols = _axis_cells(col_shift, bias, model.supersample)
@@ -476,7 +476,7 @@ def tolerance_analysis(
     entries = [("etch", i, spec.etch_fractions) for i in range(n_masks)]
     entries += [("overlay", i, spec.overlay) for i in range(n_masks) if i != ref]
     # An edge moved by half a pixel or more closes the one-pixel gaps: another plate, not an error.
-    cd_values = tuple(v for v in spec.cd_bias if _bias_fits(v, model))
+    cd_values = tuple(v for v in spec.cd_bias if abs(_bias_pixels(v, model)) < 0.5)
     if cd_values:
         entries += [("cd_bias", None, cd_values)]
     budget = []
@@ -548,12 +548,12 @@ def _row(kind, mask, axis, value, unit, q, nominal):
     }
 
 
-def _bias_fits(cd_bias, model):
-    """True when window_amplitudes can model this CD bias (below half a pixel, as sampled)."""
+def _bias_pixels(cd_bias, model):
+    """Return a CD bias in pixels as the model samples it (rounded to its sub-samples)."""
     bias = cd_bias / model.pixel_pitch
     if model.supersample is not None:
         bias = round(bias * model.supersample) / model.supersample
-    return abs(bias) < 0.5
+    return bias
 
 
 def _budget(kind, mask, worst, limit, worst_rmse, iterations=10):
