@@ -50,10 +50,9 @@ def plate_preview(bitmap, tiles, pitch_nm, plate_half_nm, aperture_half_nm, max_
     nx, ny = tiles
     f = max(1, math.ceil(2 * plate_half_nm / pitch_nm / max_px))
     s = f * pitch_nm  # preview pixel size, nm
-    hp, wp = -(-ny * n // f) * f, -(-nx * n // f) * f
-    padded = np.zeros((hp, wp), dtype=np.uint8)
-    padded[: ny * n, : nx * n] = np.tile(b, (ny, nx))
-    small = padded.reshape(hp // f, f, wp // f, f).sum(axis=(1, 3), dtype=np.int32) / f**2
+    # The whole tiled plate can be tens of gigapixels at a fine pitch; count the etched
+    # pixels of each f x f block from the tile alone: rows @ tile @ cols.T, exact integers.
+    small = _block_counts(ny * n, n, f) @ b.astype(float) @ _block_counts(nx * n, n, f).T / f**2
     size = math.ceil(2 * plate_half_nm / s)
     canvas = np.zeros((size, size))
     centre = size / 2
@@ -72,6 +71,13 @@ def plate_preview(bitmap, tiles, pitch_nm, plate_half_nm, aperture_half_nm, max_
         img[lo, lo : hi + 1] = img[hi, lo : hi + 1] = OUTLINE_GREY
         img[lo : hi + 1, lo] = img[lo : hi + 1, hi] = OUTLINE_GREY
     return img[:, :, None]
+
+
+def _block_counts(length, n, f):
+    """Return (ceil(length / f), n): how often tile index k falls in block i of the tiled line."""
+    r = np.arange(length)
+    blocks = -(-length // f)
+    return np.bincount(r // f * n + r % n, minlength=blocks * n).reshape(blocks, n).astype(float)
 
 
 def write_image(path, image):

@@ -256,6 +256,52 @@ def test_plate_preview_places_the_tiles_and_the_outline(tmp_path):
     assert np.array_equal(read_image(tmp_path / "p.png"), img)
 
 
+@settings(max_examples=40, deadline=None)
+@given(
+    arrays(bool, st.integers(1, 9).map(lambda n: (n, n))),
+    st.tuples(st.integers(1, 4), st.integers(1, 4)),
+    st.integers(1, 40),
+)  # fmt: skip
+def test_plate_preview_is_the_block_mean_of_the_tiled_plate(bitmap, tiles, max_px):
+    """Reference: tile the plate, pad to whole blocks, average each f x f block."""
+    n, pitch = bitmap.shape[0], 1000
+    half = max(tiles) * n * pitch // 2 + 1
+    img = plate_preview(bitmap, tiles, pitch, half, half, max_px=max_px)[:, :, 0]
+    f = max(1, -(-2 * half // (pitch * max_px)))
+    plate = np.tile(bitmap, (tiles[1], tiles[0]))
+    h, w = -(-plate.shape[0] // f) * f, -(-plate.shape[1] // f) * f
+    padded = np.zeros((h, w))
+    padded[: plate.shape[0], : plate.shape[1]] = plate
+    blocks = padded.reshape(h // f, f, w // f, f).mean(axis=(1, 3))
+    expected = np.rint(blocks * 255).astype(np.uint8)
+    size, s = img.shape[0], f * pitch
+    top = round(size / 2 - plate.shape[0] * pitch / 2 / s)
+    left = round(size / 2 - plate.shape[1] * pitch / 2 / s)
+    inner = img[top : top + blocks.shape[0], left : left + blocks.shape[1]]
+    grey = inner == 128  # the outline may cross the array's edge blocks
+    assert np.array_equal(inner[~grey], expected[: inner.shape[0], : inner.shape[1]][~grey])
+    assert img.sum(dtype=int) - 128 * int((img == 128).sum()) <= expected.sum(dtype=int)
+
+
+def test_plate_preview_never_builds_the_whole_plate():
+    """A 0.25 um pitch plate is ~3 gigapixels per mask; the preview must not tile it."""
+    import tracemalloc
+
+    n, tiles, pitch = 64, (300, 300), 250  # a 19,200^2 plate: 369 MB as uint8
+    half = tiles[0] * n * pitch // 2  # array edge; the plate outline lies 10 % outside it
+    bitmap = np.random.default_rng(0).random((n, n)) < 0.5
+    tracemalloc.start()
+    img = plate_preview(bitmap, tiles, pitch, half * 11 // 10, half * 11 // 10)[:, :, 0]
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert img.shape[0] <= 1024
+    assert peak < 50e6, f"preview allocated {peak / 1e6:.0f} MB"
+    f = -(-2 * (half * 11 // 10) // (pitch * 1024))
+    inside = img[np.abs(np.arange(img.shape[0]) - img.shape[0] / 2) < 2 * half / pitch / f / 2]
+    etched = inside[:, 1:-1].sum(dtype=float) / 255 * f**2  # columns 0, -1: the outline
+    assert etched == pytest.approx(tiles[0] * tiles[1] * bitmap.sum(), rel=0.005)
+
+
 @pytest.mark.parametrize("tiles", [(1, 1), (2, 5)])
 def test_full_plate_raster_matches_tiled_levels(tmp_path, tiles):
     """Tiny KLayout read-back: flatten, sample every pixel centre, rebuild levels."""
