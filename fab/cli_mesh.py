@@ -25,10 +25,14 @@ INSTANCED = ("glb", "3mf", "step")
 # (float32 spacing is 1.9 nm up to 32 mm, 3.8 nm beyond).
 FLOAT32_FORMATS = ("glb", "stl")
 Z_ROUNDING_LIMIT_NM = 1.0
-# Peak memory of a merged body per triangle of the estimate: numpy arrays plus the Python
-# lists of the builder (measured ~150 B), with a safety factor of two.
+# Peak memory per triangle of the upper bound (fab.mesh.triangle_upper_bound): numpy
+# arrays plus the Python lists of the builder and the encoders (measured 150-270 B on
+# random 300^2 to 1000^2 maps, whose bound is ~1.75 x their triangle count).
 BYTES_PER_TRIANGLE = 300
 MERGED_MEMORY_LIMIT_BYTES = 2 * 1024**3
+# The tile is always built: a 0.25 um pitch design of N = 3494 needs ~43 GiB (over
+# 15 min); this limit passes about N = 1500 at worst (a random map), 3000 for a smooth one.
+TILE_MEMORY_LIMIT_BYTES = 8 * 1024**3
 
 
 def register(sub):
@@ -63,7 +67,7 @@ def read_fab_dir(fab_dir, thickness_mm=None):
     """Read the manifest and levels of FAB_DIR; return (Relief, manifest dict).
 
     The dict's ``thickness_source`` names where the thickness came from (the flag
-    or the manifest key), for messages about it.
+    or the manifest key), and ``levels_path`` the levels file, for messages about them.
     """
     import numpy as np
 
@@ -125,6 +129,7 @@ def read_fab_dir(fab_dir, thickness_mm=None):
         "design_name": man.get("design_name"),
         "material": man.get("material"),
         "thickness_source": where,
+        "levels_path": levels_path,
     }
 
 
@@ -162,6 +167,22 @@ def check_crop(relief, crop, tiles):
     return est
 
 
+def check_tile_size(relief, levels_path):
+    """Refuse a tile whose mesh would exceed the memory limit (InputError)."""
+    from fab.mesh import triangle_upper_bound
+
+    est = triangle_upper_bound(relief.levels)
+    need = est * BYTES_PER_TRIANGLE
+    if need > TILE_MEMORY_LIMIT_BYTES:
+        n = relief.levels.shape[0]
+        raise InputError(
+            levels_path,
+            f"the mesh of this {n} x {n}-pixel tile needs up to {est:,} triangles "
+            f"(~{need / 1024**3:.0f} GiB, limit {TILE_MEMORY_LIMIT_BYTES / 1024**3:.0f} GiB); "
+            "the fab package does not need it (doefab run --formats none skips the mesh)",
+        )
+
+
 def check_float32_heights(thickness_mm, formats, where):
     """Refuse float32 formats whose rounding at the top surface exceeds the z tolerance."""
     import numpy as np
@@ -193,6 +214,7 @@ def run_mesh(args):
     formats = parse_formats(args.formats)
     relief, info = read_fab_dir(args.fab_dir, args.thickness_mm)
     check_float32_heights(relief.thickness * 1e3, formats, info["thickness_source"])
+    check_tile_size(relief, info["levels_path"])
     tiles, origin = info["tiles"], info["origin_mm"]
     if args.crop is not None:
         if formats == ["step"]:

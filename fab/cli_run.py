@@ -7,6 +7,7 @@ from pathlib import Path
 from doe.errors import InputError
 
 MESH_FORMATS = "ply,glb,3mf,stl,step"
+NO_MESH = "none"  # --formats value that leaves the mesh stage out
 
 
 def register(sub):
@@ -26,7 +27,11 @@ def register(sub):
         "(faster or slower machines then give different results)",
     )
     p.add_argument("--seed", type=int, help="seed of every stage (default: the design's)")
-    p.add_argument("--formats", default=MESH_FORMATS, help=f"mesh formats (default {MESH_FORMATS})")
+    p.add_argument(
+        "--formats",
+        default=MESH_FORMATS,
+        help=f"mesh formats (default {MESH_FORMATS}); {NO_MESH} skips the mesh stage",
+    )
     p.add_argument("--force", action="store_true", help="redo every stage and overwrite")
     p.set_defaults(func=_run)
 
@@ -63,13 +68,15 @@ def plan(args, run_dir, design):
             ("fab", str(retrieve), *config),
             (retrieve / "levels.npy", retrieve / "target_psf.npy", *config_inputs),
         ),
-        Stage(
-            "mesh",
-            ("mesh", str(fab), "--formats", args.formats),
-            (fab / "fab_manifest.json", fab / "levels.npy"),
-        ),
     ]
+    if not _no_mesh(args.formats):
+        mesh = ("mesh", str(fab), "--formats", args.formats)
+        stages.append(Stage("mesh", mesh, (fab / "fab_manifest.json", fab / "levels.npy")))
     return stages
+
+
+def _no_mesh(formats):
+    return formats.strip().lower() == NO_MESH
 
 
 def _run(args):
@@ -84,7 +91,7 @@ def _run(args):
     flags.positive("--minutes", args.minutes)
     flags.non_negative("--seed", args.seed)
     design = load_design(args.config)
-    formats = parse_formats(args.formats)
+    formats = [] if _no_mesh(args.formats) else parse_formats(args.formats)
     where = f"{args.config or 'default preset'}: [material] thickness_mm"
     check_float32_heights(design.material.thickness * 1e3, formats, where)
     run_dir = Path(args.out)

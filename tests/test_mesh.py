@@ -11,6 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from doe.cli import main
+from fab.cli_mesh import BYTES_PER_TRIANGLE, TILE_MEMORY_LIMIT_BYTES
 from fab.mesh import (
     Relief,
     instance_offsets_mm,
@@ -312,6 +313,19 @@ def test_cli_refuses_merged_full_aperture(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--crop" in err and "GiB" in err
     assert not out.exists() or not any(out.iterdir())
+
+
+def test_cli_refuses_a_tile_too_large_to_mesh(tmp_path, capsys):
+    # A 0.25 um pitch tile of N = 3494 took 18 GB and over 15 minutes before this check.
+    levels = random_levels(1700, seed=12)  # bound ~36 M triangles, ~10 GiB
+    fab = write_fab_dir(tmp_path / "fab", levels)
+    out = tmp_path / "out"
+    assert main(["mesh", str(fab), "--out", str(out), "--formats", "ply"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "levels.npy" in err and "GiB" in err
+    assert "--formats none" in err and not out.exists()
+    smaller = triangle_upper_bound(levels[:1000, :1000]) * BYTES_PER_TRIANGLE
+    assert triangle_upper_bound(levels) * BYTES_PER_TRIANGLE > TILE_MEMORY_LIMIT_BYTES >= smaller
 
 
 def test_cli_refuses_float32_formats_on_a_thick_substrate(tmp_path, capsys):

@@ -128,6 +128,22 @@ def test_edited_output_is_not_overwritten(config, finished, tmp_path, capsys):
         report.write_bytes(original)
 
 
+def test_formats_none_leaves_the_mesh_stage_out(config, finished, tmp_path, capsys):
+    # A fine-pitch tile can be too large to mesh; the rest of the run must still finish.
+    out = tmp_path / "out"
+    psf = finished / "learn" / "psf.npy"
+    argv = ["run", "--config", str(config), "--out", str(out), "--psf", str(psf)]
+    assert main([*argv, "--formats", "none"]) == 0
+    err = capsys.readouterr().err
+    assert "[2/2] fab: done" in err and "mesh:" not in err  # retrieve and fab only
+    assert (out / "fab" / "mask.gds").is_file() and (out / "index.html").is_file()
+    assert not (out / "mesh").exists()
+    listed = [f["path"] for f in json.loads((out / "manifest.json").read_text())["files"]]
+    assert "fab/mask.gds" in listed and not [p for p in listed if p.startswith("mesh/")]
+    for name in ("mask.gds", "levels.npy"):
+        assert sha256_file(out / "fab" / name) == sha256_file(finished / "fab" / name)
+
+
 def test_bad_inputs_exit_2(tmp_path, capsys):
     assert main(["run", "--out", str(tmp_path / "o"), "--psf", str(tmp_path / "none.npy")]) == 2
     assert "none.npy" in capsys.readouterr().err
