@@ -8,6 +8,7 @@ from doe.errors import InputError
 
 MESH_FORMATS = "ply,glb,3mf,stl,step"
 NO_MESH = "none"  # --formats value that leaves the mesh stage out
+STAGE_NAMES = ("learn", "retrieve", "fab", "mesh")  # every stage a run can plan, in order
 
 
 def register(sub):
@@ -129,9 +130,17 @@ def _run(args):
             file=sys.stderr,
         )
     save_state(run_dir, state)
-    write_index(run_dir, design, [s.name for s in stages])
-    write_manifest(
-        run_dir, design, args, timings, {k: v.get("seconds", {}) for k, v in state.items()}
-    )
+    names = [s.name for s in stages]
+    for old in [name for name in STAGE_NAMES if name not in names]:
+        if not (run_dir / old).is_dir():
+            continue
+        print(
+            f"doefab run: {run_dir / old} is from an earlier run and not part of this one; "
+            "manifest.json and index.html leave it out",
+            file=sys.stderr,
+        )
+    write_index(run_dir, design, names)
+    seconds = {k: v.get("seconds", {}) for k, v in state.items() if k in names}
+    write_manifest(run_dir, design, args, names, timings, seconds)
     print(f"doefab run: done, open {run_dir / 'index.html'}", file=sys.stderr)
     return 0

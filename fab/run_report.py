@@ -29,9 +29,9 @@ PACKAGES = (
 # Headline numbers shown on the front page: (stage, file, key path, label)
 HEADLINES = (
     ("learn", "learn.json", ("final_psnr_db",), "training PSNR (dB)"),
-    ("retrieve", "retrieval.json", ("quantised", "correlation"), "correlation (8 levels)"),
-    ("retrieve", "retrieval.json", ("quantised", "rmse"), "rmse (8 levels)"),
-    ("retrieve", "retrieval.json", ("quantised", "efficiency"), "efficiency (8 levels)"),
+    ("retrieve", "retrieval.json", ("quantised", "correlation"), "correlation ({levels} levels)"),
+    ("retrieve", "retrieval.json", ("quantised", "rmse"), "rmse ({levels} levels)"),
+    ("retrieve", "retrieval.json", ("quantised", "efficiency"), "efficiency ({levels} levels)"),
     ("retrieve", "retrieval.json", ("goals", "met"), "correlation and rmse goals met"),
     ("fab", "fab_manifest.json", ("level_step_nm",), "level step (nm)"),
     ("fab", "fab_manifest.json", ("pixel_pitch_nm",), "mask pixel pitch (nm)"),
@@ -39,17 +39,22 @@ HEADLINES = (
 )
 
 
-def product_files(run_dir):
-    """Every product file of the run (hidden and bookkeeping files excluded), sorted."""
+def product_files(run_dir, stages):
+    """Every product file of the run's ``stages`` and its front page, sorted.
+
+    Hidden and bookkeeping files are left out, and so are the folders of stages
+    that this run did not plan (left there by an earlier run with other flags).
+    """
     run_dir = Path(run_dir)
     skip = {"manifest.json", "timings.json", "run_state.json"}
-    return [
-        p
-        for p in sorted(run_dir.rglob("*"))
-        if p.is_file()
-        and not any(part.startswith(".") for part in p.relative_to(run_dir).parts)
-        and str(p.relative_to(run_dir)) not in skip
-    ]
+    out = []
+    for p in sorted(run_dir.rglob("*")):
+        parts = p.relative_to(run_dir).parts
+        if not p.is_file() or any(part.startswith(".") for part in parts):
+            continue
+        if (len(parts) == 1 and parts[0] not in skip) or parts[0] in stages:
+            out.append(p)
+    return out
 
 
 def package_versions():
@@ -62,8 +67,10 @@ def package_versions():
     return out
 
 
-def write_manifest(run_dir, design, args, timings, stage_seconds):
+def write_manifest(run_dir, design, args, stages, timings, stage_seconds):
     """Write ``manifest.json`` (deterministic) and ``timings.json`` (the one varying file).
+
+    ``stages`` are the names of the stages this run planned: only their files are listed.
 
     ``timings`` are the wall-clock seconds of the stages run now; ``stage_seconds``
     the seconds each stage's own reports recorded (see ``pipeline.move_timings``).
@@ -71,7 +78,7 @@ def write_manifest(run_dir, design, args, timings, stage_seconds):
     run_dir = Path(run_dir)
     files = [
         {"path": str(p.relative_to(run_dir)), "sha256": sha256_file(p), "bytes": p.stat().st_size}
-        for p in product_files(run_dir)
+        for p in product_files(run_dir, stages)
     ]
     seed = args.seed if args.seed is not None else design.learning.seed
     manifest = {
@@ -106,8 +113,10 @@ def write_index(run_dir, design, stages):
     run_dir = Path(run_dir)
     e = html.escape
     rows = []
+    levels = _lookup(run_dir, "retrieve", "retrieval.json", ("levels",))
     for stage, name, path, label in HEADLINES:
-        value = _lookup(run_dir, stage, name, path)
+        value = _lookup(run_dir, stage, name, path) if stage in stages else None
+        label = label.format(levels=levels)
         if value is not None:
             if isinstance(value, bool):
                 shown = "yes" if value else "NO: see retrieve/retrieval.json"
@@ -130,7 +139,7 @@ def write_index(run_dir, design, stages):
         folder = run_dir / stage
         if not folder.is_dir():
             continue
-        files = [p for p in product_files(run_dir) if p.parent.is_relative_to(folder)]
+        files = [p for p in product_files(run_dir, stages) if p.parent.is_relative_to(folder)]
         parts.append(f"<h2>{e(stage)}</h2>")
         reports = [p for p in files if p.suffix == ".html"]
         for p in reports:

@@ -2,6 +2,7 @@
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -142,6 +143,38 @@ def test_formats_none_leaves_the_mesh_stage_out(config, finished, tmp_path, caps
     assert "fab/mask.gds" in listed and not [p for p in listed if p.startswith("mesh/")]
     for name in ("mask.gds", "levels.npy"):
         assert sha256_file(out / "fab" / name) == sha256_file(finished / "fab" / name)
+
+
+def test_folders_of_stages_left_out_are_not_listed_as_products(config, finished, tmp_path, capsys):
+    # A run with --psf and --formats none over an earlier full run must not pass the
+    # earlier learn/ and mesh/ (made from another tile) off as its own products.
+    out = tmp_path / "out"
+    shutil.copytree(finished, out)
+    capsys.readouterr()
+    psf = out / "learn" / "psf.npy"
+    argv = ["run", "--config", str(config), "--out", str(out), "--psf", str(psf), "--seed", "3"]
+    assert main([*argv, "--formats", "none"]) == 0
+    err = capsys.readouterr().err
+    assert f"{out / 'learn'} is from an earlier run" in err and f"{out / 'mesh'} is from" in err
+    listed = [f["path"] for f in json.loads((out / "manifest.json").read_text())["files"]]
+    assert "fab/mask.gds" in listed and "index.html" in listed
+    assert not [p for p in listed if p.startswith(("learn/", "mesh/"))]
+    index = (out / "index.html").read_text()
+    assert "mesh/" not in index and "learn/" not in index and "training PSNR" not in index
+    assert (out / "mesh" / "tile.ply").is_file()  # left in place, not deleted
+
+
+def test_index_labels_the_level_count_of_the_retrieval(tmp_path):
+    from doe.design import load_design
+    from fab.run_report import write_index
+
+    (tmp_path / "retrieve").mkdir()
+    quantised = {"correlation": 0.99, "rmse": 0.01, "efficiency": 0.7}
+    report = {"levels": 4, "quantised": quantised}
+    (tmp_path / "retrieve" / "retrieval.json").write_text(json.dumps(report))
+    write_index(tmp_path, load_design(None), ["retrieve"])
+    index = (tmp_path / "index.html").read_text()
+    assert "efficiency (4 levels)</td><td>0.7<" in index and "8 levels" not in index
 
 
 def test_bad_inputs_exit_2(tmp_path, capsys):
