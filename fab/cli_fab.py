@@ -215,7 +215,7 @@ def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=Tru
         )
         bar.update()
         bar.set_postfix_str("tolerance")
-        tolerance = _tolerance(levels, n_levels, target, masks, der, design)
+        tolerance = _tolerance(levels, n_levels, target, masks, der, design, progress)
         if tolerance is None:
             extra["tolerance_note"] = "fab.tolerance not available in this build"
         bar.update()
@@ -251,17 +251,25 @@ def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=Tru
     return {"manifest": manifest, "files": all_files, "report_files": report_files}
 
 
-def _tolerance(levels, n_levels, target, masks, der, design):
+def _tolerance(levels, n_levels, target, masks, der, design, progress):
     try:
         from fab.tolerance import tolerance_analysis
     except ImportError as e:  # the tolerance stage is not installed in this build
         print(f"doefab fab: skipping the tolerance analysis ({e})", file=sys.stderr)
         return None
-    return tolerance_analysis(
-        levels, n_levels, target, masks,
-        pixel_pitch=der.mask_pixel_pitch, level_step=der.level_step,
-        wavelength=design.optics.wavelength, refractive_index=der.refractive_index, seed=0,
-    )  # fmt: skip
+    from tqdm import tqdm
+
+    # Seconds at N = 175, minutes at a fine mask pitch (N in the thousands).
+    with tqdm(
+        desc="tolerance", unit=" plates", file=sys.stderr, leave=False,
+        disable=not (progress and sys.stderr.isatty()),
+    ) as bar:  # fmt: skip
+        return tolerance_analysis(
+            levels, n_levels, target, masks,
+            pixel_pitch=der.mask_pixel_pitch, level_step=der.level_step,
+            wavelength=design.optics.wavelength, refractive_index=der.refractive_index, seed=0,
+            on_plate=bar.update,
+        )  # fmt: skip
 
 
 def _report(stage, context):

@@ -377,6 +377,7 @@ def tolerance_analysis(
     rmse_limit=None,
     supersample=None,
     spec=TOLERANCES,
+    on_plate=None,
 ):
     """Tabulate how etch, overlay and CD-bias errors degrade the plate; derive budget and limits.
 
@@ -417,6 +418,8 @@ def tolerance_analysis(
         Sub-samples per pixel, None for the exact continuous plate.
     spec : ToleranceSpec
         The error values and margins.
+    on_plate : callable or None
+        Called with no argument after each simulated plate (a progress bar's update).
 
     Returns
     -------
@@ -451,7 +454,13 @@ def tolerance_analysis(
             shift=tuple(shift) if shift is not None else (),
             cd_bias=cd,
         )
-        return plate_quality(model, target, errors)
+        return simulate(errors)
+
+    def simulate(errors, reference=None):
+        q = plate_quality(model, target, errors, reference)
+        if on_plate is not None:
+            on_plate()
+        return q
 
     def variants(kind, i, v):
         """Return (axis, signed value, quality) of each plate of one table entry."""
@@ -493,7 +502,7 @@ def tolerance_analysis(
     # fab.verify compares a captured PSF with the levels' contract PSF, not with the
     # target, so the correlation and rmse thresholds are taken against that PSF.
     design_psf = simulate_levels(levels, n_levels, target.shape[0])[0]
-    mc = _monte_carlo(model, target, design_psf, budget, names, ref, spec, seed)
+    mc = _monte_carlo(design_psf, budget, names, ref, spec, seed, simulate)
     acceptance = {
         "correlation_min": min(mc["correlation_vs_reference"]) - spec.correlation_margin,
         "rmse_max": max(mc["rmse_vs_reference"]) + spec.rmse_margin,
@@ -582,8 +591,11 @@ def _budget(kind, mask, worst, limit, worst_rmse, iterations=10):
     }
 
 
-def _monte_carlo(model, target, reference, budget, names, ref, spec, seed):
-    """Return lists of the quality figures of random plates with all errors within budget."""
+def _monte_carlo(reference, budget, names, ref, spec, seed, simulate):
+    """Return lists of the quality figures of random plates with all errors within budget.
+
+    ``simulate(errors, reference)`` returns a plate's figures (``plate_quality``).
+    """
     rng = np.random.default_rng(seed)
     etch_b = np.zeros(len(names))
     overlay_b = np.zeros(len(names))
@@ -604,7 +616,7 @@ def _monte_carlo(model, target, reference, budget, names, ref, spec, seed):
         shift[ref] = 0.0
         cd = float(rng.uniform(-1, 1) * cd_b)
         errors = PlateErrors(tuple(etch), tuple(map(tuple, shift)), cd)
-        q = plate_quality(model, target, errors, reference)
+        q = simulate(errors, reference)
         for key in out:
             out[key].append(q[key])
     return out

@@ -293,10 +293,18 @@ def test_budget_is_the_largest_value_within_the_rmse_limit(designed):
     assert len(result["monte_carlo"]["rmse"]) == ToleranceSpec().monte_carlo_plates
 
 
-def test_analysis_is_deterministic_for_a_seed(designed):
+def test_analysis_is_deterministic_for_a_seed_and_reports_every_plate(designed):
     levels, masks, own, result = designed
-    again = tolerance_analysis(levels, L, own, masks, PITCH, STEP, WAVELENGTH, N_INDEX, seed=3)
+    plates = []
+    again = tolerance_analysis(
+        levels, L, own, masks, PITCH, STEP, WAVELENGTH, N_INDEX, seed=3,
+        on_plate=lambda: plates.append(1),
+    )  # fmt: skip
     assert json.dumps(again, sort_keys=True) == json.dumps(result, sort_keys=True)
+    # every table row and random plate, and two plates (signs or axes) per bisection step
+    bisected = sum(b["limited_by_rmse"] for b in result["budget"])
+    assert bisected and len(plates) >= len(result["rows"]) + 16 + 2 * bisected
+    assert result["monte_carlo"]["plates"] == 16
 
 
 def test_masks_that_do_not_make_the_levels_are_refused():
