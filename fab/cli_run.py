@@ -82,11 +82,9 @@ def _no_mesh(formats):
 
 def _run(args):
     from doe import flags
-    from doe.cli import main as doefab
     from doe.design import load_design
     from fab.cli_mesh import check_float32_heights, parse_formats
-    from fab.pipeline import check_overwrite, is_current, load_state, run_stage, save_state
-    from fab.run_report import write_index, write_manifest
+    from fab.pipeline import run_lock
 
     # Checked here, not by the stages: a bad value must stop the run before any stage.
     flags.positive("--minutes", args.minutes)
@@ -99,6 +97,15 @@ def _run(args):
     if run_dir.exists() and not run_dir.is_dir():
         raise InputError(run_dir, "exists and is not a folder")
     run_dir.mkdir(parents=True, exist_ok=True)
+    with run_lock(run_dir):
+        return _run_stages(args, run_dir, design)
+
+
+def _run_stages(args, run_dir, design):
+    from doe.cli import main as doefab
+    from fab.pipeline import check_overwrite, is_current, load_state, run_stage, save_state
+    from fab.run_report import write_index, write_manifest
+
     state = {} if args.force else load_state(run_dir)
     if (
         not state

@@ -10,14 +10,17 @@ overwrites a file that the run did not write itself (or that was edited since)
 unless ``force``.
 """
 
+import contextlib
 import hashlib
 import json
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from doe.errors import InputError
 
 STATE_FILE = "run_state.json"
+LOCK_FILE = ".doefab_run.lock"  # hidden: not a product; kept, so every run locks one inode
 
 
 @dataclass(frozen=True)
@@ -32,6 +35,36 @@ class Stage:
     name: str
     argv: tuple[str, ...]
     inputs: tuple[Path, ...] = field(default=())
+
+
+@contextlib.contextmanager
+def run_lock(run_dir):
+    """Hold the run folder for one ``doefab run``; refuse a second one (InputError).
+
+    Two runs in one folder share its staging folders and state file, and would
+    leave a mix of both. The lock is the kernel's (flock): it ends with the process.
+    """
+    import fcntl
+
+    path = Path(run_dir) / LOCK_FILE
+    with open(path, "a+") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            f.seek(0)
+            holder = f.read().strip() or "unknown"
+            raise InputError(
+                run_dir, f"another doefab run (pid {holder}) is writing this folder; "
+                "wait for it to finish or use another --out",
+            ) from None  # fmt: skip
+        f.seek(0)
+        f.truncate()
+        f.write(str(os.getpid()))
+        f.flush()
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
 
 
 def sha256_file(path):

@@ -177,6 +177,23 @@ def test_index_labels_the_level_count_of_the_retrieval(tmp_path):
     assert "efficiency (4 levels)</td><td>0.7<" in index and "8 levels" not in index
 
 
+def test_a_second_run_in_the_same_folder_is_refused(config, finished, tmp_path, capsys):
+    # Two runs shared the staging folders: the second failed with "cc/.learn.new/.stage_key:
+    # No such file or directory", and the first could have moved a mix of both into place.
+    from fab.pipeline import run_lock
+
+    out = tmp_path / "out"
+    out.mkdir()
+    psf = str(finished / "learn" / "psf.npy")
+    argv = ["run", "--config", str(config), "--out", str(out), "--psf", psf, "--formats", "none"]
+    with run_lock(out):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert str(out) in err and f"(pid {os.getpid()})" in err and "another doefab run" in err
+        assert [p.name for p in out.iterdir()] == [".doefab_run.lock"]
+    assert main(argv) == 0  # released at the end of the first run
+
+
 def test_bad_inputs_exit_2(tmp_path, capsys):
     assert main(["run", "--out", str(tmp_path / "o"), "--psf", str(tmp_path / "none.npy")]) == 2
     assert "none.npy" in capsys.readouterr().err
