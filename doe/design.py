@@ -428,6 +428,9 @@ TILE_KEYS = (
 )
 # What a PSF is made for: the sub-pixel grid it is sampled on.
 PSF_GRID_KEYS = (("sensor", "pixel_pitch_um"), ("sensor", "superres_factor"))
+# A measured PSF is sampled on the plate's dot lattice, which matches the design's
+# sub-pixel pitch to ppm; 2 % admits a hand-measured --lattice-pitch-um in verify.
+LATTICE_MATCH_REL = 0.02
 
 
 def design_differences(recorded, d, keys):
@@ -449,20 +452,33 @@ def design_differences(recorded, d, keys):
 
 
 def check_psf_grid(psf_path, d):
-    """Refuse a psf.npy whose learn.json (written beside it by learn) records another grid than d's.
+    """Refuse a PSF sampled on another sub-pixel grid than design d's (InputError).
 
-    A PSF sampled on another sub-pixel grid makes a wrong tile or a wrong sensor model.
+    The grid is read from the report written beside the PSF: ``learn.json`` (a
+    learned psf.npy) or ``verify.json`` (a measured_psf.npy: the lattice pitch of
+    the captured plate). A PSF sampled on another sub-pixel grid makes a wrong
+    tile or a wrong sensor model.
     """
     learned = Path(psf_path).with_name("learn.json")
-    if not learned.is_file():
-        return
-    differences = design_differences(read_json(learned).get("design"), d, PSF_GRID_KEYS)
-    if differences:
-        raise InputError(
-            learned,
-            f"the PSF was learned for another sub-pixel grid than design {d.name!r}'s "
-            f"({'; '.join(differences)}); pass the design it was learned for with --config",
-        )
+    if learned.is_file():
+        differences = design_differences(read_json(learned).get("design"), d, PSF_GRID_KEYS)
+        if differences:
+            raise InputError(
+                learned,
+                f"the PSF was learned for another sub-pixel grid than design {d.name!r}'s "
+                f"({'; '.join(differences)}); pass the design it was learned for with --config",
+            )
+    verified = Path(psf_path).with_name("verify.json")
+    if verified.is_file():
+        lattice = read_json(verified).get("lattice_pitch_um")
+        subpixel = d.sensor.pixel_pitch / d.sensor.superres_factor * 1e6
+        if _is_number(lattice) and not math.isclose(lattice, subpixel, rel_tol=LATTICE_MATCH_REL):
+            raise InputError(
+                verified,
+                f"the PSF was measured on a {lattice:g} um dot lattice, but design {d.name!r} "
+                f"samples it on {subpixel:g} um sub-pixels; pass the design the plate was "
+                "made for with --config",
+            )
 
 
 def _is_number(v):

@@ -293,6 +293,27 @@ def test_fixed_psf_learned_for_another_grid_is_refused(tmp_path, capsys):
     assert not out.exists()
 
 
+def test_measured_psf_of_a_plate_for_another_grid_is_refused(tmp_path, capsys):
+    # verify.json beside a measured PSF records the plate's dot lattice: 75 um for a
+    # factor-2 design, twice the default design's 37.5 um sub-pixels.
+    from doe.design import check_psf_grid, derive
+
+    factor2 = tmp_path / "factor2.toml"
+    factor2.write_text("[sensor]\nsuperres_factor = 2\n")
+    lattice_um = derive(load_design(factor2)).lattice_pitch * 1e6
+    np.save(tmp_path / "measured_psf.npy", gaussian_psf(K))
+    (tmp_path / "verify.json").write_text(json.dumps({"lattice_pitch_um": lattice_um}))
+    psf, out = tmp_path / "measured_psf.npy", tmp_path / "model"
+    assert main(["learn", "--out", str(out), "--psf", str(psf), *SMALL]) == 2
+    err = capsys.readouterr().err
+    assert "verify.json" in err and f"{lattice_um:g} um dot lattice" in err and "37.5 um" in err
+    assert not out.exists()
+    check_psf_grid(psf, load_design(factor2))  # the design the plate was made for passes
+    default_lattice = derive(load_design(None)).lattice_pitch * 1e6
+    (tmp_path / "verify.json").write_text(json.dumps({"lattice_pitch_um": default_lattice}))
+    check_psf_grid(psf, load_design(None))
+
+
 def test_learn_refuses_to_overwrite_without_force(trained, capsys):
     out, images = trained
     before = (out / "psf.npy").read_bytes()
