@@ -440,7 +440,11 @@ def design_differences(recorded, d, keys):
     ``design`` of retrieval.json); keys it lacks are not compared. Numbers agree
     to 1e-9 relative, which absorbs the round trip through the file's units.
     """
-    now = design_summary(d)
+    return summary_differences(recorded, design_summary(d), keys)
+
+
+def summary_differences(recorded, now, keys):
+    """:func:`design_differences` between two :func:`design_summary` dicts."""
     differences = []
     for section, key in keys:
         table = recorded.get(section) if isinstance(recorded, dict) else None
@@ -454,31 +458,42 @@ def design_differences(recorded, d, keys):
 def check_psf_grid(psf_path, d):
     """Refuse a PSF sampled on another sub-pixel grid than design d's (InputError).
 
+    A PSF sampled on another sub-pixel grid makes a wrong tile or a wrong sensor model.
+    """
+    problem = psf_grid_problem(psf_path, design_summary(d), f"design {d.name!r}")
+    if problem:
+        path, text = problem
+        raise InputError(path, f"{text}; pass the design it was made for with --config")
+
+
+def psf_grid_problem(psf_path, summary, whose):
+    """Return (report file, reason) when a PSF is sampled on another grid than ``summary``'s.
+
     The grid is read from the report written beside the PSF: ``learn.json`` (a
     learned psf.npy) or ``verify.json`` (a measured_psf.npy: the lattice pitch of
-    the captured plate). A PSF sampled on another sub-pixel grid makes a wrong
-    tile or a wrong sensor model.
+    the captured plate). ``summary`` is a :func:`design_summary` dict; ``whose``
+    names it in the reason. None when neither report says otherwise.
     """
     learned = Path(psf_path).with_name("learn.json")
     if learned.is_file():
-        differences = design_differences(read_json(learned).get("design"), d, PSF_GRID_KEYS)
+        recorded = read_json(learned).get("design")
+        differences = summary_differences(recorded, summary, PSF_GRID_KEYS)
         if differences:
-            raise InputError(
-                learned,
-                f"the PSF was learned for another sub-pixel grid than design {d.name!r}'s "
-                f"({'; '.join(differences)}); pass the design it was learned for with --config",
+            return learned, (
+                f"the PSF was learned for another sub-pixel grid than {whose} "
+                f"({'; '.join(differences)})"
             )
     verified = Path(psf_path).with_name("verify.json")
     if verified.is_file():
         lattice = read_json(verified).get("lattice_pitch_um")
-        subpixel = d.sensor.pixel_pitch / d.sensor.superres_factor * 1e6
+        sensor = summary["sensor"]
+        subpixel = sensor["pixel_pitch_um"] / sensor["superres_factor"]
         if _is_number(lattice) and not math.isclose(lattice, subpixel, rel_tol=LATTICE_MATCH_REL):
-            raise InputError(
-                verified,
-                f"the PSF was measured on a {lattice:g} um dot lattice, but design {d.name!r} "
-                f"samples it on {subpixel:g} um sub-pixels; pass the design the plate was "
-                "made for with --config",
+            return verified, (
+                f"the PSF was measured on a {lattice:g} um dot lattice, but {whose} "
+                f"has {subpixel:g} um sub-pixels"
             )
+    return None
 
 
 def _is_number(v):

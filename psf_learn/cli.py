@@ -255,6 +255,7 @@ def _evaluate(args):
     import torch
 
     from doe import flags
+    from doe.design import psf_grid_problem
     from doe.files import read_psf, write_json
     from psf_learn import images as imgio
     from psf_learn.evaluate import EVAL_SEED, evaluate
@@ -269,6 +270,14 @@ def _evaluate(args):
         raise InputError(out, "exists; use --force or another --out")
     model = load_model(args.model_dir)
     psf = read_psf(args.psf_file) if args.psf_file else None
+    summary = (model.learn or {}).get("design")
+    problem = (
+        psf_grid_problem(args.psf_file, summary, "the model")
+        if psf is not None and summary
+        else None
+    )
+    if problem:
+        raise InputError(problem[0], f"{problem[1]}; --psf-file must be made for the model's grid")
     names, images = imgio.read_folder(args.images, min_size=4 * model.sensor.factor)
     res = evaluate(model, names, images, psf, EVAL_SEED if args.seed is None else args.seed)
     for name, v in res["images"].items():

@@ -306,7 +306,8 @@ def test_measured_psf_of_a_plate_for_another_grid_is_refused(tmp_path, capsys):
     psf, out = tmp_path / "measured_psf.npy", tmp_path / "model"
     assert main(["learn", "--out", str(out), "--psf", str(psf), *SMALL]) == 2
     err = capsys.readouterr().err
-    assert "verify.json" in err and f"{lattice_um:g} um dot lattice" in err and "37.5 um" in err
+    assert "verify.json" in err and f"{lattice_um:g} um dot lattice" in err
+    assert "design 'sun2020' has 37.5 um sub-pixels" in err
     assert not out.exists()
     check_psf_grid(psf, load_design(factor2))  # the design the plate was made for passes
     default_lattice = derive(load_design(None)).lattice_pitch * 1e6
@@ -380,6 +381,30 @@ def test_evaluate_writes_json(trained, tmp_path, capsys):
     again = tmp_path / "again.json"
     main(["evaluate", str(out), "--images", str(images), "--out", str(again)])
     assert again.read_text() == res.read_text()
+
+
+def test_evaluate_refuses_a_psf_made_for_another_grid(trained, tmp_path, capsys):
+    # A factor-4 model evaluated with a PSF learned, or measured, on a factor-2 grid
+    # gave a PSNR as if nothing were wrong.
+    from doe.design import derive
+
+    out, images = trained
+    (tmp_path / "factor2.toml").write_text("[sensor]\nsuperres_factor = 2\n")
+    factor2 = load_design(tmp_path / "factor2.toml")
+    reports = {
+        "learn.json": {"design": design_summary(factor2)},
+        "verify.json": {"lattice_pitch_um": derive(factor2).lattice_pitch * 1e6},
+    }
+    for name, report in reports.items():
+        folder = tmp_path / name.split(".")[0]
+        folder.mkdir()
+        np.save(folder / "psf.npy", gaussian_psf(K))
+        argv = ["evaluate", str(out), "--images", str(images), "--psf-file"]
+        assert main([*argv, str(folder / "psf.npy")]) == 0  # no report: nothing to compare
+        (folder / name).write_text(json.dumps(report))
+        assert main([*argv, str(folder / "psf.npy")]) == 2
+        err = capsys.readouterr().err
+        assert f"{folder / name}:" in err and "the model" in err and "PSNR" not in err
 
 
 def test_sr_on_npy_stack_and_16_bit_image(trained, tmp_path):
