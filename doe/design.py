@@ -476,7 +476,7 @@ def psf_grid_problem(psf_path, summary, whose):
     """
     learned = Path(psf_path).with_name("learn.json")
     if learned.is_file():
-        recorded = read_json(learned).get("design")
+        recorded = read_json(learned).get("design")  # read_json: a JSON object
         differences = summary_differences(recorded, summary, PSF_GRID_KEYS)
         if differences:
             return learned, (
@@ -486,14 +486,22 @@ def psf_grid_problem(psf_path, summary, whose):
     verified = Path(psf_path).with_name("verify.json")
     if verified.is_file():
         lattice = read_json(verified).get("lattice_pitch_um")
-        sensor = summary["sensor"]
-        subpixel = sensor["pixel_pitch_um"] / sensor["superres_factor"]
-        if _is_number(lattice) and not math.isclose(lattice, subpixel, rel_tol=LATTICE_MATCH_REL):
+        pitch = _field(_field(summary, "sensor"), "pixel_pitch_um")
+        factor = _field(_field(summary, "sensor"), "superres_factor")
+        if not all(_is_number(v) and v > 0 for v in (lattice, pitch, factor)):
+            return None  # a report without the numbers: nothing to compare
+        subpixel = pitch / factor
+        if not math.isclose(lattice, subpixel, rel_tol=LATTICE_MATCH_REL):
             return verified, (
                 f"the PSF was measured on a {lattice:g} um dot lattice, but {whose} "
                 f"has {subpixel:g} um sub-pixels"
             )
     return None
+
+
+def _field(record, key):
+    """Return record[key] of a JSON object, None when it is not an object or lacks it."""
+    return record.get(key) if isinstance(record, dict) else None
 
 
 def _is_number(v):

@@ -14,6 +14,7 @@ import contextlib
 import hashlib
 import json
 import os
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -44,11 +45,15 @@ def run_lock(run_dir):
     Two runs in one folder share its staging folders and state file, and would
     leave a mix of both. The lock is the kernel's (flock): it ends with the process.
     """
-    import fcntl
-
+    try:
+        import fcntl
+    except ImportError:  # not a POSIX system
+        fcntl = None
     path = Path(run_dir) / LOCK_FILE
     with open(path, "a+") as f:
         try:
+            if fcntl is None:
+                raise OSError("no flock on this system")
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             f.seek(0)
@@ -57,6 +62,13 @@ def run_lock(run_dir):
                 run_dir, f"another doefab run (pid {holder}) is writing this folder; "
                 "wait for it to finish or use another --out",
             ) from None  # fmt: skip
+        except OSError as e:  # e.g. a network file system without locks: run unguarded
+            print(
+                f"doefab run: warning: cannot lock {path} ({e}); nothing stops a second "
+                "run in this folder",
+                file=sys.stderr,
+            )
+            fcntl = None
         f.seek(0)
         f.truncate()
         f.write(str(os.getpid()))
@@ -64,7 +76,8 @@ def run_lock(run_dir):
         try:
             yield
         finally:
-            fcntl.flock(f, fcntl.LOCK_UN)
+            if fcntl is not None:
+                fcntl.flock(f, fcntl.LOCK_UN)
 
 
 def sha256_file(path):

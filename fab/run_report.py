@@ -29,9 +29,9 @@ PACKAGES = (
 # Headline numbers shown on the front page: (stage, file, key path, label)
 HEADLINES = (
     ("learn", "learn.json", ("final_psnr_db",), "training PSNR (dB)"),
-    ("retrieve", "retrieval.json", ("quantised", "correlation"), "correlation ({levels} levels)"),
-    ("retrieve", "retrieval.json", ("quantised", "rmse"), "rmse ({levels} levels)"),
-    ("retrieve", "retrieval.json", ("quantised", "efficiency"), "efficiency ({levels} levels)"),
+    ("retrieve", "retrieval.json", ("quantised", "correlation"), "correlation ({quantised})"),
+    ("retrieve", "retrieval.json", ("quantised", "rmse"), "rmse ({quantised})"),
+    ("retrieve", "retrieval.json", ("quantised", "efficiency"), "efficiency ({quantised})"),
     ("retrieve", "retrieval.json", ("goals", "met"), "correlation and rmse goals met"),
     ("fab", "fab_manifest.json", ("level_step_nm",), "level step (nm)"),
     ("fab", "fab_manifest.json", ("pixel_pitch_nm",), "mask pixel pitch (nm)"),
@@ -114,9 +114,10 @@ def write_index(run_dir, design, stages):
     e = html.escape
     rows = []
     levels = _lookup(run_dir, "retrieve", "retrieval.json", ("levels",))
+    quantised = f"{levels} levels" if levels else "quantised"
     for stage, name, path, label in HEADLINES:
         value = _lookup(run_dir, stage, name, path) if stage in stages else None
-        label = label.format(levels=levels)
+        label = label.format(quantised=quantised)
         if value is not None:
             if isinstance(value, bool):
                 shown = "yes" if value else "NO: see retrieve/retrieval.json"

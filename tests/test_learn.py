@@ -315,6 +315,20 @@ def test_measured_psf_of_a_plate_for_another_grid_is_refused(tmp_path, capsys):
     check_psf_grid(psf, load_design(None))
 
 
+@pytest.mark.parametrize(
+    "name, text",
+    [("verify.json", '{"lattice_pitch_um": "75"}'), ("verify.json", "{}"),
+     ("learn.json", '{"design": 3}'), ("learn.json", '{"design": {"sensor": []}}')],
+)  # fmt: skip
+def test_psf_reports_without_a_grid_are_not_compared(tmp_path, name, text):
+    from doe.design import check_psf_grid, psf_grid_problem
+
+    np.save(tmp_path / "psf.npy", gaussian_psf(K))
+    (tmp_path / name).write_text(text)
+    check_psf_grid(tmp_path / "psf.npy", load_design(None))
+    assert psf_grid_problem(tmp_path / "psf.npy", {"sensor": {}}, "the model") is None
+
+
 def test_learn_refuses_to_overwrite_without_force(trained, capsys):
     out, images = trained
     before = (out / "psf.npy").read_bytes()

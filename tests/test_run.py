@@ -194,6 +194,22 @@ def test_a_second_run_in_the_same_folder_is_refused(config, finished, tmp_path, 
     assert main(argv) == 0  # released at the end of the first run
 
 
+def test_a_folder_that_cannot_be_locked_runs_with_a_warning(tmp_path, monkeypatch, capsys):
+    # Some network file systems refuse flock (ENOLCK): the run goes on, unguarded.
+    import errno
+    import fcntl
+
+    from fab.pipeline import run_lock
+
+    def no_locks(*_):
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(fcntl, "flock", no_locks)
+    with run_lock(tmp_path):
+        ran = True
+    assert ran and "cannot lock" in capsys.readouterr().err
+
+
 def test_bad_inputs_exit_2(tmp_path, capsys):
     assert main(["run", "--out", str(tmp_path / "o"), "--psf", str(tmp_path / "none.npy")]) == 2
     assert "none.npy" in capsys.readouterr().err
