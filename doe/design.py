@@ -444,14 +444,17 @@ def design_differences(recorded, d, keys):
 
 
 def summary_differences(recorded, now, keys):
-    """:func:`design_differences` between two :func:`design_summary` dicts."""
+    """:func:`design_differences` between two :func:`design_summary` dicts.
+
+    A key missing from either (a partial or hand-edited record) is not compared.
+    """
     differences = []
     for section, key in keys:
-        table = recorded.get(section) if isinstance(recorded, dict) else None
-        then = table.get(key) if isinstance(table, dict) else None
-        if then is None or _same_value(then, now[section][key]):
+        then = _field(_field(recorded, section), key)
+        value = _field(_field(now, section), key)
+        if then is None or value is None or _same_value(then, value):
             continue
-        differences.append(f"{section}.{key} {_shown(then)} -> {_shown(now[section][key])}")
+        differences.append(f"{section}.{key} {_shown(then)} -> {_shown(value)}")
     return differences
 
 

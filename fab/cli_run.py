@@ -83,6 +83,7 @@ def _no_mesh(formats):
 def _run(args):
     from doe import flags
     from doe.design import load_design
+    from doe.files import check_out_folder
     from fab.cli_mesh import check_float32_heights, parse_formats
     from fab.pipeline import run_lock
 
@@ -94,8 +95,7 @@ def _run(args):
     where = f"{args.config or 'default preset'}: [material] thickness_mm"
     check_float32_heights(design.material.thickness * 1e3, formats, where)
     run_dir = Path(args.out)
-    if run_dir.exists() and not run_dir.is_dir():
-        raise InputError(run_dir, "exists and is not a folder")
+    check_out_folder(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     with run_lock(run_dir):
         return _run_stages(args, run_dir, design)

@@ -43,17 +43,14 @@ def run_lock(run_dir):
     """Hold the run folder for one ``doefab run``; refuse a second one (InputError).
 
     Two runs in one folder share its staging folders and state file, and would
-    leave a mix of both. The lock is the kernel's (flock): it ends with the process.
+    leave a mix of both. The lock is the kernel's (flock): closing the file, or
+    the end of the process, releases it.
     """
-    try:
-        import fcntl
-    except ImportError:  # not a POSIX system
-        fcntl = None
     path = Path(run_dir) / LOCK_FILE
     with open(path, "a+") as f:
         try:
-            if fcntl is None:
-                raise OSError("no flock on this system")
+            import fcntl
+
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             f.seek(0)
@@ -62,22 +59,17 @@ def run_lock(run_dir):
                 run_dir, f"another doefab run (pid {holder}) is writing this folder; "
                 "wait for it to finish or use another --out",
             ) from None  # fmt: skip
-        except OSError as e:  # e.g. a network file system without locks: run unguarded
+        except (ImportError, OSError) as e:  # no POSIX locks, or a file system without them
             print(
                 f"doefab run: warning: cannot lock {path} ({e}); nothing stops a second "
                 "run in this folder",
                 file=sys.stderr,
             )
-            fcntl = None
         f.seek(0)
         f.truncate()
         f.write(str(os.getpid()))
         f.flush()
-        try:
-            yield
-        finally:
-            if fcntl is not None:
-                fcntl.flock(f, fcntl.LOCK_UN)
+        yield
 
 
 def sha256_file(path):

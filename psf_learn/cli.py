@@ -270,12 +270,8 @@ def _evaluate(args):
         raise InputError(out, "exists; use --force or another --out")
     model = load_model(args.model_dir)
     psf = read_psf(args.psf_file) if args.psf_file else None
-    summary = (model.learn or {}).get("design")
-    problem = (
-        psf_grid_problem(args.psf_file, summary, "the model")
-        if psf is not None and summary
-        else None
-    )
+    summary = (model.learn or {}).get("design")  # a model without it is not compared
+    problem = psf_grid_problem(args.psf_file, summary, "the model") if args.psf_file else None
     if problem:
         raise InputError(problem[0], f"{problem[1]}; --psf-file must be made for the model's grid")
     names, images = imgio.read_folder(args.images, min_size=4 * model.sensor.factor)

@@ -318,7 +318,8 @@ def test_measured_psf_of_a_plate_for_another_grid_is_refused(tmp_path, capsys):
 @pytest.mark.parametrize(
     "name, text",
     [("verify.json", '{"lattice_pitch_um": "75"}'), ("verify.json", "{}"),
-     ("learn.json", '{"design": 3}'), ("learn.json", '{"design": {"sensor": []}}')],
+     ("learn.json", '{"design": 3}'), ("learn.json", '{"design": {"sensor": []}}'),
+     ("learn.json", json.dumps({"design": design_summary(load_design(None))}))],
 )  # fmt: skip
 def test_psf_reports_without_a_grid_are_not_compared(tmp_path, name, text):
     from doe.design import check_psf_grid, psf_grid_problem
