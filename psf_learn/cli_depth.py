@@ -196,10 +196,14 @@ def _depth(args):
             summary["sr" if prefix else "native"] = stats
         write_json(stage / "depth.json", summary)
     s = summary["native"]
+    timing = (
+        f"timing {s['timing_ps_min']:.1f} .. {s['timing_ps_max']:.1f} ps"
+        if s["valid_pixels"]
+        else "no timing"
+    )
     print(
-        f"depth: {s['valid_pixels']}/{s['pixels']} pixels with a return, timing "
-        f"{s['timing_ps_min']:.1f} .. {s['timing_ps_max']:.1f} ps, median fit quality "
-        f"{s['median_fit_quality']:.3g}; wrote {args.out}"
+        f"depth: {s['valid_pixels']}/{s['pixels']} pixels with a return, {timing}, "
+        f"median fit quality {s['median_fit_quality']:.3g}; wrote {args.out}"
     )
     return 0
 

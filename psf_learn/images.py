@@ -209,4 +209,6 @@ def read_raw(path):
         raise InputError(path, f"raw frames contain negative counts (min {a.min():g})")
     if a.shape[-1] < 2 or a.shape[-2] < 2:
         raise InputError(path, f"frames of {a.shape} are too small")
+    if a.size == 0:
+        raise InputError(path, f"holds no frames (shape {a.shape})")
     return a

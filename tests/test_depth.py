@@ -238,6 +238,16 @@ def test_cli_depth_round_trip(tmp_path, response, capsys):
     assert {p.name: p.read_bytes() for p in out.iterdir()} == first
 
 
+def test_cli_depth_of_a_dark_scene_reports_no_returns(tmp_path, capsys):
+    # A cube without any return once printed "timing nan .. nan ps".
+    path = tmp_path / "dark.npy"
+    np.save(path, np.random.default_rng(3).poisson(2.0, (4, 5, T)).astype(np.uint16))
+    assert main(["depth", str(path), "--out", str(tmp_path / "out")]) == 0
+    line = capsys.readouterr().out
+    assert "0/20 pixels with a return, no timing" in line and "nan" not in line
+    assert not np.load(tmp_path / "out" / "valid.npy").any()
+
+
 def test_cli_depth_with_irf(tmp_path, response):
     path, mu = write_scene_cube(tmp_path, response)
     np.save(tmp_path / "irf.npy", response(scan_times(T, SHIFT)))

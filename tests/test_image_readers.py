@@ -136,3 +136,10 @@ def test_float_training_images_must_lie_in_zero_one(tmp_path):
     tifffile.imwrite(tmp_path / "signed.tif", (rng.random((20, 20)) - 0.5).astype(np.float32))
     with pytest.raises(InputError, match=r"signed\.tif.*\[0, 1\]"):
         read_image(tmp_path / "signed.tif")
+
+
+def test_raw_stack_without_frames_is_refused(tmp_path):
+    # A (0, H, W) stack once went through `sr` and left empty outputs behind.
+    np.save(tmp_path / "none.npy", np.zeros((0, 8, 8)))
+    with pytest.raises(InputError, match=r"none\.npy.*no frames"):
+        read_raw(tmp_path / "none.npy")
