@@ -1,6 +1,7 @@
 """``doefab verify`` (a fabricated plate against its design) and ``doefab mtf`` (slanted edge)."""
 
 import math
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -288,6 +289,8 @@ def _notes(result, capture, design):
 
 
 def _mtf(args):
+    import numpy as np
+
     from doe.files import staged_output, write_json
     from fab.capture import read_raw_image
     from fab.mtf import EdgeNotFound, slanted_edge_mtf
@@ -300,6 +303,15 @@ def _mtf(args):
     except EdgeNotFound as e:
         raise InputError(args.image, str(e)) from None
     result["image"] = Path(args.image).name
+    # Clipping flattens the bright side of the edge spread and so overstates the MTF.
+    clipped = 0 if raw.full_scale is None else int(np.count_nonzero(raw.data >= raw.full_scale))
+    result["saturated_pixels"] = clipped
+    if clipped:
+        print(
+            f"doefab mtf: warning: {args.image}: {clipped} pixel(s) at the full-scale code "
+            f"{raw.full_scale:g}; a clipped edge overstates the MTF: shorten the exposure",
+            file=sys.stderr,
+        )
     with staged_output(args.out, args.force, names=MTF_FILES) as stage:
         from fab.verify_figures import mtf50_text, write_mtf_plot
 

@@ -90,8 +90,9 @@ def slanted_edge_mtf(image, oversample=4):
     filled = counts > 0
     if filled.sum() < 0.8 * n_bins:
         raise EdgeNotFound(
-            "too few rows or too little slant to oversample the edge; "
-            "tilt the edge a few degrees and include more rows"
+            f"the edge, {np.degrees(np.arctan(abs(slope))):.1f} deg off the pixel axis, fills "
+            f"{filled.mean():.0%} of the {oversample}x oversampled bins; tilt it 2-10 deg off "
+            "the pixel axis (not near 45 deg) and include more rows"
         )
     x = np.arange(n_bins)
     esf = np.interp(x, x[filled], sums[filled] / counts[filled])

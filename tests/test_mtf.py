@@ -103,3 +103,28 @@ def test_edge_must_stand_out_of_the_noise(contrast, found):
     else:
         with pytest.raises(EdgeNotFound, match="noise"):
             slanted_edge_mtf(img)
+
+
+@pytest.mark.parametrize("angle", [0.0, 45.0])
+def test_edge_without_sub_pixel_phases_is_refused_with_its_angle(angle):
+    # A 45 deg edge once got "too little slant": every row then crosses the grid
+    # at the same phase, as an axis-aligned edge does.
+    with pytest.raises(EdgeNotFound, match=f"{angle:.1f} deg off the pixel axis"):
+        slanted_edge_mtf(gaussian_edge(1.0, angle, shape=(120, 240)))
+
+
+def test_clipped_edge_is_flagged(tmp_path, capsys):
+    # Clipping flattens the bright side of the edge and overstates the MTF; the
+    # command says so and records the clipped pixels.
+    edge = gaussian_edge(1.2, 5, high=300.0)
+    for name, image, clipped in (
+        ("clean.png", edge * 0.8, 0),
+        ("clipped.png", edge, int(np.count_nonzero(np.round(edge) >= 255))),
+    ):
+        write_image(tmp_path / name, np.clip(np.round(image), 0, 255).astype(np.uint8))
+        out = tmp_path / name.replace(".png", "")
+        assert main(["mtf", str(tmp_path / name), "--out", str(out)]) == 0
+        assert json.loads((out / "mtf.json").read_text())["saturated_pixels"] == clipped
+        err = capsys.readouterr().err
+        assert ("shorten the exposure" in err) == bool(clipped)
+    assert clipped > 1000
