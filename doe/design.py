@@ -172,10 +172,16 @@ def load_design(path=None):
         return parse_design(_read_preset(str(path)), str(path))
     path = Path(path)
     try:
-        raw = tomllib.loads(path.read_text())
+        # TOML is UTF-8 whatever the locale; "-sig" drops the BOM some Windows editors write.
+        raw = tomllib.loads(path.read_text(encoding="utf-8-sig"))
     except FileNotFoundError:
         raise InputError(path, "no such design file (or preset name)") from None
-    except (OSError, UnicodeDecodeError) as e:
+    except UnicodeDecodeError as e:
+        raise InputError(
+            path,
+            f"not UTF-8 text (byte {e.object[e.start]:#04x} at offset {e.start}); save it as UTF-8",
+        ) from None
+    except OSError as e:
         raise InputError(path, f"cannot read: {e}") from None
     except tomllib.TOMLDecodeError as e:
         raise InputError(path, f"not valid TOML: {e}") from None
@@ -183,7 +189,9 @@ def load_design(path=None):
 
 
 def _read_preset(name):
-    return tomllib.loads(resources.files("doe.presets").joinpath(f"{name}.toml").read_text())
+    return tomllib.loads(
+        resources.files("doe.presets").joinpath(f"{name}.toml").read_text(encoding="utf-8")
+    )
 
 
 def _merge(base, override):

@@ -88,7 +88,7 @@ def write_verify_report(stage, report, image, grid, lattice, measured_psf, desig
     fig.tight_layout()
     fig.savefig(stage / "verify.png", dpi=90, metadata=_PNG_META)
     plt.close(fig)
-    (stage / "verify_report.html").write_text(_html(report))
+    (stage / "verify_report.html").write_text(_html(report), encoding="utf-8")
 
 
 def _html(report):

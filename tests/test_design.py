@@ -160,6 +160,19 @@ def test_config_show_refuses_bad_files_with_exit_2(tmp_path, capsys, content, me
     assert len(err.splitlines()) == 1 and str(f) in err and message in err
 
 
+def test_design_files_are_read_as_utf_8(tmp_path, capsys):
+    # A BOM (Windows editors) once read as "Invalid statement"; other encodings are
+    # named as such rather than as a codec traceback.
+    text = 'name = "µ-plate"\n[fabrication]\nfeature_size_um = 20.0\n'
+    (tmp_path / "bom.toml").write_bytes(text.encode("utf-8-sig"))
+    d = load_design(tmp_path / "bom.toml")
+    assert d.name == "µ-plate" and d.fabrication.feature_size == pytest.approx(20e-6)
+    (tmp_path / "latin1.toml").write_bytes(text.encode("latin-1"))
+    assert main(["config", "show", "--config", str(tmp_path / "latin1.toml")]) == 2
+    err = capsys.readouterr().err
+    assert "latin1.toml" in err and "not UTF-8" in err and "0xb5" in err
+
+
 def test_missing_config_file_exits_2(tmp_path, capsys):
     missing = tmp_path / "nope.toml"
     assert main(["config", "show", "--config", str(missing)]) == 2
