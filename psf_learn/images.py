@@ -81,6 +81,7 @@ def decode(path):
 
             with tifffile.TiffFile(path) as tif:
                 pages = sum(not page.is_reduced for page in tif.pages)  # thumbnails aside
+                ink = tif.pages[0].photometric == tifffile.PHOTOMETRIC.SEPARATED
                 a = tif.series[0].asarray()
         else:
             import imageio.v3 as iio
@@ -88,7 +89,12 @@ def decode(path):
 
             with Image.open(path) as im:  # reads the header only
                 pages = getattr(im, "n_frames", 1)
-            a = iio.imread(path, plugin="pillow")
+                ink = im.mode == "CMYK"
+                # Pillow knows CMYK JPEGs' quirks (Adobe's inverted ink); imageio
+                # would hand the four ink planes over as RGBA.
+                a = np.asarray(im.convert("RGB")) if ink else None
+            if not ink:
+                a = iio.imread(path, plugin="pillow")
     except FileNotFoundError:
         raise InputError(path, "no such file") from None
     except Exception as e:  # the decoders raise many types on corrupt data
@@ -97,7 +103,21 @@ def decode(path):
         raise InputError(path, f"holds {pages} images (pages or frames); give one per file")
     if a.ndim > 2 and a.shape[-1] not in (3, 4) and a.shape[-3] in (3, 4):
         a = np.moveaxis(a, -3, -1)  # planar TIFF: channels last, as skimage.io.imread does
+    if ink and a.shape[-1] != 3:
+        a = _ink_to_rgb(a, path)
     return a
+
+
+def _ink_to_rgb(cmyk, path):
+    """RGB of CMYK ink planes without a colour profile: R = (1 - C) (1 - K), and so on."""
+    if cmyk.ndim != 3 or cmyk.shape[-1] != 4 or cmyk.dtype.kind not in "uf":
+        raise InputError(
+            path, f"ink (separated) image of {cmyk.dtype} {cmyk.shape}: give grey or RGB"
+        )
+    full = np.iinfo(cmyk.dtype).max if cmyk.dtype.kind == "u" else 1.0
+    ink = cmyk.astype(np.float64) / full
+    rgb = (1 - ink[..., :3]) * (1 - ink[..., 3:]) * full
+    return (np.round(rgb) if cmyk.dtype.kind == "u" else rgb).astype(cmyk.dtype)
 
 
 def image_files(folder):

@@ -143,3 +143,23 @@ def test_raw_stack_without_frames_is_refused(tmp_path):
     np.save(tmp_path / "none.npy", np.zeros((0, 8, 8)))
     with pytest.raises(InputError, match=r"none\.npy.*no frames"):
         read_raw(tmp_path / "none.npy")
+
+
+def test_cmyk_images_are_read_as_light_not_as_ink(tmp_path):
+    # imageio once handed a CMYK JPEG's ink planes over as RGBA: the "luminance"
+    # correlated at -0.5 with the picture's. Ink becomes light: R = (1 - C)(1 - K).
+    import tifffile
+    from PIL import Image
+
+    rng = np.random.default_rng(4)
+    ink = rng.integers(0, 256, (24, 32, 4), dtype=np.uint8)
+    Image.fromarray(ink, "CMYK").save(tmp_path / "ink.jpg", quality=100)
+    expected = np.asarray(Image.open(tmp_path / "ink.jpg").convert("L"), float) / 255
+    assert np.abs(read_image(tmp_path / "ink.jpg") - expected).max() < 2 / 255
+
+    ink16 = rng.integers(0, 65536, (24, 32, 4), dtype=np.uint16)
+    tifffile.imwrite(tmp_path / "ink.tif", ink16, photometric="separated")
+    c = ink16 / 65535.0
+    rgb = (1 - c[..., :3]) * (1 - c[..., 3:])
+    expected = rgb @ np.array([0.299, 0.587, 0.114])
+    np.testing.assert_allclose(read_image(tmp_path / "ink.tif"), expected, atol=1e-5)
