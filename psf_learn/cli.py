@@ -275,7 +275,8 @@ def _evaluate(args):
     if problem:
         raise InputError(problem[0], f"{problem[1]}; --psf-file must be made for the model's grid")
     names, images = imgio.read_folder(args.images, min_size=4 * model.sensor.factor)
-    res = evaluate(model, names, images, psf, EVAL_SEED if args.seed is None else args.seed)
+    seed = EVAL_SEED if args.seed is None else args.seed
+    res = evaluate(model, names, images, psf, seed, progress=sys.stderr.isatty())
     for name, v in res["images"].items():
         print(f"{name:32s} PSNR {v['psnr']:6.2f} dB  SSIM {v['ssim']:.4f}")
     print(f"{'mean':32s} PSNR {res['psnr']:6.2f} dB  SSIM {res['ssim']:.4f}")

@@ -40,10 +40,22 @@ def evaluate_image(model, image, psf=None, seed=EVAL_SEED, index=0, border=None)
     return float(psnr), ssim, estimate
 
 
-def evaluate(model, names, images, psf=None, seed=EVAL_SEED):
-    """Return {"psnr", "ssim", "images": {name: {"psnr", "ssim"}}} averaged over images."""
+def evaluate(model, names, images, psf=None, seed=EVAL_SEED, progress=False):
+    """Return {"psnr", "ssim", "images": {name: {"psnr", "ssim"}}} averaged over images.
+
+    ``progress`` shows a tqdm bar of images on stderr.
+    """
+    from tqdm import tqdm
+
+    pairs = tqdm(
+        zip(names, images, strict=True),
+        total=len(names),
+        desc="evaluate",
+        unit="image",
+        disable=not progress,
+    )
     per = {}
-    for i, (name, img) in enumerate(zip(names, images, strict=True)):
+    for i, (name, img) in enumerate(pairs):
         p, s, _ = evaluate_image(model, img, psf, seed, i)
         per[name] = {"psnr": p, "ssim": s}
     return {

@@ -398,6 +398,23 @@ def test_evaluate_writes_json(trained, tmp_path, capsys):
     assert again.read_text() == res.read_text()
 
 
+def test_evaluate_shows_progress_on_a_terminal(trained, capsys):
+    # A long image folder once ran without a sign of life.
+    from psf_learn import images as imgio
+    from psf_learn.evaluate import evaluate
+    from psf_learn.sr import load_model
+
+    out, images = trained
+    model = load_model(out)
+    names, imgs = imgio.read_folder(images)
+    quiet = evaluate(model, names, imgs)
+    assert "evaluate" not in capsys.readouterr().err
+    shown = evaluate(model, names, imgs, progress=True)
+    err = capsys.readouterr().err
+    assert "evaluate" in err and "2/2" in err
+    assert shown == quiet
+
+
 def test_evaluate_refuses_a_psf_made_for_another_grid(trained, tmp_path, capsys):
     # A factor-4 model evaluated with a PSF learned, or measured, on a factor-2 grid
     # gave a PSNR as if nothing were wrong.
