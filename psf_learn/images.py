@@ -81,7 +81,7 @@ def decode(path):
 
             with tifffile.TiffFile(path) as tif:
                 pages = sum(not page.is_reduced for page in tif.pages)  # thumbnails aside
-                ink = tif.pages[0].photometric == tifffile.PHOTOMETRIC.SEPARATED
+                separated = tif.pages[0].photometric == tifffile.PHOTOMETRIC.SEPARATED
                 a = tif.series[0].asarray()
         else:
             import imageio.v3 as iio
@@ -89,11 +89,12 @@ def decode(path):
 
             with Image.open(path) as im:  # reads the header only
                 pages = getattr(im, "n_frames", 1)
-                ink = im.mode == "CMYK"
-                # Pillow knows CMYK JPEGs' quirks (Adobe's inverted ink); imageio
-                # would hand the four ink planes over as RGBA.
-                a = np.asarray(im.convert("RGB")) if ink else None
-            if not ink:
+                cmyk = im.mode == "CMYK"
+            separated = False
+            if cmyk:  # imageio hands the ink planes over as RGBA; Pillow makes light of them
+                with Image.open(path) as im:
+                    a = np.asarray(im.convert("RGB"))
+            else:
                 a = iio.imread(path, plugin="pillow")
     except FileNotFoundError:
         raise InputError(path, "no such file") from None
@@ -103,7 +104,7 @@ def decode(path):
         raise InputError(path, f"holds {pages} images (pages or frames); give one per file")
     if a.ndim > 2 and a.shape[-1] not in (3, 4) and a.shape[-3] in (3, 4):
         a = np.moveaxis(a, -3, -1)  # planar TIFF: channels last, as skimage.io.imread does
-    if ink and a.shape[-1] != 3:
+    if separated:
         a = _ink_to_rgb(a, path)
     return a
 
