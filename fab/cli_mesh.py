@@ -78,6 +78,8 @@ def read_fab_dir(fab_dir, thickness_mm=None):
     if not fab_dir.is_dir():
         raise InputError(fab_dir, "no such folder (expected the output of doefab fab)")
     path = fab_dir / "fab_manifest.json"
+    if not path.is_file():  # e.g. a retrieve folder
+        raise InputError(path, "no such file; mesh takes the folder that doefab fab wrote")
     man = read_json(path)
     for key in ("levels", "level_step_nm", "pixel_pitch_nm", "tile_pixels", "tiles", "levels_file"):
         if key not in man:

@@ -389,6 +389,12 @@ def test_cli_missing_fab_dir_and_bad_format(tmp_path, capsys):
     fab = write_fab_dir(tmp_path / "fab", random_levels(3, seed=14))
     assert main(["mesh", str(fab), "--out", str(tmp_path / "o"), "--formats", "obj"]) == 2
     assert "--formats" in capsys.readouterr().err
+    # a folder without the fab manifest, such as retrieve's: the message says which folder
+    (tmp_path / "retrieve").mkdir()
+    assert main(["mesh", str(tmp_path / "retrieve"), "--out", str(tmp_path / "o")]) == 2
+    assert "fab_manifest.json: no such file; mesh takes the folder that doefab fab wrote" in (
+        capsys.readouterr().err
+    )
 
 
 def test_cli_refuses_overwrite_without_force(tmp_path, capsys):
