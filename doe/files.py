@@ -23,6 +23,10 @@ os.umask(_UMASK)
 def load_npy(path):
     """Load a .npy array without pickles, raising InputError if unreadable."""
     path = Path(path)
+    if path.is_dir():  # e.g. a stage's output folder given for the file in it
+        inside = sorted(p.name for p in path.glob("*.npy"))
+        held = ", ".join(inside[:4]) + (" ..." if len(inside) > 4 else "") or "no .npy file"
+        raise InputError(path, f"is a folder, not a .npy file (it holds {held})")
     try:
         return np.load(path, allow_pickle=False)
     except FileNotFoundError:

@@ -91,6 +91,10 @@ def load_design_dir(design_dir, design):
                 f"the tile was designed for another design than {design.name!r} "
                 f"({'; '.join(differences)}); pass the design it was made for with --config",
             )
+    if not (d / "levels.npy").is_file():  # e.g. a learn folder
+        raise InputError(
+            d / "levels.npy", "no such file; fab takes the folder that doefab retrieve wrote"
+        )
     levels = read_levels(d / "levels.npy", n_levels)
     target_path = d / "target_psf.npy"
     target = read_psf(target_path) if target_path.exists() else None

@@ -57,6 +57,20 @@ def test_read_levels_refuses_contract_violations(tmp_path, array, message):
         read_levels(tmp_path / "levels.npy", 8)
 
 
+def test_a_stage_folder_given_for_its_file_is_named_as_a_folder(tmp_path, capsys):
+    # `retrieve out/learn` once said "not a readable .npy array ([Errno 21] ...)";
+    # `fab out/learn` said only that levels.npy is missing.
+    learn = tmp_path / "learn"
+    learn.mkdir()
+    np.save(learn / "psf.npy", np.full((3, 3), 1 / 9))
+    with pytest.raises(InputError, match=r"is a folder, not a \.npy file \(it holds psf\.npy\)"):
+        read_psf(learn)
+    assert main(["fab", str(learn), "--out", str(tmp_path / "fab")]) == 2
+    assert "levels.npy: no such file; fab takes the folder that doefab retrieve wrote" in (
+        capsys.readouterr().err
+    )
+
+
 def test_write_json_is_strict_json_with_undefined_figures_as_null(tmp_path, read_strict_json):
     obj = {
         "corr": float("nan"),
