@@ -88,6 +88,8 @@ def read_raw_image(path):
     import OpenImageIO as oiio
 
     path = Path(path)
+    if path.is_dir():
+        raise InputError(path, "is a folder, not an image file")
     if not path.is_file():
         raise InputError(path, "no such image file")
     inp = oiio.ImageInput.open(str(path))

@@ -85,6 +85,8 @@ def read_frame(path):
     import OpenImageIO as oiio
 
     path = Path(path)
+    if path.is_dir():
+        raise InputError(path, "is a folder, not an image file")
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
         raise InputError(path, f"not a readable image ({oiio.geterror()})")

@@ -75,6 +75,8 @@ def decode(path):
     on a damaged file, which costs time and raises their deprecation warnings.
     """
     path = Path(path)
+    if path.is_dir():
+        raise InputError(path, "is a folder, not an image file")
     try:
         if path.suffix.lower() in (".tif", ".tiff"):
             import tifffile

@@ -163,3 +163,11 @@ def test_cmyk_images_are_read_as_light_not_as_ink(tmp_path):
     rgb = (1 - c[..., :3]) * (1 - c[..., 3:])
     expected = rgb @ np.array([0.299, 0.587, 0.114])
     np.testing.assert_allclose(read_image(tmp_path / "ink.tif"), expected, atol=1e-5)
+
+
+@pytest.mark.parametrize("reader", [*READERS, "raw frames"])
+def test_a_folder_is_named_as_a_folder(tmp_path, reader):
+    # Readers once said "no such image file" of a folder that exists, or passed on
+    # the decoders' "[Errno 21] Is a directory".
+    with pytest.raises(InputError, match="is a folder, not an image file"):
+        READERS.get(reader, read_raw)(tmp_path)
