@@ -46,9 +46,10 @@ def plan(args, run_dir, design):
     seed = str(args.seed if args.seed is not None else design.learning.seed)
     stages = []
     if args.psf:
+        from doe.files import read_psf
+
         psf = Path(args.psf)
-        if not psf.is_file():
-            raise InputError(psf, "no such PSF file")
+        read_psf(psf)  # a missing, unreadable or off-contract PSF stops the run before it starts
     else:
         # A step budget keeps the run reproducible; --minutes trades that for a time budget.
         budget = (

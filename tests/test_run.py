@@ -8,6 +8,7 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 
 from doe.cli import main
@@ -228,6 +229,13 @@ def test_bad_inputs_exit_2(tmp_path, capsys):
         fresh = tmp_path / f"o{flag}"
         assert main(["run", "--out", str(fresh), flag, value]) == 2
         assert flag in capsys.readouterr().err and not fresh.exists()
+    # So does a PSF off the contract (it once left a locked run folder with an empty
+    # staging folder behind), or a stage folder given for the PSF in it.
+    np.save(tmp_path / "unnormalised.npy", np.full((3, 3), 1 / 3))
+    for psf, message in (("unnormalised.npy", "must sum to 1"), (".", "is a folder")):
+        fresh = tmp_path / f"o_{psf}"
+        assert main(["run", "--out", str(fresh), "--psf", str(tmp_path / psf)]) == 2
+        assert message in capsys.readouterr().err and not fresh.exists()
     thick = tmp_path / "thick.toml"
     thick.write_text("[material]\nthickness_mm = 50\n")
     assert main(["run", "--config", str(thick), "--out", str(tmp_path / "o3")]) == 2
