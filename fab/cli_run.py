@@ -46,10 +46,7 @@ def plan(args, run_dir, design):
     seed = str(args.seed if args.seed is not None else design.learning.seed)
     stages = []
     if args.psf:
-        from doe.files import read_psf
-
         psf = Path(args.psf)
-        read_psf(psf)  # a missing, unreadable or off-contract PSF stops the run before it starts
     else:
         # A step budget keeps the run reproducible; --minutes trades that for a time budget.
         budget = (
@@ -84,13 +81,15 @@ def _no_mesh(formats):
 def _run(args):
     from doe import flags
     from doe.design import load_design
-    from doe.files import check_out_folder
+    from doe.files import check_out_folder, read_psf
     from fab.cli_mesh import check_float32_heights, parse_formats
     from fab.pipeline import run_lock
 
     # Checked here, not by the stages: a bad value must stop the run before any stage.
     flags.positive("--minutes", args.minutes)
     flags.non_negative("--seed", args.seed)
+    if args.psf:
+        read_psf(args.psf)
     design = load_design(args.config)
     formats = [] if _no_mesh(args.formats) else parse_formats(args.formats)
     where = f"{args.config or 'default preset'}: [material] thickness_mm"
