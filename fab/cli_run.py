@@ -80,7 +80,7 @@ def _no_mesh(formats):
 
 def _run(args):
     from doe import flags
-    from doe.design import load_design
+    from doe.design import check_psf_grid, load_design
     from doe.files import check_out_folder, read_psf
     from fab.cli_mesh import check_float32_heights, parse_formats
     from fab.pipeline import run_lock
@@ -88,9 +88,10 @@ def _run(args):
     # Checked here, not by the stages: a bad value must stop the run before any stage.
     flags.positive("--minutes", args.minutes)
     flags.non_negative("--seed", args.seed)
+    design = load_design(args.config)
     if args.psf:
         read_psf(args.psf)
-    design = load_design(args.config)
+        check_psf_grid(args.psf, design)
     formats = [] if _no_mesh(args.formats) else parse_formats(args.formats)
     where = f"{args.config or 'default preset'}: [material] thickness_mm"
     check_float32_heights(design.material.thickness * 1e3, formats, where)

@@ -232,8 +232,18 @@ def test_bad_inputs_exit_2(tmp_path, capsys):
     # So does a PSF off the contract (it once left a locked run folder with an empty
     # staging folder behind), or a stage folder given for the PSF in it.
     np.save(tmp_path / "unnormalised.npy", np.full((3, 3), 1 / 3))
-    for psf, message in (("unnormalised.npy", "must sum to 1"), (".", "is a folder")):
-        fresh = tmp_path / f"o_{psf}"
+    # A PSF measured on a plate with a 75 um dot lattice is for another grid than
+    # the default design's 37.5 um sub-pixels; it once failed only at the retrieve stage.
+    measured = tmp_path / "measured"
+    measured.mkdir()
+    np.save(measured / "measured_psf.npy", np.full((3, 3), 1 / 9))
+    (measured / "verify.json").write_text(json.dumps({"lattice_pitch_um": 75.0}))
+    for psf, message in (
+        ("unnormalised.npy", "must sum to 1"),
+        (".", "is a folder"),
+        ("measured/measured_psf.npy", "75 um dot lattice"),
+    ):
+        fresh = tmp_path / f"o_{psf.replace('/', '_')}"
         assert main(["run", "--out", str(fresh), "--psf", str(tmp_path / psf)]) == 2
         assert message in capsys.readouterr().err and not fresh.exists()
     thick = tmp_path / "thick.toml"
