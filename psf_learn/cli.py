@@ -269,11 +269,14 @@ def _evaluate(args):
     if out is not None and out.exists() and not args.force:
         raise InputError(out, "exists; use --force or another --out")
     model = load_model(args.model_dir)
-    psf = read_psf(args.psf_file) if args.psf_file else None
-    summary = (model.learn or {}).get("design")  # a model without it is not compared
-    problem = psf_grid_problem(args.psf_file, summary, "the model") if args.psf_file else None
-    if problem:
-        raise InputError(problem[0], f"{problem[1]}; --psf-file must be made for the model's grid")
+    psf = None
+    if args.psf_file:
+        psf = read_psf(args.psf_file)
+        summary = (model.learn or {}).get("design")  # a model without it is not compared
+        problem = psf_grid_problem(args.psf_file, summary, "the model")
+        if problem:
+            path, text = problem
+            raise InputError(path, f"{text}; --psf-file must be made for the model's grid")
     names, images = imgio.read_folder(args.images, min_size=4 * model.sensor.factor)
     seed = EVAL_SEED if args.seed is None else args.seed
     res = evaluate(model, names, images, psf, seed, progress=sys.stderr.isatty())
