@@ -792,6 +792,13 @@ def retrieve_phase(
         raise ValueError(f"need at least 2 levels, got {n_levels}")
     target = target / target.sum()
     t0 = time.perf_counter()
+    if k == 1:
+        # the zero order alone, which an unetched (flat) plate forms with all the
+        # light; the objective's correlation term is 0 / 0 on a single order
+        levels = np.full((n_pixels, n_pixels), n_levels - 1, np.uint8)
+        phase = fraunhofer.level_phase(levels, n_levels)
+        quality = fraunhofer.quality(phase, target)
+        return Retrieval(levels, phase, n_levels, quality, quality, time.perf_counter() - t0, seed)
     starts, finishes = max(int(starts), 1), max(int(finishes), 1)
     screens, finishes = max(int(screens), starts), min(finishes, starts)
     bar = _progress_bar(progress, screens + starts + finishes * (1 + 2 * len(cd_weights)))

@@ -1,6 +1,7 @@
 """Phase retrieval: objective and gradient, discrete updates, determinism, quality, CLI."""
 
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -651,3 +652,16 @@ def test_cli_refuses_to_overwrite_without_force(tmp_path, capsys):
     code, err = _run([psf, "--out", out, "--tile-pixels", 15, "--force"], capsys)
     assert code == 0, err
     assert np.load(out / "levels.npy").dtype == np.uint8
+
+
+def test_one_order_target_is_an_unetched_plate_without_warnings(tmp_path, capsys):
+    # K = 1 asks for the zero order alone: a flat plate, all the light in it, and no
+    # 0 / 0 correlation of single orders on the way
+    psf = _psf_file(tmp_path, np.ones((1, 1)))
+    out = tmp_path / "out"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        code = main(["retrieve", str(psf), "--out", str(out), "--tile-pixels", "16"])
+    assert code == 0 and "efficiency 1.0000" in capsys.readouterr().out
+    levels = np.load(out / "levels.npy")
+    assert levels.shape == (16, 16) and (levels == 7).all()
