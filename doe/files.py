@@ -111,6 +111,18 @@ def read_json(path):
     return obj
 
 
+def previous_files(record, names_of):
+    """Return the files an earlier run listed in its JSON ``record``, read by ``names_of(obj)``.
+
+    For :func:`staged_output`'s ``stale``; empty when there is no such record or
+    it cannot be read (then nothing is removed).
+    """
+    try:
+        return [str(name) for name in names_of(json.loads(Path(record).read_text()))]
+    except (OSError, ValueError, LookupError, TypeError, AttributeError):
+        return []
+
+
 def write_json(path, obj):
     """Write ``obj`` as indented, key-sorted JSON (deterministic bytes), atomically.
 
@@ -164,7 +176,7 @@ def atomic_write_bytes(path, data):
 
 
 @contextlib.contextmanager
-def staged_output(out_dir, force=False, names=None):
+def staged_output(out_dir, force=False, names=None, stale=()):
     """Yield a temporary folder; on success move its files into ``out_dir``.
 
     Nothing appears in ``out_dir`` unless the block finishes, so a failed
@@ -180,6 +192,11 @@ def staged_output(out_dir, force=False, names=None):
     names : iterable of str or None
         Files the command will write, checked up front; when None the check
         happens at the end against what was actually written.
+    stale : iterable of str
+        Files an earlier run of the command wrote in ``out_dir`` (read from its
+        manifest). With ``force`` those it did not write again are removed, so
+        that no file of the old package contradicts the new one (an old
+        ``mask.oas`` beside a new ``mask.gds``).
     """
     out_dir = Path(out_dir)
     check_out_folder(out_dir)
@@ -201,6 +218,14 @@ def staged_output(out_dir, force=False, names=None):
             dest = out_dir / rel
             dest.parent.mkdir(parents=True, exist_ok=True)
             os.replace(stage / rel, dest)
+        if force:
+            for rel in sorted(set(map(Path, stale)) - set(written)):
+                inside = not rel.is_absolute() and ".." not in rel.parts
+                if inside and (out_dir / rel).is_file():
+                    (out_dir / rel).unlink()
+                    with contextlib.suppress(OSError):  # a sub-folder it emptied
+                        if rel.parent != Path():
+                            (out_dir / rel.parent).rmdir()
     finally:
         shutil.rmtree(stage, ignore_errors=True)
 

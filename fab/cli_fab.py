@@ -144,7 +144,7 @@ def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=Tru
     from tqdm import tqdm
 
     from doe.design import load_design
-    from doe.files import save_npy, staged_output
+    from doe.files import previous_files, save_npy, staged_output
     from doe.fraunhofer import simulate_levels
     from fab import manifest as fm
     from fab.layer_images import layer_image_names, write_layer_images
@@ -198,7 +198,8 @@ def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=Tru
     known = [fm.GDS_NAME, fm.MANIFEST_NAME, fm.LEVELS_FILE, fm.TARGET_PSF_FILE]
     known += [name for mk in masks for name in layer_image_names(mk.name)]
     known += [fm.OASIS_NAME] if oasis else []
-    with staged_output(out, force, names=known) as stage:
+    stale = previous_files(Path(out) / fm.MANIFEST_NAME, _package_files)
+    with staged_output(out, force, names=known, stale=stale) as stage:
         bar.set_postfix_str("gds")
         lib, layout = build_library(masks, pitch_nm, tiles, design.name, aperture_nm)
         write_gds(lib, stage / fm.GDS_NAME)
@@ -253,6 +254,14 @@ def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=Tru
         bar.close()
         all_files = sorted(str(p.relative_to(stage)) for p in stage.rglob("*") if p.is_file())
     return {"manifest": manifest, "files": all_files, "report_files": report_files}
+
+
+def _package_files(manifest):
+    """Return the files of a fab package whose names depend on it: layer images, OASIS."""
+    from fab.layer_images import layer_image_names
+
+    names = [name for mk in manifest["masks"] for name in layer_image_names(mk["name"])]
+    return names + ([manifest["oasis"]] if "oasis" in manifest else [])
 
 
 def _tolerance(levels, n_levels, target, masks, der, design, progress):

@@ -210,7 +210,7 @@ def check_float32_heights(thickness_mm, formats, where):
 def run_mesh(args):
     import numpy as np
 
-    from doe.files import atomic_write_bytes, staged_output, write_json
+    from doe.files import atomic_write_bytes, previous_files, staged_output, write_json
     from fab import mesh, mesh_io
 
     formats = parse_formats(args.formats)
@@ -249,7 +249,8 @@ def run_mesh(args):
     }
     offsets = mesh.instance_offsets_mm(relief, tiles, origin)
     seconds = {}
-    with staged_output(args.out, args.force, names) as stage:
+    stale = previous_files(Path(args.out) / "mesh_report.json", lambda report: report["files"])
+    with staged_output(args.out, args.force, names, stale) as stage:
         t0 = time.perf_counter()
         surface = mesh.relief_surface(relief.levels)
         vertices, faces = mesh.surface_points_mm(surface, relief), surface.triangles

@@ -174,12 +174,10 @@ def _depth(args):
     cubes = {"": cube}
     if args.sr:
         cubes["sr/"] = _super_resolve_cube(args.sr, cube)
-    names = [
-        f"{prefix}{n}"
-        for prefix in cubes
-        for n in [*(a + ".npy" for a in DEPTH_ARRAYS), *DEPTH_FIGURES]
-    ] + ["depth.json"]
-    with staged_output(args.out, args.force, names=names) as stage:
+    per_cube = [*(a + ".npy" for a in DEPTH_ARRAYS), *DEPTH_FIGURES]
+    names = [f"{prefix}{n}" for prefix in cubes for n in per_cube] + ["depth.json"]
+    stale = [f"sr/{n}" for n in per_cube]  # an earlier run's with --sr
+    with staged_output(args.out, args.force, names=names, stale=stale) as stage:
         summary = {
             "cube": str(args.cube),
             "shape": list(cube.shape),
@@ -288,7 +286,7 @@ def _example_pixels(fit):
 
 
 def _transient(args):
-    from doe.files import save_npy, staged_output, write_json
+    from doe.files import previous_files, save_npy, staged_output, write_json
     from psf_learn.cubes import read_cube, write_frame_png16
     from psf_learn.depth import scan_times
     from psf_learn.depth_plots import check_gif_fps, save_gif
@@ -306,7 +304,11 @@ def _transient(args):
     scale = float(frames.max()) or 1.0
     pngs = [f"frames/frame_{k:04d}.png" for k in range(frames.shape[0])]
     names = ["frames.npy", "transient.json", "preview.gif", *pngs]
-    with staged_output(args.out, args.force, names=names) as stage:
+    stale = previous_files(
+        Path(args.out) / "transient.json",
+        lambda old: (f"frames/frame_{k:04d}.png" for k in range(old["frames"][0])),
+    )
+    with staged_output(args.out, args.force, names=names, stale=stale) as stage:
         save_npy(stage / "frames.npy", frames)
         (stage / "frames").mkdir()
         try:

@@ -392,6 +392,23 @@ def test_cli_transient(tmp_path, response):
     assert (out / "preview.gif").read_bytes()[:6] in (b"GIF89a", b"GIF87a")
 
 
+def test_cli_force_leaves_no_frames_or_sr_maps_of_an_older_cube(tmp_path, response, monkeypatch):
+    monkeypatch.setitem(sys.modules, "psf_learn.sr", fake_sr_module())
+    model = tmp_path / "model"
+    model.mkdir()
+    path, _ = write_scene_cube(tmp_path, response, shape=(3, 4))
+    short = tmp_path / "short.npy"
+    np.save(short, np.load(path)[..., :5])
+    out = tmp_path / "t"
+    assert main(["transient", str(path), "--out", str(out)]) == 0
+    assert main(["transient", str(short), "--out", str(out), "--force"]) == 0
+    assert len(list((out / "frames").glob("frame_*.png"))) == 5
+    out = tmp_path / "d"
+    assert main(["depth", str(path), "--out", str(out), "--sr", str(model)]) == 0
+    assert main(["depth", str(path), "--out", str(out), "--force"]) == 0
+    assert not (out / "sr").exists()
+
+
 def fake_sr_module():
     """A stand-in for psf_learn.sr: 4x nearest-neighbour upsampling of (..., h, w)."""
 

@@ -215,6 +215,27 @@ def test_missing_target_uses_the_simulated_psf_and_says_so(tmp_path, capsys):
     assert man["oasis"] == "mask.oas" and (out / "mask.oas").stat().st_size > 0
 
 
+def test_force_removes_the_old_package_files_it_does_not_write_again(tmp_path, capsys):
+    # an old mask.oas or a 4-level package's mask images beside the new GDS would
+    # describe another plate; a file fab never writes stays
+    d = tmp_path / "design"
+    make_design_dir(d, n=21)
+    out = tmp_path / "out"
+    four = tmp_path / "four.toml"
+    four.write_text('name = "four"\n[fabrication]\nlevels = 4\n')
+    (d / "retrieval.json").write_text(json.dumps({"levels": 4}))
+    np.save(d / "levels.npy", np.load(d / "levels.npy") % 4)
+    assert main(["fab", str(d), "--out", str(out), "--oasis", "--config", str(four)]) == 0
+    (out / "notes.txt").write_text("the lab's own file")
+    (d / "retrieval.json").write_text(json.dumps({"levels": 8}))
+    assert main(["fab", str(d), "--out", str(out), "--force"]) == 0
+    man = json.loads((out / "fab_manifest.json").read_text())
+    drawn = {mk["name"] for mk in man["masks"]}
+    images = {p.name.rsplit("_", 1)[0] for p in out.glob("*_tile.tif")}
+    assert len(drawn) == 3 and images == drawn
+    assert not (out / "mask.oas").exists() and (out / "notes.txt").exists()
+
+
 def test_four_level_config_gives_two_masks(tmp_path, capsys):
     cfg = tmp_path / "four.toml"
     cfg.write_text('name = "four"\n[fabrication]\nlevels = 4\n')

@@ -33,6 +33,22 @@ def test_staged_output_moves_files_and_refuses_overwrite(tmp_path):
     assert (out / "a.txt").read_text() == "two"
 
 
+def test_staged_output_removes_stale_files_only_with_force_and_only_inside(tmp_path):
+    out = tmp_path / "out"
+    (out / "sub").mkdir(parents=True)
+    for name in ("old.txt", "sub/old.txt", "keep.txt"):
+        (out / name).write_text("old")
+    (tmp_path / "outside.txt").write_text("not ours")
+    stale = ["old.txt", "sub/old.txt", "new.txt", "../outside.txt", "sub"]
+    with staged_output(out, stale=stale) as stage:
+        (stage / "new.txt").write_text("new")
+    assert (out / "old.txt").exists()  # without --force nothing is removed
+    with staged_output(out, force=True, stale=stale) as stage:
+        (stage / "new.txt").write_text("newer")
+    assert sorted(p.name for p in out.iterdir()) == ["keep.txt", "new.txt"]
+    assert (out / "new.txt").read_text() == "newer" and (tmp_path / "outside.txt").exists()
+
+
 def test_read_psf_normalises_within_tolerance_only(tmp_path):
     psf = np.zeros((3, 3))
     psf[1, 1] = 1 + 1e-9

@@ -408,6 +408,17 @@ def test_cli_refuses_overwrite_without_force(tmp_path, capsys):
     assert (out / "tile.ply").read_bytes() == before
 
 
+def test_cli_force_removes_the_old_formats_it_does_not_write_again(tmp_path):
+    fab = write_fab_dir(tmp_path / "fab", random_levels(3, seed=15))
+    out = tmp_path / "out"
+    argv = ["mesh", str(fab), "--out", str(out)]
+    assert main([*argv, "--formats", "ply,stl", "--crop", "1"]) == 0
+    assert (out / "tile.stl").exists() and (out / "crop_1x1.stl").exists()
+    assert main([*argv, "--formats", "ply", "--force"]) == 0
+    left = sorted(p.name for p in out.iterdir())
+    assert left == ["mesh_report.json", "preview.png", "tile.ply"]
+
+
 def test_cli_crop_needs_a_mesh_format(tmp_path, capsys):
     fab = write_fab_dir(tmp_path / "fab", random_levels(3, seed=16))
     out = tmp_path / "out"
