@@ -314,6 +314,12 @@ def _check_consistency(d, source):
             f"the phase tile ({der.tile_size * 1e3:.3f} mm) is larger than the "
             f"aperture ({fab.aperture * 1e3:.3f} mm)",
         )
+    from layouts.marks import check_marks_fit
+
+    try:
+        check_marks_fit(der.masks, round(fab.aperture * 1e9) // 2)
+    except ValueError as e:
+        raise InputError(f"{source}: [fabrication] aperture_mm", str(e)) from None
     if d.kernel_size > der.tile_pixels:
         raise InputError(
             f"{source}: [psf] kernel_size",

@@ -19,13 +19,14 @@ micrometres (the library's user unit), so every vertex lies on the 1 nm grid.
 from dataclasses import dataclass
 
 import gdstk
+import numpy as np
 
 # One named place for the mark geometry (nm).
 MARK_LAYER_OFFSET = 0  # marks of the mask on GDS layer L go to layer L + offset
 OUTLINE_LAYER = 200  # plate edge and clear-aperture frame (documentation, not etched)
 PLATE_MARGIN_NM = 1_500_000  # plate edge = aperture edge + 1.5 mm on every side
 MARK_RING_NM = 750_000  # mark blocks centred 0.75 mm outside the aperture edge
-BLOCK_STEP_NM = 600_000  # spacing of the blocks of successive masks along x
+BLOCK_STEP_NM = 600_000  # spacing of the blocks of successive masks along x (at most)
 CROSS_ARM_NM = 100_000  # cross: 100 um long arms
 CROSS_WIDTH_NM = 10_000  # ... 10 um wide
 BOX_INNER_NM = 120_000  # box: 120 um inside (10 um clearance to the cross arms)
@@ -37,8 +38,8 @@ VERNIER_BAR_WIDTH_NM = 4_000
 VERNIER_BAR_LENGTH_NM = 30_000
 VERNIER_CENTRE_EXTRA_NM = 10_000  # the k = 0 bars are longer, to find the scale's zero
 VERNIER_OFFSET_NM = 250_000  # comb pairs 250 um from the cross (below it and left of it)
-LABEL_HEIGHT_NM = 150_000
-LABEL_SPACING_NM = 250_000
+LABEL_HEIGHT_NM = 150_000  # at most; smaller when many masks share the label band
+LABEL_GAP_NM = 50_000  # clearance of the labels to the aperture frame and the mark blocks
 OUTLINE_WIDTH_NM = 20_000
 
 
@@ -129,6 +130,67 @@ def plate_half_size_nm(aperture_half_nm):
     return aperture_half_nm + PLATE_MARGIN_NM
 
 
+# How far a block reaches up and right of its cross: the box, or the x vernier's end bar.
+_BLOCK_REACH = max(
+    BOX_OUTER_NM // 2, VERNIER_BARS * VERNIER_PITCH_REF_NM + VERNIER_BAR_WIDTH_NM // 2
+)
+
+
+def check_marks_fit(n_masks, aperture_half_nm):
+    """Raise ValueError when the alignment marks of ``n_masks`` masks do not fit the plate."""
+    _block_step(int(aperture_half_nm) + MARK_RING_NM, n_masks - 1)
+
+
+def _block_step(ring, blocks):
+    """Return the x spacing of the ``blocks`` mark blocks that run inwards from each corner.
+
+    A block reaches ``VERNIER_OFFSET_NM`` + bar length left of its cross and its x
+    vernier's end bar right of it; the innermost blocks of the two sides must not
+    meet, and neighbours keep ``LABEL_GAP_NM`` between them. Raises ValueError when the
+    blocks of this many masks do not fit beside the aperture.
+    """
+    left = VERNIER_OFFSET_NM + VERNIER_BAR_LENGTH_NM + VERNIER_CENTRE_EXTRA_NM
+    right = _BLOCK_REACH
+    innermost = left + LABEL_GAP_NM // 2  # the cross of the right-hand innermost block
+    if blocks <= 1:
+        return BLOCK_STEP_NM
+    step = min(BLOCK_STEP_NM, (ring - innermost) // (blocks - 1))
+    if step < left + right + LABEL_GAP_NM:
+        raise ValueError(
+            f"the alignment marks of {blocks + 1} masks do not fit beside a "
+            f"{2 * (ring - MARK_RING_NM) / 1e6:g} mm aperture; make the aperture larger "
+            "or use fewer levels"
+        )
+    return step
+
+
+def _label(text, row, rows, a, h, layer):
+    """Return ``text`` as polygons centred on row ``row`` of ``rows`` in the label band.
+
+    The band runs below the clear aperture, above the lower mark blocks, across the
+    plate, so that no label meets a mark whatever the aperture and mask count; the
+    text shrinks to fit its row and the plate's width. Vertices are snapped to 1 nm.
+    """
+    block_top = a + MARK_RING_NM - _BLOCK_REACH
+    top, bottom = -(a + OUTLINE_WIDTH_NM + LABEL_GAP_NM), -(block_top - LABEL_GAP_NM)
+    pitch = (top - bottom) / rows
+    probe = gdstk.text(text, 1.0, (0, 0))  # size 1: glyph extents per unit height
+    (x0, y0), (x1, y1) = _bbox(probe)
+    width_room = 2 * (h - OUTLINE_WIDTH_NM - LABEL_GAP_NM)
+    size = min(LABEL_HEIGHT_NM, 0.8 * pitch / (y1 - y0), width_room / (x1 - x0))
+    cx, cy = -size * (x0 + x1) / 2, top - (row + 0.5) * pitch - size * (y0 + y1) / 2
+    return [
+        gdstk.Polygon(np.round(p.points * size + (cx, cy)) / 1000, layer=layer, datatype=0)
+        for p in probe
+    ]
+
+
+def _bbox(polys):
+    """Return ((xmin, ymin), (xmax, ymax)) of polygons."""
+    pts = np.concatenate([p.points for p in polys])
+    return tuple(pts.min(axis=0)), tuple(pts.max(axis=0))
+
+
 def marks_and_labels(masks, aperture_half_nm, design_name):
     """Build every non-pattern polygon of the plate.
 
@@ -152,17 +214,18 @@ def marks_and_labels(masks, aperture_half_nm, design_name):
     ref_layer = mark_layer(ref.gds_layer)
     polys, layers = [], []
     ring = a + MARK_RING_NM
+    step = _block_step(ring, len(masks) - 1)
     for j, mk in enumerate(masks):
         layer = mark_layer(mk.gds_layer)
         layers.append(MarkLayer(layer, 0, f"alignment marks and label of {mk.name}", mk.name))
         if j > 0:
             for sx, sy in ((-1, -1), (1, -1), (-1, 1), (1, 1)):
-                bx = sx * (ring - (j - 1) * BLOCK_STEP_NM)
+                bx = sx * (ring - (j - 1) * step)
                 polys += alignment_block(bx, sy * ring, ref_layer, layer)
-        text = f"{design_name} {mk.name} {mk.etch_depth * 1e9:.1f}nm"
-        y = -(a + 300_000 + (j + 1) * LABEL_SPACING_NM)
-        polys += gdstk.text(text, _um(LABEL_HEIGHT_NM), (_um(-2_000_000), _um(y)), layer=layer)
     h = plate_half_size_nm(a)
+    for j, mk in enumerate(masks):
+        text = f"{design_name} {mk.name} {mk.etch_depth * 1e9:.1f}nm"
+        polys += _label(text, j, len(masks), a, h, mark_layer(mk.gds_layer))
     polys += _frame(0, 0, 2 * h - 2 * OUTLINE_WIDTH_NM, 2 * h, OUTLINE_LAYER)
     polys += _frame(0, 0, 2 * a, 2 * a + 2 * OUTLINE_WIDTH_NM, OUTLINE_LAYER)
     layers.append(

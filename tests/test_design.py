@@ -116,6 +116,15 @@ def test_impossible_designs_are_refused(section, key, value, message):
         parse_design(with_value(section, key, value), "bad.toml")
 
 
+def test_more_masks_than_the_marks_beside_the_aperture_fit_is_refused():
+    raw = raw_default()
+    raw["fabrication"].update(levels=64, aperture_mm=2.0)
+    with pytest.raises(InputError, match=r"aperture_mm: the alignment marks of 6 masks"):
+        parse_design(raw, "bad.toml")
+    raw["fabrication"].update(aperture_mm=3.3)
+    assert derive(parse_design(raw, "ok.toml")).masks == 6
+
+
 def test_missing_table_is_refused():
     raw = raw_default()
     del raw["optics"]

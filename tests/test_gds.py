@@ -184,6 +184,42 @@ def test_marks_labels_outline_outside_the_aperture(tmp_path):
     assert top.bbox().width() == 2 * mk_marks.plate_half_size_nm(aperture // 2)
 
 
+@pytest.mark.parametrize(
+    ("n_levels", "aperture_mm"), [(8, 14.0), (8, 3.3), (8, 0.9), (16, 0.9), (64, 3.3), (128, 14.0)]
+)
+def test_marks_and_labels_of_different_masks_never_overlap_and_stay_on_the_plate(
+    n_levels, aperture_mm
+):
+    # Labels sat at a fixed x beside marks that move with the aperture: below ~3.9 mm
+    # they were etched over the marks of the next masks, and from 5 masks on they ran
+    # off the plate. Marks of two masks may touch (vernier combs abut), never overlap.
+    import gdstk
+
+    masks = masks_from_levels(random_levels(6, seed=3) % n_levels, n_levels, STEP)
+    a = round(aperture_mm * 1e6) // 2
+    polys, _ = mk_marks.marks_and_labels(masks, a, "sun2020")
+    by_layer = {}
+    for p in polys:
+        by_layer.setdefault(p.layer, []).append(p)
+    layers = sorted(set(by_layer) - {mk_marks.OUTLINE_LAYER})
+    assert len(layers) == len(masks)
+    for i, first in enumerate(layers):
+        for second in layers[i + 1 :]:
+            common = gdstk.boolean(by_layer[first], by_layer[second], "and")
+            assert sum(q.area() for q in common) == 0, (first, second)
+    points = np.concatenate([p.points for p in polys]) * 1000  # nm
+    assert np.abs(points).max() <= mk_marks.plate_half_size_nm(a)
+    assert np.abs(points - np.round(points)).max() < 1e-6  # on the 1 nm grid
+    labels = [p for p in polys if p.layer != mk_marks.OUTLINE_LAYER and p.points[:, 1].max() < 0]
+    assert all(np.abs(p.points).max() * 1000 > a for p in labels)
+
+
+def test_marks_of_too_many_masks_for_the_aperture_are_refused():
+    masks = masks_from_levels(random_levels(6, seed=3) % 64, 64, STEP)
+    with pytest.raises(ValueError, match="6 masks do not fit beside a 2 mm aperture"):
+        mk_marks.marks_and_labels(masks, 1_000_000, "sun2020")
+
+
 def test_vernier_pitches_read_two_tenths_of_a_micron():
     polys = mk_marks.alignment_block(0, 0, ref_layer=1, layer=2)
 
