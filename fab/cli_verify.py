@@ -9,6 +9,12 @@ from doe.errors import InputError
 
 VERIFY_FILES = ("verify.json", "measured_psf.npy", "verify_report.html", "verify.png")
 MTF_FILES = ("mtf.json", "mtf.png")
+# Below this share of the dots' light on the fitted lattice, "other_design" may be a
+# wrong pitch flag. Measured on simulated captures of random, designed, Gaussian and
+# sparse-dot plates: 1.0 at the right pitch (0.81-0.94 with 300 hot pixels left by
+# a dark frame); 0.13-0.83 at 0.59, 0.75, 1.33, 1.7 and 2 times it, except where the
+# fitted lattice is finer than the plate's and holds it (0.5 or 0.7 times): 1.0.
+ON_LATTICE_MIN = 0.9
 
 
 def register(sub):
@@ -166,6 +172,7 @@ def _verify(args):
     from fab.lattice import (
         LatticeNotFound,
         measure_orders,
+        on_lattice_share,
         register_lattice,
         repair_stray_spikes,
     )
@@ -196,6 +203,8 @@ def _verify(args):
             )
             lattice, _ = register_lattice(image, nominal_px)
     grid = measure_orders(image, lattice, capture.saturated)
+    # before the spike repair, which would clear true dots off a wrongly fitted lattice
+    on_lattice = on_lattice_share(capture.image, lattice, nominal_px)
     design_psf, design_eff = simulate_levels(design.levels, design.n_levels, design.kernel_size)
     try:
         thresholds = resolve_thresholds(
@@ -224,6 +233,7 @@ def _verify(args):
             **lattice.summary(),
             "centre_px": result["zero_order_px"],
             "nominal_pitch_px": nominal_px,
+            "on_lattice_light": on_lattice,
         },
         "thresholds": thresholds,
         "orientation": args.orientation,
@@ -237,6 +247,10 @@ def _verify(args):
         },
         "notes": capture.notes + lattice_notes + _notes(result, capture, design),
     }
+    pitch_hint = _pitch_hint(result, on_lattice, lattice.pitch_px, args)
+    if pitch_hint:
+        report["notes"].append(pitch_hint)
+        print(f"doefab verify: {pitch_hint}", file=sys.stderr)
     if result["implied_deep_etch_error"] is not None and design.deep_etch_depth:
         report["implied_deep_etch_error_nm"] = (
             result["implied_deep_etch_error"] * design.deep_etch_depth * 1e9
@@ -258,6 +272,24 @@ def _verify(args):
         f"  zero order {report['zero_order']:.4g} -> {args.out}"
     )
     return 0 if report["pass"] else 1
+
+
+def _pitch_hint(result, on_lattice, pitch_px, args):
+    """Return a note when a failed match may be a wrong pitch flag rather than another plate.
+
+    A lattice fitted at a wrong pitch (e.g. --pixel-pitch-um of another camera)
+    passes the pitch check when the fit cannot leave the nominal pitch, and its
+    sites then sample the light in between the dots: "other_design" is then
+    the wrong diagnosis, and most of the dots' light lies off the lattice.
+    """
+    if "other_design" not in result.get("diagnosis", []) or not on_lattice < ON_LATTICE_MIN:
+        return None
+    return (
+        f"only {on_lattice:.0%} of the dots' light lies on the fitted lattice "
+        f"({pitch_px:.3g} px pitch): if this is the design's plate, the pitch is wrong; "
+        f"check --pixel-pitch-um ({args.pixel_pitch_um:g} um) and the lattice pitch "
+        "(--lattice-pitch-um, lens focal length)"
+    )
 
 
 def _notes(result, capture, design):

@@ -222,6 +222,29 @@ def register_lattice(image, nominal_pitch_px, refine_iterations=2):
     return lattice, notes
 
 
+def on_lattice_share(image, lattice, nominal_pitch_px):
+    """Return the share of the detected dots' light that lies on ``lattice``'s sites.
+
+    Dots are detected as for registration, single-pixel spikes (hot pixels: at
+    least ``SPIKE_FRACTION`` of the 3 x 3 light in one pixel) left out; a dot is
+    on the lattice within a quarter pitch of a site. Near 1 for a capture of
+    the plate registered at the right pitch; a lattice fitted at a wrong one
+    (a wrong camera pixel pitch) leaves much of the light between its sites.
+    """
+    x = np.asarray(image, dtype=np.float32)
+    x = x - np.float32(np.median(x[::4, ::4]))
+    noise = max(robust_sigma(x[::4, ::4]), 1e-6)
+    dots, weight = _detect_dots(x, nominal_pitch_px, noise)
+    r, c = np.round(dots[:, 0]).astype(int), np.round(dots[:, 1]).astype(int)
+    patch = np.clip(_patches(x, r, c, 1), 0, None)
+    spot = patch.max(axis=(1, 2)) < SPIKE_FRACTION * patch.sum(axis=(1, 2))
+    if not spot.any():
+        return float("nan")
+    u, v = lattice.coordinates(dots[spot, 0], dots[spot, 1])
+    on = np.hypot(u - np.round(u), v - np.round(v)) < 0.25
+    return float(weight[spot][on].sum() / weight[spot].sum())
+
+
 def _detect_dots(x, pitch, noise):
     """Return (P, 2) centroids (row, col) and signals of the dots standing out of the noise."""
     from scipy import ndimage

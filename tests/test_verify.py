@@ -222,6 +222,24 @@ def test_other_design_fails(tmp_path, levels):
     assert code == 1
     assert report["diagnosis"] == ["other_design"]
     assert report["correlation"] < 0.5
+    # another plate's dots still sit on the lattice: no hint at the pitch flags
+    assert report["lattice"]["on_lattice_light"] > 0.95
+    assert not any("--pixel-pitch-um" in n for n in report["notes"])
+
+
+@pytest.mark.parametrize("camera_um", [5.86, 1.67])
+def test_wrong_camera_pitch_is_pointed_out(tmp_path, levels, capsys, camera_um):
+    # The capture is of the design's plate, taken with a 3.45 um camera, but the
+    # flag names another camera's pitch: the lattice is fitted at the nominal pitch
+    # and "other_design" alone would send the lab after the plate, not the flag.
+    code, report, _ = run_verify(
+        tmp_path, levels, dict(seed=1), flags=("--pixel-pitch-um", str(camera_um))
+    )
+    assert code == 1 and report["diagnosis"] == ["other_design"]
+    assert report["lattice"]["on_lattice_light"] < 0.5
+    err = capsys.readouterr().err
+    assert "lies on the fitted lattice" in err and f"--pixel-pitch-um ({camera_um:g} um)" in err
+    assert any("--pixel-pitch-um" in n for n in report["notes"])
 
 
 def test_mirrored_plate_fails(tmp_path, levels):
