@@ -118,7 +118,8 @@ def previous_files(record, names_of):
     it cannot be read (then nothing is removed).
     """
     try:
-        return [str(name) for name in names_of(json.loads(Path(record).read_text()))]
+        names = names_of(json.loads(Path(record).read_text()))
+        return [] if isinstance(names, str) else [str(name) for name in names]
     except (OSError, ValueError, LookupError, TypeError, AttributeError):
         return []
 

@@ -233,7 +233,7 @@ def _verify(args):
             **lattice.summary(),
             "centre_px": result["zero_order_px"],
             "nominal_pitch_px": nominal_px,
-            "on_lattice_light": on_lattice,
+            "on_lattice_light": on_lattice if np.isfinite(on_lattice) else None,
         },
         "thresholds": thresholds,
         "orientation": args.orientation,

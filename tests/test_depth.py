@@ -392,23 +392,6 @@ def test_cli_transient(tmp_path, response):
     assert (out / "preview.gif").read_bytes()[:6] in (b"GIF89a", b"GIF87a")
 
 
-def test_cli_force_leaves_no_frames_or_sr_maps_of_an_older_cube(tmp_path, response, monkeypatch):
-    monkeypatch.setitem(sys.modules, "psf_learn.sr", fake_sr_module())
-    model = tmp_path / "model"
-    model.mkdir()
-    path, _ = write_scene_cube(tmp_path, response, shape=(3, 4))
-    short = tmp_path / "short.npy"
-    np.save(short, np.load(path)[..., :5])
-    out = tmp_path / "t"
-    assert main(["transient", str(path), "--out", str(out)]) == 0
-    assert main(["transient", str(short), "--out", str(out), "--force"]) == 0
-    assert len(list((out / "frames").glob("frame_*.png"))) == 5
-    out = tmp_path / "d"
-    assert main(["depth", str(path), "--out", str(out), "--sr", str(model)]) == 0
-    assert main(["depth", str(path), "--out", str(out), "--force"]) == 0
-    assert not (out / "sr").exists()
-
-
 def fake_sr_module():
     """A stand-in for psf_learn.sr: 4x nearest-neighbour upsampling of (..., h, w)."""
 
@@ -419,13 +402,19 @@ def fake_sr_module():
     return types.SimpleNamespace(super_resolve=super_resolve)
 
 
-def test_cli_depth_and_transient_super_resolve(tmp_path, response, monkeypatch):
+@pytest.fixture
+def sr_model(tmp_path, monkeypatch):
+    """A model folder for --sr, with psf_learn.sr replaced by :func:`fake_sr_module`."""
     monkeypatch.setitem(sys.modules, "psf_learn.sr", fake_sr_module())
     model = tmp_path / "model"
     model.mkdir()
+    return model
+
+
+def test_cli_depth_and_transient_super_resolve(tmp_path, response, sr_model):
     path, _ = write_scene_cube(tmp_path, response, shape=(3, 4))
     out = tmp_path / "out"
-    assert main(["depth", str(path), "--out", str(out), "--sr", str(model)]) == 0
+    assert main(["depth", str(path), "--out", str(out), "--sr", str(sr_model)]) == 0
     native = np.load(out / "timing_ps.npy")
     sr = np.load(out / "sr" / "timing_ps.npy")
     assert sr.shape == (12, 16)
@@ -433,10 +422,24 @@ def test_cli_depth_and_transient_super_resolve(tmp_path, response, monkeypatch):
     short = tmp_path / "short.npy"
     np.save(short, np.load(path)[..., :5])
     out2 = tmp_path / "out2"
-    assert main(["transient", str(short), "--out", str(out2), "--sr", str(model)]) == 0
+    assert main(["transient", str(short), "--out", str(out2), "--sr", str(sr_model)]) == 0
     frames = np.load(out2 / "frames.npy")
     assert frames.shape == (5, 12, 16)
     np.testing.assert_array_equal(frames[:, ::4, ::4], np.moveaxis(np.load(short), -1, 0))
+
+
+def test_cli_force_leaves_no_frames_or_sr_maps_of_an_older_cube(tmp_path, response, sr_model):
+    path, _ = write_scene_cube(tmp_path, response, shape=(3, 4))
+    short = tmp_path / "short.npy"
+    np.save(short, np.load(path)[..., :5])
+    out = tmp_path / "t"
+    assert main(["transient", str(path), "--out", str(out)]) == 0
+    assert main(["transient", str(short), "--out", str(out), "--force"]) == 0
+    assert len(list((out / "frames").glob("frame_*.png"))) == 5
+    out = tmp_path / "d"
+    assert main(["depth", str(path), "--out", str(out), "--sr", str(sr_model)]) == 0
+    assert main(["depth", str(path), "--out", str(out), "--force"]) == 0
+    assert not (out / "sr").exists()
 
 
 def test_depth_module_does_not_import_torch():

@@ -49,6 +49,23 @@ def test_staged_output_removes_stale_files_only_with_force_and_only_inside(tmp_p
     assert (out / "new.txt").read_text() == "newer" and (tmp_path / "outside.txt").exists()
 
 
+def test_previous_files_reads_the_record_and_ignores_what_it_cannot(tmp_path):
+    from doe.files import previous_files
+
+    record = tmp_path / "report.json"
+
+    def files(report):
+        return report["files"]
+
+    record.write_text('{"files": {"tile.ply": 1, "tile.stl": 2}}')
+    assert previous_files(record, files) == ["tile.ply", "tile.stl"]
+    record.write_text('{"files": "ab"}')  # a hand-edited record: not a list of names
+    assert previous_files(record, files) == []
+    record.write_text("{not json")
+    assert previous_files(record, files) == []
+    assert previous_files(tmp_path / "missing.json", files) == []
+
+
 def test_read_psf_normalises_within_tolerance_only(tmp_path):
     psf = np.zeros((3, 3))
     psf[1, 1] = 1 + 1e-9
