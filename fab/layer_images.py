@@ -24,6 +24,11 @@ def tile_image(bitmap):
     return (np.asarray(bitmap, dtype=bool).astype(np.uint8) * ETCHED)[:, :, None]
 
 
+def preview_factor(pitch_nm, plate_half_nm, max_px=PREVIEW_MAX_PX):
+    """Return how many mask pixels along x and y one plate-preview pixel covers."""
+    return max(1, math.ceil(2 * plate_half_nm / pitch_nm / max_px))
+
+
 def plate_preview(bitmap, tiles, pitch_nm, plate_half_nm, aperture_half_nm, max_px=PREVIEW_MAX_PX):
     """Return a downsampled picture of the whole plate for one mask.
 
@@ -48,7 +53,7 @@ def plate_preview(bitmap, tiles, pitch_nm, plate_half_nm, aperture_half_nm, max_
     b = np.asarray(bitmap, dtype=bool)
     n = b.shape[0]
     nx, ny = tiles
-    f = max(1, math.ceil(2 * plate_half_nm / pitch_nm / max_px))
+    f = preview_factor(pitch_nm, plate_half_nm, max_px)
     s = f * pitch_nm  # preview pixel size, nm
     # The whole tiled plate can be tens of gigapixels at a fine pitch; count the etched
     # pixels of each f x f block from the tile alone: rows @ tile @ cols.T, exact integers.
@@ -80,8 +85,13 @@ def _block_counts(length, n, f):
     return np.bincount(r // f * n + r % n, minlength=blocks * n).reshape(blocks, n).astype(float)
 
 
-def write_image(path, image):
-    """Write an (H, W, 1) uint8 array as a single-channel TIFF or PNG with pinned metadata."""
+def write_image(path, image, pixel_nm=None):
+    """Write an (H, W, 1) uint8 array as a single-channel TIFF or PNG with pinned metadata.
+
+    With ``pixel_nm`` the file records its pixel size as a resolution (TIFF:
+    pixels per cm; PNG: pixels per metre, to 1 part in 2e5), so that image viewers
+    show the true scale; ``fab_manifest.json`` stays the exact record.
+    """
     import OpenImageIO as oiio
 
     image = np.ascontiguousarray(image, dtype=np.uint8)
@@ -90,6 +100,10 @@ def write_image(path, image):
     h, w, c = image.shape
     spec = oiio.ImageSpec(w, h, c, "uint8")
     spec.attribute("DateTime", PINNED_DATETIME)
+    if pixel_nm is not None:
+        spec.attribute("XResolution", 1e7 / pixel_nm)
+        spec.attribute("YResolution", 1e7 / pixel_nm)
+        spec.attribute("ResolutionUnit", "cm")
     if str(path).lower().endswith((".tif", ".tiff")):
         spec.attribute("compression", "lzw")
     out = oiio.ImageOutput.create(str(path))
@@ -127,8 +141,9 @@ def write_layer_images(out_dir, masks, tiles, pitch_nm, plate_half_nm, aperture_
     names = []
     for mk in masks:
         tif, png = layer_image_names(mk.name)
-        write_image(out_dir / tif, tile_image(mk.bitmap))
+        write_image(out_dir / tif, tile_image(mk.bitmap), pixel_nm=pitch_nm)
         preview = plate_preview(mk.bitmap, tiles, pitch_nm, plate_half_nm, aperture_half_nm)
-        write_image(out_dir / png, preview)
+        f = preview_factor(pitch_nm, plate_half_nm)
+        write_image(out_dir / png, preview, pixel_nm=f * pitch_nm)
         names += [tif, png]
     return names

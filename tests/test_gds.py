@@ -276,6 +276,27 @@ def test_tile_image_round_trips_through_openimageio(tmp_path):
     assert path.read_bytes() == first  # pinned DateTime
 
 
+def test_layer_images_record_their_pixel_size(tmp_path):
+    # read by Pillow, not the writer's library: a viewer shows the mask at true scale
+    from PIL import Image
+
+    from fab.layer_images import write_layer_images
+
+    masks = masks_from_levels(random_levels(10, seed=4), L, STEP)
+    plate_half = 2_000_000
+    names = write_layer_images(tmp_path, masks, (4, 4), PITCH, plate_half, 1_000_000)
+    for name in names:
+        with Image.open(tmp_path / name) as im:
+            pixel_nm = 25.4e6 / im.info["dpi"][0]
+            assert im.info["dpi"][0] == pytest.approx(im.info["dpi"][1])
+            width = im.width
+        if name.endswith(".tif"):
+            assert pixel_nm == pytest.approx(PITCH, rel=1e-6) and width == 10
+        else:  # the preview spans the plate, in whole mask pixels per preview pixel
+            assert pixel_nm == pytest.approx(round(pixel_nm / PITCH) * PITCH, rel=1e-5)
+            assert width * pixel_nm == pytest.approx(2 * plate_half, abs=pixel_nm)
+
+
 def test_plate_preview_places_the_tiles_and_the_outline(tmp_path):
     bitmap = np.ones((10, 10), bool)
     img = plate_preview(
