@@ -155,7 +155,7 @@ def _learn(args):
         learn_psf = not args.freeze_psf
     elif spec in PSF_CHOICES or spec.startswith("gaussian:"):
         try:
-            psf0 = baseline_psf(spec, k, sensor.factor, sensor.sample_cell)
+            psf0 = baseline_psf(spec, k, sensor.weights)
         except ValueError as e:
             raise InputError("--psf", str(e)) from None
         learn_psf = False

@@ -8,7 +8,9 @@ Every PSF is a (K, K) array, non-negative and summing to one, element
 - ``box``: a 4 x 4 box placed so that, sampled at the sensor's point-sample
   cell, it gives the mean of the pixel's own 4 x 4 block (a full fill-factor
   sensor). For the default sample cell (2, 2) the box covers axis offsets
-  -1 .. +2 (rows and columns).
+  -1 .. +2 (rows and columns). A sensor whose active area spans several
+  sub-pixels is no point sample, and no PSF turns it into the block mean: the
+  box is refused there.
 - ``gaussian``: sigma 0.459 sub-pixel (the best fixed PSF of Sun et al.
   2020), centred like the box on the pixel centre, so the SPAD sees a
   Gaussian-weighted mean around the centre of its own pixel, as a Gaussian
@@ -64,26 +66,52 @@ def gaussian_psf(k, sigma=GAUSSIAN_SIGMA, centre=(0.0, 0.0)):
     return g / g.sum()
 
 
-def pixel_centre_offset(factor=4, sample_cell=(2, 2)):
-    """Return the axis offset (sub-pixels) of the pixel centre seen by a point sample.
+def point_sample_weights(factor=4, sample_cell=(2, 2)):
+    """Return the (f, f) weights of a point sample at ``sample_cell`` (the default sensor's)."""
+    w = np.zeros((factor, factor))
+    w[sample_cell] = 1.0
+    return w
 
-    blurred[f m + s] = sum_o psf[K//2 + o] scene[f m + s - o], and the block centre
-    is f m + (f - 1) / 2, so the offset is s - (f - 1) / 2 (+0.5 for the default).
+
+def pixel_centre_offset(weights):
+    """Return the axis offset (sub-pixels) at which a pixel's sampling sees its own centre.
+
+    A pixel weighting cell s of its block by W[s] sees
+    sum_s W[s] sum_o psf[K//2 + o] scene[f m + s - o]: a PSF centred at offset c
+    puts the response's centroid at f m + centroid(W) - c, which is the block
+    centre f m + (f - 1) / 2 for c = centroid(W) - (f - 1) / 2 (+0.5 for the
+    default point sample at cell (2, 2); 0 for a centred wide active area).
     """
-    return tuple(s - (factor - 1) / 2 for s in sample_cell)
+    w = np.asarray(weights, dtype=np.float64)
+    f = w.shape[0]
+    idx = np.arange(f)
+    rows, cols = (w.sum(axis=1) @ idx, w.sum(axis=0) @ idx) / w.sum()
+    return (float(rows - (f - 1) / 2), float(cols - (f - 1) / 2))
 
 
-def baseline_psf(name, k, factor=4, sample_cell=(2, 2)):
+def baseline_psf(name, k, weights=None):
     """Return a named fixed PSF: ``delta``, ``box``, ``gaussian`` or ``gaussian:SIGMA``.
 
-    ``gaussian:SIGMA`` takes sigma in sub-pixels (``gaussian`` = ``gaussian:0.459``);
-    Gaussians are centred on the pixel centre, like the box.
+    ``weights`` are the sensor's (f, f) active-area weights (default: the preset's
+    point sample at cell (2, 2)). ``gaussian:SIGMA`` takes sigma in sub-pixels
+    (``gaussian`` = ``gaussian:0.459``); Gaussians are centred so that each pixel
+    sees its own centre, like the box.
     """
-    centre = pixel_centre_offset(factor, sample_cell)
+    w = point_sample_weights() if weights is None else np.asarray(weights, dtype=np.float64)
+    centre = pixel_centre_offset(w)
     if name == "delta":
         return delta_psf(k)
     if name == "box":
-        return box_psf(k, factor, sample_cell)
+        cells = np.argwhere(w > 0)
+        if len(cells) != 1:
+            raise ValueError(
+                "the box baseline turns a point-sampling SPAD into a full fill-factor one; "
+                f"this design's active area spans {len(cells)} sub-pixels, which no PSF "
+                "undoes. For a full fill-factor baseline use --psf delta with a design "
+                "whose active area fills the pixel (active_area_shape square, "
+                "active_area_um = pixel_pitch_um)"
+            )
+        return box_psf(k, w.shape[0], tuple(int(c) for c in cells[0]))
     if name == "gaussian":
         return gaussian_psf(k, GAUSSIAN_SIGMA, centre)
     if name.startswith("gaussian:"):

@@ -6,7 +6,7 @@ import torch
 from scipy.signal import convolve2d
 
 from doe.design import load_design
-from psf_learn.psf import LearnedPSF, box_psf, delta_psf, gaussian_psf
+from psf_learn.psf import LearnedPSF, baseline_psf, box_psf, delta_psf, gaussian_psf
 from psf_learn.sensor import (
     SensorModel,
     active_area_weights,
@@ -86,6 +86,31 @@ def test_box_psf_with_point_sample_is_the_block_mean():
     np.testing.assert_allclose(
         frame[0, 0].numpy(), img.reshape(6, 4, 8, 4).mean(axis=(1, 3)), atol=1e-12
     )
+
+
+@pytest.mark.parametrize("sensor_toml", ["", "active_area_um = 40.0\n", "active_area_um = 100.0\n"])
+def test_gaussian_baseline_shows_each_pixel_its_own_centre(tmp_path, sensor_toml):
+    # The response of pixel (4, 4) to unit impulses has its centroid at the block's
+    # centre, 17.5 sub-pixels; built for the argmax cell of a 40 um disc (four cells
+    # of 1/4) it sat half a sub-pixel off on each axis.
+    weights = active_area_weights(_design(tmp_path, sensor_toml))
+    sensor = _noise_free(weights)
+    psf = baseline_psf("gaussian", K, weights)
+    size = 36
+    impulses = torch.zeros(size * size, 1, size, size, dtype=torch.float64)
+    impulses.view(size * size, -1)[torch.arange(size * size), torch.arange(size * size)] = 1
+    response = simulate_capture(impulses, _t(psf), sensor)[:, 0, 4, 4].numpy()
+    response = response.reshape(size, size)
+    idx = np.arange(size)
+    centroid = (response.sum(1) @ idx / response.sum(), response.sum(0) @ idx / response.sum())
+    np.testing.assert_allclose(centroid, (17.5, 17.5), atol=1e-9)
+
+
+def test_box_baseline_is_refused_for_an_active_area_wider_than_a_sub_pixel(tmp_path):
+    # no PSF turns a 40 um disc's four-cell average into the block mean; it gave a tent
+    weights = active_area_weights(_design(tmp_path, "active_area_um = 40.0\n"))
+    with pytest.raises(ValueError, match="spans 4 sub-pixels"):
+        baseline_psf("box", K, weights)
 
 
 @pytest.mark.parametrize("cell", [(0, 0), (1, 3), (3, 2)])
