@@ -233,7 +233,7 @@ def _verify(args):
             **lattice.summary(),
             "centre_px": result["zero_order_px"],
             "nominal_pitch_px": nominal_px,
-            "on_lattice_light": on_lattice if np.isfinite(on_lattice) else None,
+            "on_lattice_light": on_lattice,
         },
         "thresholds": thresholds,
         "orientation": args.orientation,
@@ -282,7 +282,8 @@ def _pitch_hint(result, on_lattice, pitch_px, args):
     sites then sample the light in between the dots: "other_design" is then
     the wrong diagnosis, and most of the dots' light lies off the lattice.
     """
-    if "other_design" not in result.get("diagnosis", []) or not on_lattice < ON_LATTICE_MIN:
+    failed_as_other = "other_design" in result.get("diagnosis", [])
+    if not failed_as_other or on_lattice is None or on_lattice >= ON_LATTICE_MIN:
         return None
     return (
         f"only {on_lattice:.0%} of the dots' light lies on the fitted lattice "

@@ -193,9 +193,7 @@ def register_lattice(image, nominal_pitch_px, refine_iterations=2):
         raise LatticeNotFound(
             f"image {w}x{h} px holds fewer than 4 dots across at the nominal pitch {pitch0:.3g} px"
         )
-    x = img - np.float32(np.median(img[::4, ::4]))
-    noise = max(robust_sigma(x[::4, ::4]), 1e-6)
-    dots, weight = _detect_dots(x, pitch0, noise)
+    x, noise, dots, weight = _dots_of(img, pitch0)
     if dots.shape[0] == 0:
         raise LatticeNotFound(f"no dot stands {DETECT_SIGMAS:g} sigma above the noise")
     lattice, notes, partner = _coarse_lattice(dots, weight, pitch0)
@@ -230,19 +228,25 @@ def on_lattice_share(image, lattice, nominal_pitch_px):
     on the lattice within a quarter pitch of a site. Near 1 for a capture of
     the plate registered at the right pitch; a lattice fitted at a wrong one
     (a wrong camera pixel pitch) leaves much of the light between its sites.
+    None when every detected dot is a spike.
     """
-    x = np.asarray(image, dtype=np.float32)
-    x = x - np.float32(np.median(x[::4, ::4]))
-    noise = max(robust_sigma(x[::4, ::4]), 1e-6)
-    dots, weight = _detect_dots(x, nominal_pitch_px, noise)
+    x, _, dots, weight = _dots_of(image, nominal_pitch_px)
     r, c = np.round(dots[:, 0]).astype(int), np.round(dots[:, 1]).astype(int)
     patch = np.clip(_patches(x, r, c, 1), 0, None)
     spot = patch.max(axis=(1, 2)) < SPIKE_FRACTION * patch.sum(axis=(1, 2))
     if not spot.any():
-        return float("nan")
+        return None
     u, v = lattice.coordinates(dots[spot, 0], dots[spot, 1])
     on = np.hypot(u - np.round(u), v - np.round(v)) < 0.25
     return float(weight[spot][on].sum() / weight[spot].sum())
+
+
+def _dots_of(image, pitch):
+    """Return (image less its median, noise sigma, dot centroids, dot signals) of a capture."""
+    x = np.asarray(image, dtype=np.float32)
+    x = x - np.float32(np.median(x[::4, ::4]))
+    noise = max(robust_sigma(x[::4, ::4]), 1e-6)
+    return (x, noise, *_detect_dots(x, pitch, noise))
 
 
 def _detect_dots(x, pitch, noise):

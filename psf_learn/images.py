@@ -89,14 +89,12 @@ def decode(path):
             import imageio.v3 as iio
             from PIL import Image
 
+            separated = False
             with Image.open(path) as im:  # reads the header only
                 pages = getattr(im, "n_frames", 1)
-                cmyk = im.mode == "CMYK"
-            separated = False
-            if cmyk:  # imageio hands the ink planes over as RGBA; Pillow makes light of them
-                with Image.open(path) as im:
-                    a = np.asarray(im.convert("RGB"))
-            else:
+                # imageio hands a CMYK JPEG's ink planes over as RGBA; Pillow makes light of them
+                a = np.asarray(im.convert("RGB")) if im.mode == "CMYK" else None
+            if a is None:
                 a = iio.imread(path, plugin="pillow")
     except FileNotFoundError:
         raise InputError(path, "no such file") from None
