@@ -195,9 +195,8 @@ def tolerance_curves(path, tolerance):
         ax.axhline(limit, color="k", ls="--", lw=0.8, label="rmse limit")
         for b in tolerance["budget"]:
             if b["kind"] == kind:
-                ax.axvline(b["value"], color="gray", ls=":", lw=0.8)
-                if kind != "overlay":
-                    ax.axvline(-b["value"], color="gray", ls=":", lw=0.8)
+                for sign in (1, -1):
+                    ax.axvline(sign * b["value"], color="gray", ls=":", lw=0.8)
         ax.set(xlabel=label, ylabel="rmse", title=kind)
         ax.legend(fontsize=7)
     ax = axes[3]

@@ -470,9 +470,13 @@ def tolerance_analysis(
                 for s in (1, -1)
             ]
         if kind == "overlay":
+            # A phase plate's PSF changes differently for a shift one way and the
+            # other, so both signs of both axes are tabulated and budgeted.
+            shifts = (("x", v, (v, 0.0)), ("x", -v, (-v, 0.0)))
+            shifts += (("y", v, (0.0, v)), ("y", -v, (0.0, -v)))
             return [
-                (ax, v, quality(shift=[d if j == i else (0.0, 0.0) for j in range(n_masks)]))
-                for ax, d in (("x", (v, 0.0)), ("y", (0.0, v)))
+                (ax, sv, quality(shift=[d if j == i else (0.0, 0.0) for j in range(n_masks)]))
+                for ax, sv, d in shifts
             ]
         return [("", s * v, quality(cd=s * v)) for s in (1, -1)]
 
@@ -517,7 +521,7 @@ def tolerance_analysis(
             "supersample": supersample,
             "etch": "mask depth x (1 + error); + is too deep; both signs tabulated",
             "overlay": f"each mask after {names[ref]} (first exposed) shifted relative to it "
-            "along +x and along +y (separate rows), periodic",
+            "along x and along y, both signs (separate rows), periodic",
             "cd_bias": "every edge of every mask's etched region moved outwards by the value "
             "(+ grows the etched area, width changes by twice it); square corners; "
             "only values below half the mask pixel pitch "

@@ -221,7 +221,7 @@ def test_degradation_is_monotonic_for_a_plate_against_its_own_psf(designed):
     for r in rows[1:]:
         sign = np.sign(r["value"])
         groups.setdefault((r["kind"], r["mask"], r["axis"], sign), []).append(r)
-    assert len(groups) == 3 * 2 + 2 * 2 + 2
+    assert len(groups) == 3 * 2 + 2 * 2 * 2 + 2
     for key, grp in groups.items():
         grp = sorted(grp, key=lambda r: abs(r["value"]))
         rmses = [0.0] + [r["rmse"] for r in grp]
@@ -239,7 +239,7 @@ def test_table_layout_units_and_reference_mask(designed):
     _, masks, _, result = designed
     rows = result["rows"]
     spec = ToleranceSpec()
-    assert len(rows) == 1 + 3 * 3 * 2 + 2 * 4 * 2 + 2 * 2
+    assert len(rows) == 1 + 3 * 3 * 2 + 2 * 4 * 4 + 2 * 2
     assert {r["kind"] for r in rows} == {"nominal", "etch", "overlay", "cd_bias"}
     assert result["reference_mask"] == masks[0].name
     assert all(r["mask"] != masks[0].name for r in rows if r["kind"] == "overlay")
@@ -248,9 +248,16 @@ def test_table_layout_units_and_reference_mask(designed):
     assert sorted({abs(r["value"]) for r in rows if r["kind"] == "etch"}) == pytest.approx(
         [100 * v for v in spec.etch_fractions]
     )
-    assert sorted({r["value"] for r in rows if r["kind"] == "overlay"}) == pytest.approx(
-        [1e6 * v for v in spec.overlay]
-    )
+    for mask in (m.name for m in masks[1:]):
+        for axis in "xy":
+            values = [
+                r["value"]
+                for r in rows
+                if r["kind"] == "overlay" and (r["mask"], r["axis"]) == (mask, axis)
+            ]
+            assert sorted(values) == pytest.approx(
+                sorted(1e6 * s * v for v in spec.overlay for s in (1, -1))
+            )
     for r in rows:
         assert r["zero_order_excess"] == pytest.approx(r["zero_order"] - rows[0]["zero_order"])
     json.dumps(result)  # JSON-ready
@@ -275,7 +282,7 @@ def test_budget_is_the_largest_value_within_the_rmse_limit(designed):
             elif b["kind"] == "overlay":
                 plates = [
                     PlateErrors(shift=tuple(d if j == i else (0, 0) for j in range(3)))
-                    for d in ((v, 0), (0, v))
+                    for d in ((v, 0), (-v, 0), (0, v), (0, -v))
                 ]
             else:
                 plates = [PlateErrors(cd_bias=s * v) for s in (1, -1)]
@@ -366,7 +373,7 @@ def test_full_size_tile_nominal_row_is_the_enveloped_contract_model():
     nominal = result["rows"][0]
     assert nominal["efficiency"] == pytest.approx(power.sum(), rel=1e-9)
     assert nominal["zero_order"] == pytest.approx(power[k // 2, k // 2], rel=1e-9, abs=1e-15)
-    assert len(result["rows"]) == 39
+    assert len(result["rows"]) == 1 + 3 * 3 * 2 + 2 * 4 * 4 + 2 * 2
 
 
 def test_acceptance_compares_with_the_levels_psf_like_verification():
