@@ -16,6 +16,7 @@ from doe.figures import correlation_text
 from doe.files import atomic_write_bytes, write_json
 from doe.fraunhofer import correlation, level_phase, rmse
 from doe.retrieval import CORRELATION_GOAL, RMSE_GOAL, missed_goals
+from fab.manifest import file_records
 
 REPORT_MD = "fab_report.md"
 REPORT_HTML = "fab_report.html"
@@ -64,6 +65,10 @@ def write_fab_report(out_dir, context):
     if tolerance is not None:
         write_json(out_dir / TOLERANCE_JSON, tolerance)
         written.append(TOLERANCE_JSON)
+    # The figures and the table are part of the package too: list them with the
+    # rest (the report cannot list its own two files, whose hashes it would change).
+    files = [*context.get("files", []), *file_records(out_dir, written)]
+    context = {**context, "files": sorted(files, key=lambda f: f["path"])}
     blocks = report_blocks(context, figures=written)
     atomic_write_bytes(out_dir / REPORT_MD, render_markdown(blocks).encode())
     atomic_write_bytes(out_dir / REPORT_HTML, render_html(blocks).encode())
@@ -307,6 +312,7 @@ def report_blocks(context, figures=()):
         b.extend(_tolerance_blocks(tol))
 
     b.append(("h2", "Files"))
+    b.append(("p", f"Every file of the package but {REPORT_MD} and {REPORT_HTML} themselves."))
     b.append(
         (
             "table",

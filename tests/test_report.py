@@ -149,6 +149,16 @@ def test_report_has_every_required_section(written, name):
         assert fig in text
 
 
+@pytest.mark.parametrize("name", [REPORT_MD, REPORT_HTML])
+def test_files_table_lists_the_figures_and_the_tolerance_table_with_their_hashes(written, name):
+    _, out, names = written
+    text = (out / name).read_text()
+    for listed in set(names) - {REPORT_MD, REPORT_HTML}:
+        data = (out / listed).read_bytes()
+        assert hashlib.sha256(data).hexdigest() in text, listed
+        assert str(len(data)) in text, listed
+
+
 def test_html_is_self_contained_with_relative_figure_links(written):
     _, out, _ = written
     page = (out / REPORT_HTML).read_text()
