@@ -376,6 +376,15 @@ def derive(d, tile_pixels=None):
     )
 
 
+def as_typed(value, scale):
+    """Return a value held in SI units in the unit the design file gives it in.
+
+    Rounded to 12 significant digits, which undoes the float noise of the SI round
+    trip (655 nm is stored as 6.55e-7 m and comes back as 655.0000000000001).
+    """
+    return float(f"{value * scale:.12g}")
+
+
 def design_summary(d, tile_pixels=None):
     """Return the design and its derived quantities as a JSON-ready dict, units in the keys.
 
@@ -388,22 +397,22 @@ def design_summary(d, tile_pixels=None):
         "sensor": {
             "columns": d.sensor.columns,
             "rows": d.sensor.rows,
-            "pixel_pitch_um": d.sensor.pixel_pitch * 1e6,
-            "active_area_um": d.sensor.active_area * 1e6,
+            "pixel_pitch_um": as_typed(d.sensor.pixel_pitch, 1e6),
+            "active_area_um": as_typed(d.sensor.active_area, 1e6),
             "active_area_shape": d.sensor.active_area_shape,
-            "active_offset_um": [v * 1e6 for v in d.sensor.active_offset],
+            "active_offset_um": [as_typed(v, 1e6) for v in d.sensor.active_offset],
             "superres_factor": d.sensor.superres_factor,
         },
         "optics": {
-            "wavelength_nm": d.optics.wavelength * 1e9,
-            "focal_length_mm": d.optics.focal_length * 1e3,
+            "wavelength_nm": as_typed(d.optics.wavelength, 1e9),
+            "focal_length_mm": as_typed(d.optics.focal_length, 1e3),
         },
         "psf": {"kernel_size": d.kernel_size},
-        "material": {"name": d.material.name, "thickness_mm": d.material.thickness * 1e3},
+        "material": {"name": d.material.name, "thickness_mm": as_typed(d.material.thickness, 1e3)},
         "fabrication": {
             "levels": d.fabrication.levels,
-            "feature_size_um": d.fabrication.feature_size * 1e6,
-            "aperture_mm": d.fabrication.aperture * 1e3,
+            "feature_size_um": as_typed(d.fabrication.feature_size, 1e6),
+            "aperture_mm": as_typed(d.fabrication.aperture, 1e3),
             "grid_nm": round(d.fabrication.grid * 1e9),
         },
         "learning": asdict(d.learning),

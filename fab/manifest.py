@@ -9,6 +9,7 @@ dividing by the step gives an integer level again.
 import hashlib
 from pathlib import Path
 
+from doe.design import as_typed
 from doe.files import write_json
 from fab.masks import DATA_POLARITY, RESIST_TONE
 
@@ -47,7 +48,7 @@ def build_manifest(design, derived, layout, masks, acceptance=None, extra=None):
     step_nm = derived.level_step * 1e9
     tile_size = n * p_nm * 1e-9
     manifest = {
-        "wavelength_nm": design.optics.wavelength * 1e9,
+        "wavelength_nm": as_typed(design.optics.wavelength, 1e9),
         "refractive_index": derived.refractive_index,
         "levels": design.fabrication.levels,
         "level_step_nm": step_nm,
@@ -72,12 +73,12 @@ def build_manifest(design, derived, layout, masks, acceptance=None, extra=None):
         ],
         "design_name": design.name,
         "material": design.material.name,
-        "substrate_thickness_mm": design.material.thickness * 1e3,
+        "substrate_thickness_mm": as_typed(design.material.thickness, 1e3),
         "kernel_size": design.kernel_size,
-        "focal_length_mm": design.optics.focal_length * 1e3,
+        "focal_length_mm": as_typed(design.optics.focal_length, 1e3),
         "tile_size_um": n * p_nm / 1000,
         "lattice_pitch_um": design.optics.wavelength * design.optics.focal_length / tile_size * 1e6,
-        "aperture_mm": design.fabrication.aperture * 1e3,
+        "aperture_mm": as_typed(design.fabrication.aperture, 1e3),
         "target_psf_file": TARGET_PSF_FILE,
         "resist_tone": RESIST_TONE,
         "data_polarity": DATA_POLARITY,

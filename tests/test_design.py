@@ -221,3 +221,18 @@ def test_design_differences_name_what_changes_the_tile():
     assert design_differences(design_summary(default), factor3, PSF_GRID_KEYS) == [
         "sensor.superres_factor 4 -> 3"
     ]
+
+
+def test_summary_gives_back_the_typed_values_in_their_units():
+    # Each value the design file gives comes back as typed, not with the float
+    # noise of its round trip through SI (655 nm -> 6.55e-7 m -> 655.0000000000001).
+    raw = raw_default()
+    summary = design_summary(load_design())
+    for section, keys in (
+        ("sensor", ("pixel_pitch_um", "active_area_um")),
+        ("optics", ("wavelength_nm", "focal_length_mm")),
+        ("material", ("thickness_mm",)),
+        ("fabrication", ("feature_size_um", "aperture_mm")),
+    ):
+        for key in keys:
+            assert summary[section][key] == float(raw[section][key]), (section, key)

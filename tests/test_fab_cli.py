@@ -72,6 +72,9 @@ def test_package_has_the_contract_manifest_and_files(package):
         assert abs(mask["etch_depth_nm"] - steps * step) < 0.5
         assert mask["etch_depth_nm"] == steps * man["level_step_nm"]
     assert [m["exposure_order"] for m in man["masks"]] == [1, 2, 3]
+    # The preset's values as typed, without the noise of their SI round trip.
+    assert (man["wavelength_nm"], man["focal_length_mm"]) == (655.0, 50.0)
+    assert (man["aperture_mm"], man["substrate_thickness_mm"]) == (14.0, 0.5)
     if HAS_TOLERANCE:
         acc = man["acceptance"]
         assert {"correlation_min", "rmse_max", "efficiency_min", "zero_order_max"} <= set(acc)
