@@ -132,15 +132,27 @@ def read_raw_image(path):
         if not np.all(np.isfinite(data)):
             raise InputError(path, "image has NaN or infinite pixels")
     elif fmt == "uint16" and data.any() and not np.any(data & 0xF):
-        # 12-bit sensors written MSB-aligned leave the four low bits zero.
+        # 12-bit sensors written MSB-aligned leave the four low bits zero; a 10-bit
+        # one leaves six, 8-bit data scaled by 256 eight. The codes are shifted
+        # down by four bits (12-bit DN); the sensor's own top code is its full scale.
+        zeros = _trailing_zero_bits(data)
         data = data >> 4
-        full = 4095.0
+        full = float(((1 << (16 - zeros)) - 1) << (zeros - 4))
         encoding = "uint16-msb12"
-        notes.append("12-bit data MSB-aligned in 16 bits (low 4 bits all zero): shifted down")
+        notes.append(
+            f"{16 - zeros}-bit data MSB-aligned in 16 bits (low {zeros} bits all zero): "
+            f"shifted down by 4 bits, full scale {full:g}"
+        )
     elif fmt == "uint16" and data.max() <= 4095:
         full = 4095.0  # 12-bit data stored LSB-aligned: it saturates at 4095, not 65535
         notes.append("16-bit file with values <= 4095: taken as 12-bit data (saturates at 4095)")
     return RawImage(np.ascontiguousarray(data), full, exposure, tuple(notes), encoding)
+
+
+def _trailing_zero_bits(data):
+    """Return how many low bits are zero in every value of non-zero integer ``data``."""
+    bits = int(np.bitwise_or.reduce(data, axis=None))
+    return (bits & -bits).bit_length() - 1
 
 
 def write_image(path, image, exposure=None):

@@ -8,7 +8,13 @@ import pytest
 from doe.cli import main
 from doe.files import read_psf, save_npy, write_json
 from doe.fraunhofer import simulate_levels
-from fab.capture import RawImage, condition_capture, repair_pixels, write_image
+from fab.capture import (
+    RawImage,
+    condition_capture,
+    read_raw_image,
+    repair_pixels,
+    write_image,
+)
 from fab.capture_sim import PlateFaults, plate_far_field, plate_phase, simulate_capture
 from fab.lattice import measure_orders, register_lattice
 from fab.verify import (
@@ -562,6 +568,26 @@ def test_clipped_14bit_capture_is_flagged_saturated(tmp_path, levels):
     clipped = np.minimum(sim["capture"], 16383).astype(np.uint16)
     design = make_design_dir(tmp_path / "design", levels)
     write_image(tmp_path / "cap.tif", clipped)
+    code = main(["verify", str(design), str(tmp_path / "cap.tif"), "--out", str(tmp_path / "o")])
+    report = json.loads((tmp_path / "o" / "verify.json").read_text())
+    assert code == 1 and "saturated" in report["diagnosis"]
+
+
+@pytest.mark.parametrize("bits", [10, 8])
+def test_clipped_capture_msb_aligned_from_fewer_bits_is_flagged_saturated(tmp_path, levels, bits):
+    """10-bit data shifted into 16 bits (low 6 bits zero), or 8-bit data scaled by 256."""
+    top = (1 << bits) - 1
+    sim = simulate_capture(
+        levels, L, pitch_px=PITCH_PX, seed=27, bits=16, peak_fraction=3.0, full_well_e=top * 2.0
+    )
+    codes = np.minimum(sim["capture"], top).astype(np.uint16)
+    clipped = int(np.count_nonzero(codes == top))
+    assert clipped >= 3
+    write_image(tmp_path / "cap.tif", codes << (16 - bits))
+    raw = read_raw_image(tmp_path / "cap.tif")
+    assert raw.full_scale == top << (12 - bits)  # the sensor's top code in 12-bit DN
+    assert np.count_nonzero(condition_capture(raw).saturated) == clipped
+    design = make_design_dir(tmp_path / "design", levels)
     code = main(["verify", str(design), str(tmp_path / "cap.tif"), "--out", str(tmp_path / "o")])
     report = json.loads((tmp_path / "o" / "verify.json").read_text())
     assert code == 1 and "saturated" in report["diagnosis"]
