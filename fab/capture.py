@@ -41,6 +41,9 @@ class RawImage:
         What the reader noticed (bit alignment, channels).
     encoding : str
         "uint8", "uint16", "uint16-msb12" or "float": how the codes are stored.
+    quantum : float
+        Step between two codes in the units of ``data`` (1 for integer data, 4 for
+        10-bit data MSB-aligned, as its codes read in 12-bit DN); 0 for float data.
     """
 
     data: np.ndarray
@@ -48,6 +51,7 @@ class RawImage:
     exposure: float | None
     notes: tuple[str, ...] = ()
     encoding: str = ""
+    quantum: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -66,6 +70,8 @@ class Capture:
         Saturation code in DN (None for float data without a plateau).
     notes : list of str
         Human-readable remarks for the report.
+    quantum : float
+        Step between two codes in DN (``RawImage.quantum``); 0 for float data.
     """
 
     image: np.ndarray
@@ -73,6 +79,7 @@ class Capture:
     hot: np.ndarray
     full_scale: float | None
     notes: list = field(default_factory=list)
+    quantum: float = 1.0
 
 
 def read_raw_image(path):
@@ -127,8 +134,10 @@ def read_raw_image(path):
         notes.append(f"{pixels.shape[2]} identical channels: used the first")
     data = pixels[..., 0]
     encoding = fmt
+    quantum = 1.0
     if fmt == "float":
         data = data.astype(np.float32)
+        quantum = 0.0
         if not np.all(np.isfinite(data)):
             raise InputError(path, "image has NaN or infinite pixels")
     elif fmt == "uint16" and data.any() and not np.any(data & 0xF):
@@ -138,6 +147,7 @@ def read_raw_image(path):
         zeros = _trailing_zero_bits(data)
         data = data >> 4
         full = float(((1 << (16 - zeros)) - 1) << (zeros - 4))
+        quantum = float(1 << (zeros - 4))
         encoding = "uint16-msb12"
         notes.append(
             f"{16 - zeros}-bit data MSB-aligned in 16 bits (low {zeros} bits all zero): "
@@ -146,7 +156,7 @@ def read_raw_image(path):
     elif fmt == "uint16" and data.max() <= 4095:
         full = 4095.0  # 12-bit data stored LSB-aligned: it saturates at 4095, not 65535
         notes.append("16-bit file with values <= 4095: taken as 12-bit data (saturates at 4095)")
-    return RawImage(np.ascontiguousarray(data), full, exposure, tuple(notes), encoding)
+    return RawImage(np.ascontiguousarray(data), full, exposure, tuple(notes), encoding, quantum)
 
 
 def _trailing_zero_bits(data):
@@ -212,7 +222,12 @@ def read_capture(path, dark_path=None):
         check_dark(raw, dark_raw, dark_path)
     capture = condition_capture(raw, dark_raw)
     return Capture(
-        capture.image, capture.saturated, capture.hot, capture.full_scale, notes + capture.notes
+        capture.image,
+        capture.saturated,
+        capture.hot,
+        capture.full_scale,
+        notes + capture.notes,
+        capture.quantum,
     )
 
 
@@ -288,7 +303,7 @@ def condition_capture(raw, dark=None):
             notes.append(
                 f"{int(hot.sum())} hot pixel(s) from the dark frame repaired (median of neighbours)"
             )
-    return Capture(image, saturated & ~hot, hot, raw.full_scale, notes)
+    return Capture(image, saturated & ~hot, hot, raw.full_scale, notes, raw.quantum)
 
 
 def robust_sigma(values):

@@ -187,7 +187,9 @@ def _verify(args):
     nominal_px = lattice_pitch / (args.pixel_pitch_um * 1e-6)
     capture = read_capture(args.capture, args.dark)
     try:
-        lattice, lattice_notes = register_lattice(capture.image, nominal_px)
+        lattice, lattice_notes = register_lattice(
+            capture.image, nominal_px, quantum=capture.quantum
+        )
     except LatticeNotFound as e:
         extra = (
             f"; {int(capture.saturated.sum())} saturated pixels" if capture.saturated.any() else ""
@@ -195,16 +197,16 @@ def _verify(args):
         raise InputError(args.capture, f"{e}{extra}") from None
     image = capture.image
     if args.dark is None:
-        image, repaired = repair_stray_spikes(image, lattice)
+        image, repaired = repair_stray_spikes(image, lattice, capture.quantum)
         if repaired:
             lattice_notes.append(
                 f"{repaired} hot pixel(s) away from the dots repaired (no dark "
                 "frame; median of neighbours)"
             )
-            lattice, _ = register_lattice(image, nominal_px)
-    grid = measure_orders(image, lattice, capture.saturated)
+            lattice, _ = register_lattice(image, nominal_px, quantum=capture.quantum)
+    grid = measure_orders(image, lattice, capture.saturated, capture.quantum)
     # before the spike repair, which would clear true dots off a wrongly fitted lattice
-    on_lattice = on_lattice_share(capture.image, lattice, nominal_px)
+    on_lattice = on_lattice_share(capture.image, lattice, nominal_px, capture.quantum)
     design_psf, design_eff = simulate_levels(design.levels, design.n_levels, design.kernel_size)
     try:
         thresholds = resolve_thresholds(

@@ -156,7 +156,7 @@ class LatticeNotFound(ValueError):
     """No dot lattice near the nominal pitch in the image."""
 
 
-def register_lattice(image, nominal_pitch_px, refine_iterations=2):
+def register_lattice(image, nominal_pitch_px, refine_iterations=2, quantum=0.0):
     """Find the dot lattice of a capture.
 
     Parameters
@@ -167,6 +167,8 @@ def register_lattice(image, nominal_pitch_px, refine_iterations=2):
         Expected order pitch in camera pixels (lambda f / tile size / pixel pitch).
     refine_iterations : int
         Centroid least-squares passes over the whole frame at the end.
+    quantum : float
+        Step between the capture's codes in DN (``Capture.quantum``); 0 for float data.
 
     Returns
     -------
@@ -193,7 +195,7 @@ def register_lattice(image, nominal_pitch_px, refine_iterations=2):
         raise LatticeNotFound(
             f"image {w}x{h} px holds fewer than 4 dots across at the nominal pitch {pitch0:.3g} px"
         )
-    x, noise, dots, weight = _dots_of(img, pitch0)
+    x, noise, dots, weight = _dots_of(img, pitch0, quantum)
     if dots.shape[0] == 0:
         raise LatticeNotFound(f"no dot stands {DETECT_SIGMAS:g} sigma above the noise")
     lattice, notes, partner = _coarse_lattice(dots, weight, pitch0)
@@ -220,7 +222,7 @@ def register_lattice(image, nominal_pitch_px, refine_iterations=2):
     return lattice, notes
 
 
-def on_lattice_share(image, lattice, nominal_pitch_px):
+def on_lattice_share(image, lattice, nominal_pitch_px, quantum=0.0):
     """Return the share of the detected dots' light that lies on ``lattice``'s sites.
 
     Dots are detected as for registration, single-pixel spikes (hot pixels: at
@@ -230,7 +232,7 @@ def on_lattice_share(image, lattice, nominal_pitch_px):
     (a wrong camera pixel pitch) leaves much of the light between its sites.
     None when every detected dot is a spike.
     """
-    x, _, dots, weight = _dots_of(image, nominal_pitch_px)
+    x, _, dots, weight = _dots_of(image, nominal_pitch_px, quantum)
     r, c = np.round(dots[:, 0]).astype(int), np.round(dots[:, 1]).astype(int)
     patch = np.clip(_patches(x, r, c, 1), 0, None)
     spot = patch.max(axis=(1, 2)) < SPIKE_FRACTION * patch.sum(axis=(1, 2))
@@ -241,12 +243,23 @@ def on_lattice_share(image, lattice, nominal_pitch_px):
     return float(weight[spot][on].sum() / weight[spot].sum())
 
 
-def _dots_of(image, pitch):
+def _dots_of(image, pitch, quantum):
     """Return (image less its median, noise sigma, dot centroids, dot signals) of a capture."""
     x = np.asarray(image, dtype=np.float32)
     x = x - np.float32(np.median(x[::4, ::4]))
-    noise = max(robust_sigma(x[::4, ::4]), 1e-6)
+    noise = pixel_noise(x[::4, ::4], quantum)
     return (x, noise, *_detect_dots(x, pitch, noise))
+
+
+def pixel_noise(values, quantum=0.0):
+    """Return the noise sigma of one pixel: robust, and at least the rounding noise.
+
+    A quiet camera (read noise well below 1 DN, or a black level clamped at 0)
+    gives a background of one code, whose spread is 0; but every measured value
+    still carries the error of rounding to codes ``quantum`` DN apart, whose
+    sigma is quantum / sqrt(12).
+    """
+    return max(robust_sigma(values), quantum / np.sqrt(12.0), 1e-6)
 
 
 def _detect_dots(x, pitch, noise):
@@ -417,7 +430,7 @@ def _refine(x, lattice, noise):
     return _recentre(Lattice(origin, basis), x.shape)
 
 
-def repair_stray_spikes(image, lattice, noise=None):
+def repair_stray_spikes(image, lattice, quantum=0.0):
     """Repair single-pixel spikes (hot pixels) away from every dot's centre.
 
     Without a dark frame a hot pixel looks like a compact dot; but a dot's light
@@ -434,8 +447,7 @@ def repair_stray_spikes(image, lattice, noise=None):
     from fab.capture import repair_pixels
 
     x = np.asarray(image, dtype=np.float32)
-    if noise is None:
-        noise = max(robust_sigma(x[::4, ::4]), 1e-6)
+    noise = pixel_noise(x[::4, ::4], quantum)
     floor = float(np.median(x[::4, ::4]))
     rows, cols = np.nonzero(x > floor + DETECT_SIGMAS * noise)
     if rows.size == 0:
@@ -457,7 +469,7 @@ def repair_stray_spikes(image, lattice, noise=None):
     return repair_pixels(x, bad), int(stray.sum())
 
 
-def measure_orders(image, lattice, saturated=None):
+def measure_orders(image, lattice, saturated=None, quantum=0.0):
     """Measure every dot's power by aperture photometry with a local background.
 
     Each dot's aperture is a disc about its fitted position, just wide enough to
@@ -476,6 +488,8 @@ def measure_orders(image, lattice, saturated=None):
     lattice : Lattice
     saturated : (H, W) bool array or None
         Saturated pixels of the raw capture.
+    quantum : float
+        Step between the capture's codes in DN; 0 for float data.
 
     Returns
     -------
@@ -492,7 +506,7 @@ def measure_orders(image, lattice, saturated=None):
     patch = _patches(x, pr, pc, outer)
     ring = patch[:, annulus].astype(np.float64)
     median = np.median(ring, axis=1)
-    noise = robust_sigma((ring - median[:, None])[:: max(1, ring.shape[0] // 2000)])
+    noise = pixel_noise((ring - median[:, None])[:: max(1, ring.shape[0] // 2000)], quantum)
     near = np.abs(ring - median[:, None]) <= max(4 * noise, 1.0)
     n_ring = np.maximum(near.sum(axis=1), 1)
     background = (ring * near).sum(axis=1) / n_ring

@@ -586,11 +586,23 @@ def test_clipped_capture_msb_aligned_from_fewer_bits_is_flagged_saturated(tmp_pa
     write_image(tmp_path / "cap.tif", codes << (16 - bits))
     raw = read_raw_image(tmp_path / "cap.tif")
     assert raw.full_scale == top << (12 - bits)  # the sensor's top code in 12-bit DN
+    assert raw.quantum == 1 << (12 - bits)  # and its step
     assert np.count_nonzero(condition_capture(raw).saturated) == clipped
     design = make_design_dir(tmp_path / "design", levels)
     code = main(["verify", str(design), str(tmp_path / "cap.tif"), "--out", str(tmp_path / "o")])
     report = json.loads((tmp_path / "o" / "verify.json").read_text())
     assert code == 1 and "saturated" in report["diagnosis"]
+
+
+@pytest.mark.parametrize("dark", [False, True])
+def test_quiet_8bit_capture_of_a_good_plate_passes(tmp_path, levels, dark):
+    """Read noise well below 1 DN: nearly all the background is one code (spread 0)."""
+    kwargs = dict(seed=29, bits=8, read_noise_dn=0.2, dark_level_dn=3.0)
+    code, report, sim = run_verify(tmp_path, levels, kwargs, dark=dark)
+    background = sim["capture"][:40, :40]
+    assert np.mean(background == np.median(background)) > 0.9
+    assert code == 0, report and report["diagnosis"]
+    assert report["window_snr"] > 10
 
 
 def test_orientation_against_the_foundation_renderer(tmp_path):
@@ -643,3 +655,12 @@ def test_spike_repair_keeps_dots_and_removes_stray_pixels(levels):
     r, c = lattice.positions(u, v)
     r, c = np.rint(r).astype(int), np.rint(c).astype(int)
     assert np.array_equal(fixed[r, c], spiked[r, c])
+
+
+def test_pixel_noise_is_at_least_the_rounding_noise_of_the_codes():
+    from fab.lattice import pixel_noise
+
+    assert pixel_noise(np.full(100, 7.0), quantum=4.0) == pytest.approx(4.0 / np.sqrt(12))
+    assert pixel_noise(np.full(100, 7.0)) > 0  # float data: never a zero sigma
+    noisy = np.random.default_rng(0).normal(0.0, 3.0, 10_000)
+    assert pixel_noise(noisy, quantum=1.0) == pytest.approx(3.0, rel=0.05)
