@@ -26,9 +26,9 @@ from doe.files import save_npy, write_json
 from doe.fraunhofer import simulate_levels
 from doe.retrieval import retrieve_phase
 from doe.targets import make_target
-from fab.capture import read_capture, write_image
+from fab.capture import read_capture, repair_pixels, write_image
 from fab.capture_sim import simulate_capture
-from fab.lattice import measure_orders, register_lattice
+from fab.lattice import away_from_dots, measure_orders, register_lattice
 from fab.verify import analyse, design_order_power, resolve_thresholds
 
 RUNS = 5
@@ -96,9 +96,12 @@ def _bench_plate(levels, n_levels, k, der, pitch_px):
             t = time.perf_counter()
             cap = read_capture(tmp / "capture.png", tmp / "dark.png")
             t1 = time.perf_counter()
-            lattice, _ = register_lattice(cap.image, pitch_px, quantum=cap.quantum)
+            found = repair_pixels(cap.image, cap.hot)
+            lattice, _ = register_lattice(found, pitch_px, quantum=cap.quantum)
             t2 = time.perf_counter()
-            grid = measure_orders(cap.image, lattice, cap.saturated, cap.quantum)
+            repaired = away_from_dots(cap.hot, lattice) | (cap.hot & cap.saturated)
+            image = repair_pixels(cap.image, repaired)
+            grid = measure_orders(image, lattice, cap.saturated & ~repaired, cap.quantum)
             t3 = time.perf_counter()
             _psf, eff = simulate_levels(levels, n_levels, k)
             thr = resolve_thresholds(None, eff, design_order_power(levels, n_levels)[0, 0])

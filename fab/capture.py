@@ -61,11 +61,12 @@ class Capture:
     Attributes
     ----------
     image : (H, W) float32 array
-        Dark-subtracted signal in data numbers (DN), hot pixels repaired.
+        Dark-subtracted signal in data numbers (DN).
     saturated : (H, W) bool array
         Pixels at the sensor's full-scale code (or a float plateau) in the raw capture.
     hot : (H, W) bool array
-        Pixels flagged hot in the dark frame (repaired in ``image``).
+        Pixels flagged hot in the dark frame (not repaired in ``image``:
+        ``fab.lattice.away_from_dots`` tells which may be).
     full_scale : float or None
         Saturation code in DN (None for float data without a plateau).
     notes : list of str
@@ -258,7 +259,7 @@ def check_dark(raw, dark, dark_source):
 
 
 def condition_capture(raw, dark=None):
-    """Subtract the dark frame, flag saturation and repair hot pixels.
+    """Subtract the dark frame, flag saturation and hot pixels.
 
     Parameters
     ----------
@@ -297,13 +298,10 @@ def condition_capture(raw, dark=None):
     if dark is not None:
         dark_f = dark.data.astype(np.float32)
         image -= dark_f
+        # Flagged, not repaired: on a dot, a hot pixel less its dark still holds
+        # the dot's light; which pixels lie on a dot is known once the lattice is.
         hot = hot_pixels_from_dark(dark_f)
-        if hot.any():
-            image = repair_pixels(image, hot)
-            notes.append(
-                f"{int(hot.sum())} hot pixel(s) from the dark frame repaired (median of neighbours)"
-            )
-    return Capture(image, saturated & ~hot, hot, raw.full_scale, notes, raw.quantum)
+    return Capture(image, saturated, hot, raw.full_scale, notes, raw.quantum)
 
 
 def robust_sigma(values):

@@ -168,9 +168,10 @@ def _verify(args):
     from doe import flags
     from doe.files import save_npy, staged_output, write_json
     from doe.fraunhofer import correlation, simulate_levels
-    from fab.capture import read_capture
+    from fab.capture import read_capture, repair_pixels
     from fab.lattice import (
         LatticeNotFound,
+        away_from_dots,
         measure_orders,
         on_lattice_share,
         register_lattice,
@@ -186,27 +187,37 @@ def _verify(args):
         lattice_pitch = args.lattice_pitch_um * 1e-6
     nominal_px = lattice_pitch / (args.pixel_pitch_um * 1e-6)
     capture = read_capture(args.capture, args.dark)
+    # The lattice is found with every hot pixel of the dark frame repaired.
+    found = repair_pixels(capture.image, capture.hot)
     try:
-        lattice, lattice_notes = register_lattice(
-            capture.image, nominal_px, quantum=capture.quantum
-        )
+        lattice, lattice_notes = register_lattice(found, nominal_px, quantum=capture.quantum)
     except LatticeNotFound as e:
         extra = (
             f"; {int(capture.saturated.sum())} saturated pixels" if capture.saturated.any() else ""
         )
         raise InputError(args.capture, f"{e}{extra}") from None
-    image = capture.image
     if args.dark is None:
-        image, repaired = repair_stray_spikes(image, lattice, capture.quantum)
-        if repaired:
+        image, repaired = repair_stray_spikes(capture.image, lattice, capture.quantum)
+        if repaired.any():
             lattice_notes.append(
-                f"{repaired} hot pixel(s) away from the dots repaired (no dark "
+                f"{int(repaired.sum())} hot pixel(s) away from the dots repaired (no dark "
                 "frame; median of neighbours)"
             )
             lattice, _ = register_lattice(image, nominal_px, quantum=capture.quantum)
-    grid = measure_orders(image, lattice, capture.saturated, capture.quantum)
+    else:
+        # On a dot, a hot pixel less its dark still holds the dot's light (the median
+        # of its neighbours would not); unless it clipped, it is kept.
+        repaired = away_from_dots(capture.hot, lattice) | (capture.hot & capture.saturated)
+        image = repair_pixels(capture.image, repaired)
+        if capture.hot.any():
+            lattice_notes.append(
+                f"{int(capture.hot.sum())} hot pixel(s) in the dark frame: "
+                f"{int(repaired.sum())} repaired (median of neighbours), "
+                f"{int((capture.hot & ~repaired).sum())} on a dot kept with the dark subtracted"
+            )
+    grid = measure_orders(image, lattice, capture.saturated & ~repaired, capture.quantum)
     # before the spike repair, which would clear true dots off a wrongly fitted lattice
-    on_lattice = on_lattice_share(capture.image, lattice, nominal_px, capture.quantum)
+    on_lattice = on_lattice_share(found, lattice, nominal_px, capture.quantum)
     design_psf, design_eff = simulate_levels(design.levels, design.n_levels, design.kernel_size)
     try:
         thresholds = resolve_thresholds(

@@ -441,8 +441,8 @@ def repair_stray_spikes(image, lattice, quantum=0.0):
 
     Returns
     -------
-    (image, count)
-        A repaired copy (float32) and the number of pixels repaired.
+    (image, repaired)
+        A repaired copy (float32) and the (H, W) bool map of the pixels repaired.
     """
     from fab.capture import repair_pixels
 
@@ -450,23 +450,33 @@ def repair_stray_spikes(image, lattice, quantum=0.0):
     noise = pixel_noise(x[::4, ::4], quantum)
     floor = float(np.median(x[::4, ::4]))
     rows, cols = np.nonzero(x > floor + DETECT_SIGMAS * noise)
-    if rows.size == 0:
-        return x.copy(), 0
-    if rows.size > 0.25 * x.size:
-        return x.copy(), 0  # a bright scene, not a dot lattice: nothing to tell apart
-    padded = np.pad(x, 1, mode="edge")
-    off = np.arange(-1, 2)
-    block = padded[
-        rows[:, None, None] + 1 + off[None, :, None], cols[:, None, None] + 1 + off[None, None, :]
-    ]
-    med = np.median(block.reshape(rows.size, 9), axis=1)
-    spike = x[rows, cols] - med > DETECT_SIGMAS * noise
+    spikes = np.zeros(x.shape, bool)
+    if 0 < rows.size <= 0.25 * x.size:  # more: a bright scene, not a dot lattice
+        padded = np.pad(x, 1, mode="edge")
+        off = np.arange(-1, 2)
+        block = padded[
+            rows[:, None, None] + 1 + off[None, :, None],
+            cols[:, None, None] + 1 + off[None, None, :],
+        ]
+        med = np.median(block.reshape(rows.size, 9), axis=1)
+        spike = x[rows, cols] - med > DETECT_SIGMAS * noise
+        spikes[rows[spike], cols[spike]] = True
+    repaired = away_from_dots(spikes, lattice)
+    return repair_pixels(x, repaired), repaired
+
+
+def away_from_dots(flagged, lattice):
+    """Return the (H, W) bool map of the ``flagged`` pixels outside every dot's core.
+
+    Outside: farther than ``SPOT_CORE`` pixels from every lattice point.
+    """
+    rows, cols = np.nonzero(flagged)
     u, v = lattice.coordinates(rows, cols)
     pr, pc = lattice.positions(np.round(u), np.round(v))
-    stray = spike & (np.hypot(rows - pr, cols - pc) > SPOT_CORE)
-    bad = np.zeros(x.shape, bool)
-    bad[rows[stray], cols[stray]] = True
-    return repair_pixels(x, bad), int(stray.sum())
+    far = np.hypot(rows - pr, cols - pc) > SPOT_CORE
+    out = np.zeros(np.shape(flagged), bool)
+    out[rows[far], cols[far]] = True
+    return out
 
 
 def measure_orders(image, lattice, saturated=None, quantum=0.0):

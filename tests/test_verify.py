@@ -466,7 +466,7 @@ def test_repair_pixels_uses_the_neighbour_median():
     assert img2[2, 2] == 1e6  # the argument is not modified
 
 
-def test_hot_pixels_flagged_from_the_dark_are_repaired(levels):
+def test_hot_pixels_are_flagged_from_the_dark_and_the_dark_subtracted(levels):
     sim = simulate_capture(
         levels, L, pitch_px=PITCH_PX, shape=(300, 300), seed=19, hot_pixels=25, bits=16
     )
@@ -474,7 +474,7 @@ def test_hot_pixels_flagged_from_the_dark_are_repaired(levels):
         RawImage(sim["capture"], 65535.0, None), RawImage(sim["dark"], 65535.0, None)
     )
     assert cap.hot.sum() >= 20
-    assert not cap.saturated[cap.hot].any()
+    assert np.array_equal(cap.image, sim["capture"].astype(np.float32) - sim["dark"])
 
 
 def test_full_size_tile_n175(tmp_path):
@@ -647,14 +647,41 @@ def test_spike_repair_keeps_dots_and_removes_stray_pixels(levels):
     lattice, _ = register_lattice(image, PITCH_PX)
     spiked = image.copy()
     spiked[150 + 5, 150 + 5] += 5000  # half a pitch from every dot
-    fixed, count = repair_stray_spikes(spiked, lattice)
-    assert count >= 1
+    fixed, repaired = repair_stray_spikes(spiked, lattice)
+    assert repaired[155, 155]
     assert abs(fixed[155, 155] - image[155, 155]) < 50
     # Real dots are untouched.
     u, v = np.meshgrid(np.arange(-5, 6), np.arange(-5, 6), indexing="ij")
     r, c = lattice.positions(u, v)
     r, c = np.rint(r).astype(int), np.rint(c).astype(int)
     assert np.array_equal(fixed[r, c], spiked[r, c])
+
+
+def test_hot_pixel_of_the_dark_frame_on_a_dot_keeps_the_dot_light(tmp_path, levels):
+    """Dark subtraction already takes a hot pixel's dark signal away; repairing it
+    as well (median of neighbours) would take away the dot's peak."""
+    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, seed=30, bits=16)
+    design = make_design_dir(tmp_path / "design", levels)
+    reports = []
+    for name, hot in (("clean", 0), ("hot", 15000)):
+        capture, dark = sim["capture"].astype(np.int64), sim["dark"].astype(np.int64)
+        # the core pixel of the brightest dot in the K x K window of orders
+        r0, c0 = np.rint(sim["zero_order_px"]).astype(int)
+        reach = int(K // 2 * PITCH_PX) + 2
+        box = capture[r0 - reach : r0 + reach + 1, c0 - reach : c0 + reach + 1]
+        r, c = np.unravel_index(np.argmax(box), box.shape)
+        r, c = r + r0 - reach, c + c0 - reach
+        capture[r, c] += hot
+        dark[r, c] += hot
+        assert capture.max() < sim["full_scale"]
+        write_image(tmp_path / f"{name}.tif", capture.astype(np.uint16))
+        write_image(tmp_path / f"{name}_dark.tif", dark.astype(np.uint16))
+        out = tmp_path / f"out_{name}"
+        args = [str(tmp_path / f"{name}.tif"), "--dark", str(tmp_path / f"{name}_dark.tif")]
+        assert main(["verify", str(design), *args, "--out", str(out)]) == 0
+        reports.append(np.load(out / "measured_psf.npy"))
+    clean, hot = reports
+    assert np.abs(hot - clean).max() < 0.01 * clean.max()
 
 
 def test_pixel_noise_is_at_least_the_rounding_noise_of_the_codes():
