@@ -398,7 +398,13 @@ def _refine(x, lattice, noise):
     u, v, rows, cols, valid = _lattice_points(lattice, x.shape, radius)
     uu, vv = np.meshgrid(u, v, indexing="ij")
     uu, vv, rows, cols = uu[valid], vv[valid], rows[valid], cols[valid]
-    patch = np.clip(_patches(x, rows, cols, radius), 0, None).astype(np.float64)
+    patch = _patches(x, rows, cols, radius).astype(np.float64)
+    # Each dot less its own background (the median of its patch's rim): a
+    # background that varies across the frame would pull every centroid uphill.
+    rim = np.concatenate(
+        [patch[:, 0, :], patch[:, -1, :], patch[:, 1:-1, 0], patch[:, 1:-1, -1]], axis=1
+    )
+    patch = np.clip(patch - np.median(rim, axis=1)[:, None, None], 0, None)
     total = patch.sum(axis=(1, 2))
     signal = total - np.median(total)
     significant = signal > DETECT_SIGMAS * noise * (2 * radius + 1)

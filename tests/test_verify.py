@@ -684,6 +684,21 @@ def test_hot_pixel_of_the_dark_frame_on_a_dot_keeps_the_dot_light(tmp_path, leve
     assert np.abs(hot - clean).max() < 0.01 * clean.max()
 
 
+def test_background_gradient_leaves_the_lattice_right(tmp_path, levels):
+    """Stray light rising 400 DN across the frame (dots peak near 2900 DN)."""
+    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, seed=31, centre=(301.3, 297.6))
+    ramp = np.linspace(0.0, 400.0, sim["capture"].shape[1])[None, :]
+    capture = np.rint((sim["capture"] >> 4) + ramp).astype(np.uint16)  # 12-bit DN
+    assert capture.max() < 4095
+    design = make_design_dir(tmp_path / "design", levels)
+    write_image(tmp_path / "cap.png", capture)
+    code = main(["verify", str(design), str(tmp_path / "cap.png"), "--out", str(tmp_path / "o")])
+    report = json.loads((tmp_path / "o" / "verify.json").read_text())
+    assert code == 0, report["diagnosis"]
+    assert np.allclose(report["zero_order_px"], sim["zero_order_px"], atol=0.2)
+    assert report["lattice"]["pitch_px"] == pytest.approx(PITCH_PX, rel=1e-3)
+
+
 def test_pixel_noise_is_at_least_the_rounding_noise_of_the_codes():
     from fab.lattice import pixel_noise
 
