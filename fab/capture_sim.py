@@ -38,6 +38,8 @@ ORIENTATION_MAPS = {
     "rot270": lambda m, n: (n, -m),
     "mirror-x": lambda m, n: (m, -n),  # left-right flipped
     "mirror-y": lambda m, n: (-m, n),  # upside down
+    "transpose": lambda m, n: (n, m),  # reflected about the main diagonal
+    "antitranspose": lambda m, n: (-n, -m),  # about the other diagonal
 }
 
 

@@ -260,10 +260,13 @@ def _verify(args):
         },
         "notes": capture.notes + lattice_notes + _notes(result, capture, design),
     }
-    pitch_hint = _pitch_hint(result, on_lattice, lattice.pitch_px, args)
-    if pitch_hint:
-        report["notes"].append(pitch_hint)
-        print(f"doefab verify: {pitch_hint}", file=sys.stderr)
+    hints = [
+        _pitch_hint(result, on_lattice, lattice.pitch_px, args),
+        _orientation_hint(result, grid, design, args.orientation),
+    ]
+    for hint in filter(None, hints):
+        report["notes"].append(hint)
+        print(f"doefab verify: {hint}", file=sys.stderr)
     if result["implied_deep_etch_error"] is not None and design.deep_etch_depth:
         report["implied_deep_etch_error_nm"] = (
             result["implied_deep_etch_error"] * design.deep_etch_depth * 1e9
@@ -303,6 +306,26 @@ def _pitch_hint(result, on_lattice, pitch_px, args):
         f"({pitch_px:.3g} px pitch): if this is the design's plate, the pitch is wrong; "
         f"check --pixel-pitch-um ({args.pixel_pitch_um:g} um) and the lattice pitch "
         "(--lattice-pitch-um, lens focal length)"
+    )
+
+
+def _orientation_hint(result, grid, design, orientation):
+    """Return a note when a capture failed as another design matches this one seen otherwise."""
+    from fab.verify import orientations_matching
+
+    if "other_design" not in result.get("diagnosis", []):
+        return None
+    others = [
+        o
+        for o in orientations_matching(grid, design.levels, design.n_levels, design.kernel_size)
+        if o != orientation
+    ]
+    if not others:
+        return None
+    return (
+        f"the orders match the design seen with --orientation {' or '.join(others)}: "
+        f"if the camera is mounted so, verify again with that flag (it is never guessed: "
+        "a mirrored or conjugate plate seen otherwise can match too)"
     )
 
 

@@ -30,7 +30,16 @@ from doe.fraunhofer import (
 )
 from fab.masks import masks_from_levels
 
-ORIENTATIONS = ("as-designed", "rot90", "rot180", "rot270", "mirror-x", "mirror-y")
+ORIENTATIONS = (
+    "as-designed",
+    "rot90",
+    "rot180",
+    "rot270",
+    "mirror-x",
+    "mirror-y",
+    "transpose",
+    "antitranspose",
+)
 
 # Pass/fail thresholds used when the fabrication manifest has no "acceptance"
 # (fab.tolerance derives them from the tolerance budget when it does).
@@ -119,7 +128,8 @@ def to_design_frame(array, orientation):
 
     ``orientation`` says how the camera sees the design: "rot90" means the image
     is the design rotated 90 degrees counter-clockwise, "mirror-x" flipped left
-    to right, and so on; this undoes it.
+    to right, "transpose" reflected about its main diagonal (rows and columns
+    swapped), "antitranspose" about the other diagonal; this undoes it.
     """
     if orientation not in ORIENTATIONS:
         raise ValueError(f"orientation must be one of {ORIENTATIONS}, got {orientation!r}")
@@ -131,6 +141,8 @@ def to_design_frame(array, orientation):
         "rot270": lambda x: np.rot90(x, 1),
         "mirror-x": lambda x: x[:, ::-1],
         "mirror-y": lambda x: x[::-1, :],
+        "transpose": lambda x: x.T,
+        "antitranspose": lambda x: x[::-1, ::-1].T,
     }[orientation](a)
 
 
@@ -401,6 +413,33 @@ def implied_deep_etch_error(levels, n_levels, zero_order_power, sign_hint=None):
     return float(eps[np.argmin(np.abs(eps))])
 
 
+def _in_design_frame(grid, orientation):
+    """Return the order powers, their validity and 1-sigma errors in the design frame."""
+    power = to_design_frame(grid.power, orientation)
+    sigma = to_design_frame(grid.sigma, orientation)
+    sigma = np.sqrt(sigma**2 + (PHOTOMETRIC_FLOOR * np.nan_to_num(power)) ** 2)
+    return power, to_design_frame(grid.valid, orientation), sigma
+
+
+def orientations_matching(grid, levels, n_levels, kernel_size):
+    """Return the orientations under which the measured orders match the design.
+
+    Matching: the design's far field explains the visible orders with a frame
+    correlation of at least ``OTHER_DESIGN_MAX`` (what keeps a plate from being
+    "other_design"). A hint for a capture that fails as another design under
+    the flag given; it cannot tell a camera mounted otherwise from a mirrored or
+    conjugate plate, so it never decides a verdict.
+    """
+    period = design_order_power(levels, n_levels)
+    found = []
+    for orientation in ORIENTATIONS:
+        power, valid, sigma = _in_design_frame(grid, orientation)
+        search = locate_zero_order(power, valid, sigma, period, kernel_size // 2)
+        if search["score"] >= OTHER_DESIGN_MAX:
+            found.append(orientation)
+    return found
+
+
 def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
     """Measure the PSF in a registered order grid, compare it with the design and diagnose.
 
@@ -425,13 +464,10 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
         float64, >= 0, sum 1, or None when the window runs off the frame
         (``result["window_in_frame"]`` False).
     """
-    power = to_design_frame(grid.power, orientation)
-    valid = to_design_frame(grid.valid, orientation)
+    power, valid, sigma = _in_design_frame(grid, orientation)
     rows, cols = to_design_frame(grid.rows, orientation), to_design_frame(grid.cols, orientation)
     sat = to_design_frame(grid.saturated, orientation)
     period = design_order_power(levels, n_levels)
-    sigma = to_design_frame(grid.sigma, orientation)
-    sigma = np.sqrt(sigma**2 + (PHOTOMETRIC_FLOOR * np.nan_to_num(power)) ** 2)
     searches = {
         name: locate_zero_order(power, valid, sigma, transform(period), kernel_size // 2)
         for name, transform in _TRANSFORMS.items()

@@ -254,7 +254,9 @@ def test_mirrored_plate_fails(tmp_path, levels):
     assert code == 1 and "mirrored" in report["diagnosis"]
 
 
-@pytest.mark.parametrize("orientation", ["rot90", "rot180", "mirror-y"])
+@pytest.mark.parametrize(
+    "orientation", ["rot90", "rot180", "mirror-y", "transpose", "antitranspose"]
+)
 def test_orientation_flag_is_applied_never_guessed(tmp_path, levels, orientation):
     kwargs = dict(seed=10, orientation=orientation)
     code, report, _ = run_verify(
@@ -263,6 +265,16 @@ def test_orientation_flag_is_applied_never_guessed(tmp_path, levels, orientation
     assert code == 0, report["diagnosis"]
     code, report, _ = run_verify(tmp_path / "noflag", levels, kwargs)
     assert code == 1
+
+
+@pytest.mark.parametrize("orientation", ["rot90", "transpose"])
+def test_capture_seen_otherwise_than_the_flag_names_the_orientation_that_fits(
+    tmp_path, levels, orientation
+):
+    code, report, _ = run_verify(tmp_path, levels, dict(seed=10, orientation=orientation))
+    assert code == 1 and report["diagnosis"] == ["other_design"]
+    hints = [n for n in report["notes"] if "the orders match the design seen with" in n]
+    assert len(hints) == 1 and f"--orientation {orientation}:" in hints[0]
 
 
 def test_overlay_error_within_budget_passes_and_reports_outside_power(tmp_path, levels):
@@ -558,6 +570,7 @@ def test_designed_plate_of_another_design_fails(tmp_path, designed):
         tmp_path, designed, dict(seed=25, faults=PlateFaults(other_levels=other))
     )
     assert code == 1 and report["diagnosis"] == ["other_design"]
+    assert not any("the orders match the design seen with" in n for n in report["notes"])
 
 
 def test_clipped_14bit_capture_is_flagged_saturated(tmp_path, levels):
@@ -605,11 +618,25 @@ def test_quiet_8bit_capture_of_a_good_plate_passes(tmp_path, levels, dark):
     assert report["window_snr"] > 10
 
 
-def test_orientation_against_the_foundation_renderer(tmp_path):
+# How a camera sees an image array: (orientation, image transform, centre transform).
+CAMERAS = [
+    ("as-designed", lambda a: a, lambda rc, hw: rc),
+    ("transpose", lambda a: a.T, lambda rc, hw: (rc[1], rc[0])),
+    (
+        "antitranspose",
+        lambda a: a[::-1, ::-1].T,
+        lambda rc, hw: (hw[1] - 1 - rc[1], hw[0] - 1 - rc[0]),
+    ),
+]
+
+
+@pytest.mark.parametrize("orientation, seen, centre_seen", CAMERAS, ids=[c[0] for c in CAMERAS])
+def test_orientation_against_the_foundation_renderer(tmp_path, orientation, seen, centre_seen):
     """A blazed tile sends most light to order (m, n) = (-2, +3): up 2, right 3.
 
     The capture comes from doe.fraunhofer.dot_lattice_image (not this package's
-    simulator); the measured PSF must peak at [K//2 - 2, K//2 + 3] as simulate_levels.
+    simulator), seen by the camera as numpy turns the array; with the camera's
+    --orientation, the measured PSF must peak at [K//2 - 2, K//2 + 3] as simulate_levels.
     """
     from doe.fraunhofer import dot_lattice_image, level_phase
 
@@ -621,12 +648,14 @@ def test_orientation_against_the_foundation_renderer(tmp_path):
     img = dot_lattice_image(level_phase(lv, L), (500, 520), PITCH_PX, centre=(240.3, 262.8))
     img = img / img.max() * 3000 + np.random.default_rng(27).normal(20, 1.0, img.shape)
     design = make_design_dir(tmp_path / "design", lv)
-    write_image(tmp_path / "cap.exr", img.astype(np.float32))
-    code = main(["verify", str(design), str(tmp_path / "cap.exr"), "--out", str(tmp_path / "o")])
-    report = json.loads((tmp_path / "o" / "verify.json").read_text())
-    psf = read_psf(tmp_path / "o" / "measured_psf.npy")
+    write_image(tmp_path / "cap.exr", np.ascontiguousarray(seen(img)).astype(np.float32))
+    out = tmp_path / "o"
+    args = ["--orientation", orientation, "--out", str(out)]
+    code = main(["verify", str(design), str(tmp_path / "cap.exr"), *args])
+    report = json.loads((out / "verify.json").read_text())
+    psf = read_psf(out / "measured_psf.npy")
     assert np.unravel_index(np.argmax(psf), psf.shape) == (K // 2 - 2, K // 2 + 3)
-    assert np.allclose(report["zero_order_px"], (240.3, 262.8), atol=0.3)
+    assert np.allclose(report["zero_order_px"], centre_seen((240.3, 262.8), img.shape), atol=0.3)
     assert report["correlation"] > 0.99
     assert code == 0, report["diagnosis"]
 
