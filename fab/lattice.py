@@ -441,9 +441,11 @@ def repair_stray_spikes(image, lattice, quantum=0.0):
 
     Without a dark frame a hot pixel looks like a compact dot; but a dot's light
     lies within ``SPOT_CORE`` pixels of its lattice point, so a pixel standing
-    ``DETECT_SIGMAS`` sigma above the median of its 3 x 3 neighbourhood farther
-    from every lattice point is not light from the plate. It is replaced by the
-    median of its neighbours.
+    ``DETECT_SIGMAS`` sigma above the median of its 3 x 3 neighbourhood, and
+    highest in it, farther from every lattice point is not light from the plate.
+    It is replaced by the median of its neighbours. Pixels on the frame's rim
+    are left alone: the wing of a dot centred just outside the frame is the
+    highest of the neighbours that can be seen.
 
     Returns
     -------
@@ -455,17 +457,21 @@ def repair_stray_spikes(image, lattice, quantum=0.0):
     x = np.asarray(image, dtype=np.float32)
     noise = pixel_noise(x[::4, ::4], quantum)
     floor = float(np.median(x[::4, ::4]))
-    rows, cols = np.nonzero(x > floor + DETECT_SIGMAS * noise)
+    inner = np.zeros(x.shape, bool)
+    inner[1:-1, 1:-1] = True
+    rows, cols = np.nonzero((x > floor + DETECT_SIGMAS * noise) & inner)
     spikes = np.zeros(x.shape, bool)
     if 0 < rows.size <= 0.25 * x.size:  # more: a bright scene, not a dot lattice
-        padded = np.pad(x, 1, mode="edge")
         off = np.arange(-1, 2)
-        block = padded[
-            rows[:, None, None] + 1 + off[None, :, None],
-            cols[:, None, None] + 1 + off[None, None, :],
+        block = x[
+            rows[:, None, None] + off[None, :, None], cols[:, None, None] + off[None, None, :]
         ]
-        med = np.median(block.reshape(rows.size, 9), axis=1)
-        spike = x[rows, cols] - med > DETECT_SIGMAS * noise
+        block = block.reshape(rows.size, 9)
+        # A spike is the highest pixel of its 3 x 3 block: the wing of a blurred
+        # dot also stands above its neighbours' median, but falls away from the dot.
+        spike = (x[rows, cols] - np.median(block, axis=1) > DETECT_SIGMAS * noise) & (
+            x[rows, cols] >= block.max(axis=1)
+        )
         spikes[rows[spike], cols[spike]] = True
     repaired = away_from_dots(spikes, lattice)
     return repair_pixels(x, repaired), repaired

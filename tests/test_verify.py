@@ -728,6 +728,19 @@ def test_background_gradient_leaves_the_lattice_right(tmp_path, levels):
     assert report["lattice"]["pitch_px"] == pytest.approx(PITCH_PX, rel=1e-3)
 
 
+def test_spike_repair_leaves_the_wings_of_blurred_dots_alone(levels):
+    from fab.lattice import repair_stray_spikes
+
+    sim = simulate_capture(
+        levels, L, pitch_px=PITCH_PX, seed=32, shape=(300, 300), bits=16, blur_sigma_px=0.8
+    )
+    image = sim["capture"].astype(np.float32)
+    lattice, _ = register_lattice(image, PITCH_PX)
+    fixed, repaired = repair_stray_spikes(image, lattice)
+    assert not repaired.any()
+    assert np.array_equal(fixed, image)
+
+
 def test_pixel_noise_is_at_least_the_rounding_noise_of_the_codes():
     from fab.lattice import pixel_noise
 
