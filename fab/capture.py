@@ -116,6 +116,7 @@ def read_raw_image(path):
         if pixels is None or inp.has_error:
             raise InputError(path, f"truncated or corrupt image ({_one_line(inp.geterror())})")
         exposure = spec.get_float_attribute("ExposureTime", 0.0) or None
+        file_orientation = spec.get_int_attribute("Orientation", 1)
         if inp.seek_subimage(1, 0):  # a multi-page TIFF: which page is the capture?
             raise InputError(path, "holds several images (pages); give one capture per file")
     finally:
@@ -124,6 +125,13 @@ def read_raw_image(path):
     if pixels.ndim == 2:
         pixels = pixels[..., None]
     notes = []
+    if file_orientation != 1:
+        # Viewers turn such an image; the pixels are used as stored, and
+        # --orientation describes the stored image.
+        notes.append(
+            f"the file's Orientation tag is {file_orientation} (a viewer shows the image "
+            "turned or flipped): read as stored, which --orientation must describe"
+        )
     if pixels.shape[2] > 1:
         colour = pixels[..., : min(3, pixels.shape[2])]
         if not np.all(colour == colour[..., :1]):

@@ -171,3 +171,18 @@ def test_a_folder_is_named_as_a_folder(tmp_path, reader):
     # the decoders' "[Errno 21] Is a directory".
     with pytest.raises(InputError, match="is a folder, not an image file"):
         READERS.get(reader, read_raw)(tmp_path)
+
+
+def test_a_tiff_orientation_tag_is_noted_and_the_pixels_kept_as_stored(tmp_path):
+    import OpenImageIO as oiio
+
+    path = tmp_path / "turned.tif"
+    pixels = np.arange(12, dtype=np.uint16).reshape(3, 4)
+    spec = oiio.ImageSpec(4, 3, 1, "uint16")
+    spec.attribute("Orientation", 3)  # viewers show it rotated by 180 degrees
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), spec) and out.write_image(pixels[..., None])
+    out.close()
+    raw = read_raw_image(path)
+    assert np.array_equal(raw.data, pixels)
+    assert any("Orientation tag is 3" in n for n in raw.notes)
