@@ -184,7 +184,8 @@ def _depth(args):
             "shift_ps": args.shift_ps,
             "gate": gate_summary,
             "min_significance": args.min_significance,
-            "timing_convention": "counts(t_k) = A h(t_k - mu) + b, t_k = k * shift; "
+            "timing_convention": "counts(t_k) = A h(t_k - mu) + b, t_k = k * shift, the "
+            "gate's opening after the laser pulse; h(x) = integral G(t) Pi(t - x) dt; "
             "depth_m = c * mu / 2",
         }
         for prefix, data in cubes.items():

@@ -1,14 +1,19 @@
 """Gated-SPAD time profiles: the gate response model and a vectorised per-pixel fit.
 
 A gated SPAD scans a gate across the returning laser pulse in steps of
-``shift``; sample k of a pixel is taken at scan time ``t_k = k * shift`` and its
-expected count is (a convolution, see docs/depth.md)::
+``shift``: gate k opens ``t_k = k * shift`` after the laser pulse, and a photon
+arriving at time t is counted with the gate's sensitivity Pi(t - t_k). The
+expected count of sample k of a pixel whose light arrives at ``mu`` is (see
+docs/depth.md)::
 
-    m_k = A * h(t_k - mu) + b,        h = G * Pi, normalised to peak 1,
+    m_k = A * h(t_k - mu) + b,    h(x) = integral G(t) Pi(t - x) dt, peak 1,
 
-with G the laser pulse centred at 0 and Pi the gate response: an RC-distorted
-rectangle on [0, width] (rise ``1 - exp(-t/rise)`` inside it, exponential decay
-with ``fall`` after it) blurred by a band-limit Gaussian. ``mu`` is the arrival
+with G the laser pulse centred at 0 and Pi the gate's sensitivity against the
+time since it opened: an RC-distorted rectangle on [0, width] (rise
+``1 - exp(-t/rise)`` inside it, exponential decay with ``fall`` after it)
+blurred by a band-limit Gaussian. h is G convolved with Pi reversed in time:
+over the scan, the profile climbs with the gate's fall and drops to 0 along its
+rise as the gate opens after the light has come (t_k > mu). ``mu`` is the arrival
 time; the round-trip depth is ``c * mu / 2``.
 
 The fit of (A, mu, b) runs on all pixels at once: a coarse grid search over mu
@@ -160,7 +165,10 @@ class _Table:
 
 
 def gate_response(model=None, step=1e-12):
-    """Return the response h = G * Pi of a parametric gate model, normalised to peak 1.
+    """Return the response h(x) = integral G(t) Pi(t - x) dt of a gate model, peak 1.
+
+    x = t_k - mu is the gate's opening time less the light's arrival: h is the
+    pulse G convolved with the gate Pi reversed in time (see the module docstring).
 
     Parameters
     ----------
@@ -198,6 +206,8 @@ def gate_response(model=None, step=1e-12):
     right_after_end = end_value * _decay(np.array([0.0]), model.fall)[0]
     gate[np.isclose(t, 0.0, atol=step / 4)] = 0.5 * _rise(np.array([0.0]), model.rise)[0]
     gate[np.isclose(t, model.width, atol=step / 4)] = 0.5 * (end_value + right_after_end)
+    # A gate opening x after the light sees it at time -x of its own: reverse Pi.
+    gate, t = gate[::-1], -t[::-1]
 
     # Kernels centred on the grid so that the convolution keeps the time origin.
     kt = np.arange(-np.ceil(10 * blur / step), np.ceil(10 * blur / step) + 1) * step
@@ -290,9 +300,12 @@ def response_from_irf(irf, shift, t_ref=0.0, step=1e-12):
 def _edge_extension(ts, y, step, leading):
     """Extend a cut edge beyond ts[0] (ts ordered from the edge inwards), or None.
 
-    The leading edge of h is a blurred step, whose logarithm is concave: a
-    parabola through log h of the edge samples extends it as a Gaussian. A
-    trailing edge decays exponentially: a straight line in log h.
+    An edge of h is a blurred step (the late edge, where the gate opens after
+    the light: its RC rise blurred by the pulse), whose logarithm is concave,
+    or an exponential decay (the early edge, the gate's fall; a straight line in
+    log h). A parabola through log h of the four edge samples extends either: a
+    Gaussian where it curves, an exponential where it does not; a straight line
+    through the last two samples where the parabola opens upwards.
     """
     if y[0] <= 1e-6:
         return None
@@ -303,7 +316,7 @@ def _edge_extension(ts, y, step, leading):
     direction = -1.0 if leading else 1.0
     dist = np.abs(ts - ts[0])
     coef = None
-    if leading and ts.size >= 3:
+    if ts.size >= 3:
         c2, c1, c0 = np.polyfit(dist, ly, 2)
         if c2 < 0 and c1 > 0:
             coef = (c2, c1, c0)

@@ -33,39 +33,41 @@ def response():
     return gate_response(GateModel())
 
 
-def scene(shape, amplitude, background, response, seed):
+def scene(shape, amplitude, background, response, seed, margin=None):
     rng = np.random.default_rng(seed)
-    return random_scene(shape, amplitude, background, SHIFT, T, response, rng)
+    return random_scene(shape, amplitude, background, SHIFT, T, response, rng, margin)
 
 
 # --- the gate model ---------------------------------------------------------------------
 
 
 def test_rectangular_gate_is_a_difference_of_error_functions():
-    # No RC distortion: h = Gaussian(sqrt(s_pulse^2 + s_band^2)) * rect[0, w].
+    # No RC distortion: a gate open on [x, x + w] after the light's arrival catches
+    # the share of a Gaussian (sigma sqrt(s_pulse^2 + s_band^2)) arriving in it.
     model = GateModel(width=200 * PS, rise=0.0, fall=0.0, band_sigma=100 * PS, pulse_fwhm=80 * PS)
     h = gate_response(model)
     s = np.hypot(80 * PS / FWHM_PER_SIGMA, 100 * PS)
 
-    def oracle(t):
-        return 0.5 * (erf(t / (sqrt(2) * s)) - erf((t - 200 * PS) / (sqrt(2) * s)))
+    def oracle(x):
+        return 0.5 * (erf((x + 200 * PS) / (sqrt(2) * s)) - erf(x / (sqrt(2) * s)))
 
-    t = np.linspace(-500, 700, 49) * PS
-    expected = np.array([oracle(x) for x in t]) / oracle(100 * PS)
-    np.testing.assert_allclose(h(t), expected, atol=2e-4)
-    assert h.peak_time == pytest.approx(100 * PS, abs=1.5 * PS)
+    x = np.linspace(-700, 500, 49) * PS
+    expected = np.array([oracle(v) for v in x]) / oracle(-100 * PS)
+    np.testing.assert_allclose(h(x), expected, atol=2e-4)
+    assert h.peak_time == pytest.approx(-100 * PS, abs=1.5 * PS)
 
 
 def test_rc_gate_follows_rise_and_fall_constants():
-    # A near-delta pulse and no band limit leave the RC gate itself, starting at t = 0.
+    # A near-delta pulse and no band limit leave the RC gate itself, reversed: the
+    # gate opening x = -t before the light sees it t after opening, Pi(t).
     model = GateModel(rise=40 * PS, fall=60 * PS, band_sigma=0.0, pulse_fwhm=1 * PS)
     h = gate_response(model)
     plateau = 1 - np.exp(-200 / 40)
     for t_ps in (20, 50, 100, 150):
-        assert h(t_ps * PS) == pytest.approx((1 - np.exp(-t_ps / 40)) / plateau, abs=2e-3)
+        assert h(-t_ps * PS) == pytest.approx((1 - np.exp(-t_ps / 40)) / plateau, abs=2e-3)
     for t_ps in (230, 260, 320):
-        assert h(t_ps * PS) == pytest.approx(np.exp(-(t_ps - 200) / 60), abs=2e-3)
-    assert h(-20 * PS) < 1e-6
+        assert h(-t_ps * PS) == pytest.approx(np.exp(-(t_ps - 200) / 60), abs=2e-3)
+    assert h(20 * PS) < 1e-6  # a gate opening after the light sees none of it
 
 
 def test_emg_pulse_delays_the_centroid_by_tau():
@@ -77,6 +79,39 @@ def test_emg_pulse_delays_the_centroid_by_tau():
         return np.sum(r.times * r.values) / np.sum(r.values)
 
     assert centroid(emg) - centroid(gauss) == pytest.approx(50 * PS, abs=0.5 * PS)
+
+
+def test_profile_is_the_gate_scanned_across_the_pulse_brute_force():
+    """Sample k counts the pulse arriving at mu through the gate opened at t_k = k * shift:
+    integral A G(t - mu) Pi(t - t_k) dt + b, summed here on a 0.1 ps grid from the
+    gate as docs/depth.md states it; the fit must return mu itself."""
+    model = GateModel(rise=40 * PS, fall=60 * PS, band_sigma=0.0, pulse_fwhm=80 * PS)
+    mu, amplitude, background = 700 * PS, 400.0, 2.0
+    dt = 0.1 * PS
+    t = np.arange(-2000, 4000, 0.1) * PS  # absolute time
+    sigma = model.pulse_fwhm / FWHM_PER_SIGMA
+    pulse = np.exp(-0.5 * ((t - mu) / sigma) ** 2)
+
+    def gate(tau):  # sensitivity tau after the gate opened
+        inside = (tau >= 0) & (tau <= model.width)
+        end = 1 - np.exp(-model.width / model.rise)
+        after = end * np.exp(-np.clip(tau - model.width, 0, None) / model.fall)
+        return np.where(inside, 1 - np.exp(-np.clip(tau, 0, None) / model.rise), 0.0) + np.where(
+            tau > model.width, after, 0.0
+        )
+
+    times = scan_times(T, SHIFT)
+    counts = np.array([np.sum(pulse * gate(t - tk)) * dt for tk in times])
+    expected = amplitude * counts / counts.max() + background
+    response = gate_response(model)
+    model_counts = expected_counts(response, times, amplitude, mu, background)
+    np.testing.assert_allclose(model_counts, expected, atol=0.01 * amplitude)
+    # the profile drops to the background as the gate opens after the light
+    assert expected[times > mu + 200 * PS].max() < background + 1e-3 * amplitude
+    cube = np.random.default_rng(0).poisson(np.tile(expected, (200, 1))).astype(float)
+    fit = fit_profiles(cube, SHIFT, response)
+    assert fit.valid.all()
+    assert np.mean(fit.timing) == pytest.approx(mu, abs=2 * PS)
 
 
 def test_expected_counts_convention(response):
@@ -142,7 +177,9 @@ def test_fit_is_scale_equivariant(response):
 
 def test_emg_pulse_fit(response):
     emg = gate_response(GateModel(pulse="emg", tau=60 * PS))
-    a, mu, b = scene((4, 4), 300.0, 2.0, emg, seed=7)
+    # The pulse's tail and the gate's fall reach out on both sides: profiles cut
+    # below 1e-3 of their peak (noise-free data: the fit still has them exactly).
+    a, mu, b = scene((4, 4), 300.0, 2.0, emg, seed=7, margin=800 * PS)
     fit = fit_profiles(simulate_cube(a, mu, b, T, SHIFT, emg), SHIFT, emg)
     np.testing.assert_allclose(fit.timing, mu, atol=0.01 * PS)
     # The Gaussian-pulse model misreads the same data: the pulse shape matters.
@@ -183,12 +220,17 @@ def test_all_zero_pixels_are_no_return(response):
 # --- the measured-IRF path ---------------------------------------------------------------
 
 
-def test_irf_path_matches_the_gate_model(response):
-    # The IRF of a reference at mu = 0 is cut at t = 0 (half-way up the leading edge):
-    # its extension must still serve later arrivals.
-    irf = response(scan_times(T, SHIFT))
-    from_irf = response_from_irf(irf, SHIFT)
-    t = np.linspace(-400, 1000, 141) * PS
+@pytest.mark.parametrize("edge", ["early", "late"])
+def test_irf_cut_by_the_scan_is_extended_and_serves_every_arrival(response, edge):
+    # A reference whose profile is cut by the scan half-way down its early edge
+    # (the gate's fall) or its late edge (the blurred RC rise as the gate opens
+    # after the light): the extension must still serve every arrival.
+    x = response.times[response.values >= 0.5]
+    t_ref = -x[0] if edge == "early" else (T - 1) * SHIFT - x[-1]
+    irf = response(scan_times(T, SHIFT) - t_ref)
+    assert irf[0 if edge == "early" else -1] == pytest.approx(0.5, abs=0.02)
+    from_irf = response_from_irf(irf, SHIFT, t_ref=t_ref)
+    t = np.linspace(-1000, 500, 151) * PS
     np.testing.assert_allclose(from_irf(t), response(t), atol=0.01)
     a, mu, b = scene((8, 8), 100.0, 3.0, response, seed=11)
     fit = fit_profiles(simulate_cube(a, mu, b, T, SHIFT, response), SHIFT, from_irf)
@@ -250,9 +292,10 @@ def test_cli_depth_of_a_dark_scene_reports_no_returns(tmp_path, capsys):
 
 def test_cli_depth_with_irf(tmp_path, response):
     path, mu = write_scene_cube(tmp_path, response)
-    np.save(tmp_path / "irf.npy", response(scan_times(T, SHIFT)))
+    np.save(tmp_path / "irf.npy", response(scan_times(T, SHIFT) - 1000 * PS))
     out = tmp_path / "out"
-    assert main(["depth", str(path), "--irf", str(tmp_path / "irf.npy"), "--out", str(out)]) == 0
+    irf = ["--irf", str(tmp_path / "irf.npy"), "--irf-t0-ps", "1000"]
+    assert main(["depth", str(path), *irf, "--out", str(out)]) == 0
     timing, valid = np.load(out / "timing_ps.npy"), np.load(out / "valid.npy")
     np.testing.assert_allclose(timing[valid], mu[valid] / PS, atol=25)
     # The IRF replaces the gate model: giving both is a usage error.
