@@ -460,7 +460,10 @@ def fit_profiles(
         _fit_chunk(y[i : i + chunk], t, table, lo_mu, hi_mu, grid, floor, max_iter) for i in starts
     ]
     a, mu, b, significance, deviance, mean = (np.concatenate(p) for p in zip(*parts, strict=True))
-    valid = (significance >= threshold) & (a > 0) & np.isfinite(mu)
+    # A fit stopped at an end of the searched range has no timing: its light came
+    # before or after the scan could place it.
+    inside = (mu > lo_mu) & (mu < hi_mu)
+    valid = (significance >= threshold) & (a > 0) & np.isfinite(mu) & inside
 
     # A no-return pixel is reported as the constant background, so its quality is that
     # model's: its deviance exceeds the full fit's by exactly the likelihood ratio.

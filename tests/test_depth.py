@@ -187,6 +187,20 @@ def test_emg_pulse_fit(response):
     assert np.mean(wrong.timing - mu) > 20 * PS
 
 
+def test_a_return_the_scan_cannot_place_has_no_timing(response):
+    # Light arriving after the scan ends shows only the rising flank of its profile
+    # (the gate's fall): significant, but the fit runs into the end of its range.
+    times = scan_times(T, SHIFT)
+    late, inside = T * SHIFT + 600 * PS, T * SHIFT - 700 * PS
+    m = np.stack([expected_counts(response, times, 5000.0, mu, 2.0) for mu in (late, inside)])
+    cube = np.random.default_rng(3).poisson(np.repeat(m, 50, axis=0)).astype(float)
+    fit = fit_profiles(cube, SHIFT, response)
+    assert fit.significance[:50].min() > 100  # light there is
+    assert not fit.valid[:50].any() and np.isnan(fit.timing[:50]).all()
+    assert fit.valid[50:].all()
+    assert np.median(fit.timing[50:]) == pytest.approx(inside, abs=2 * PS)
+
+
 def test_background_only_pixels_are_no_return(response):
     a, mu, b = scene((16, 16), 30.0, 3.0, response, seed=8)
     a[:8] = 0.0  # the top half sees no return at all
