@@ -2,10 +2,11 @@
 
 A cube is an (H, W, T) array of non-negative counts whose k-th sample is taken
 at scan time ``k * shift``: either one ``.npy`` file or a folder of per-shift
-frames (PNG/TIFF, 8 or 16 bit, single channel) sorted by file name. The
+frames (PNG/TIFF, 8 or 16 bit, single channel) sorted by file name (numbers as numbers). The
 readers validate and raise InputError naming the file; they never rescale.
 """
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -58,9 +59,20 @@ def read_cube(path):
     return check_cube(load_npy(path), path)
 
 
+def frame_order(path):
+    """Sort key of a frame file: its name with every run of digits compared as a number.
+
+    Cameras write ``frame_2`` as often as ``frame_002``; compared as text,
+    ``frame_10`` would come before ``frame_2`` and scramble the scan.
+    """
+    parts = re.split(r"(\d+)", path.name)
+    return [(1, int(p), p) if p.isdigit() else (0, 0, p) for p in parts]
+
+
 def _read_frame_folder(folder):
     files = sorted(
-        p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in FRAME_SUFFIXES
+        (p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in FRAME_SUFFIXES),
+        key=frame_order,
     )
     if not files:
         raise InputError(folder, f"no frames ({', '.join(FRAME_SUFFIXES)}) in this folder")

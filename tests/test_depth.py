@@ -382,13 +382,15 @@ def test_gate_model_limits():
         gate_response(GateModel(fall=1e-3))
 
 
-def test_frame_folder_is_read_as_uint16_in_name_order(tmp_path):
+@pytest.mark.parametrize("name", ["shift_{k:03d}.png", "shift_{k}.png"])
+def test_frame_folder_is_read_as_uint16_in_name_order(tmp_path, name):
+    # Unpadded numbers count as numbers: shift_2 comes before shift_10.
     rng = np.random.default_rng(13)
-    cube = rng.integers(0, 4000, size=(5, 7, 6)).astype(np.uint16)
+    cube = rng.integers(0, 4000, size=(5, 7, 12)).astype(np.uint16)
     folder = tmp_path / "frames"
     folder.mkdir()
     for k in range(cube.shape[-1]):
-        write_frame_png16(folder / f"shift_{k:03d}.png", cube[..., k] / 65535.0)
+        write_frame_png16(folder / name.format(k=k), cube[..., k] / 65535.0)
     np.testing.assert_array_equal(read_cube(folder), cube.astype(np.float64))
 
 
