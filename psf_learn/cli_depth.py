@@ -1,5 +1,6 @@
 """``doefab depth`` and ``doefab transient``: gated-SPAD cubes to depth, intensity and frames."""
 
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -290,11 +291,11 @@ def _transient(args):
     from doe.files import previous_files, save_npy, staged_output, write_json
     from psf_learn.cubes import read_cube, write_frame_png16
     from psf_learn.depth import scan_times
-    from psf_learn.depth_plots import check_gif_fps, save_gif
+    from psf_learn.depth_plots import gif_frame_centiseconds, save_gif
 
     shift = flags.positive("--shift-ps", args.shift_ps) * 1e-12
     try:
-        check_gif_fps(args.fps)
+        gif_fps = 100 / gif_frame_centiseconds(args.fps)
     except ValueError as e:
         raise InputError("--fps", str(e)) from None
     cube = read_cube(args.cube)
@@ -332,7 +333,14 @@ def _transient(args):
                 "super_resolved": bool(args.sr),
                 "png_full_scale_counts": scale,
                 "png_note": "frame PNGs are 16-bit, counts = value / 65535 * png_full_scale_counts",
+                "gif_fps": gif_fps,
             },
+        )
+    if abs(gif_fps - args.fps) > 0.005 * args.fps:
+        print(
+            f"transient: preview.gif plays at {gif_fps:.4g} fps, the nearest to --fps "
+            f"{args.fps:g} (a GIF frame lasts whole hundredths of a second)",
+            file=sys.stderr,
         )
     print(
         f"transient: {frames.shape[0]} frames of {frames.shape[1]} x {frames.shape[2]}; "

@@ -7,8 +7,9 @@ on the data.
 import numpy as np
 
 PNG_META = {"Software": None}
-# A GIF frame lasts a whole number of centiseconds, 1 to 65535 (a 16-bit field).
-GIF_FPS_RANGE = (100 / 65535, 100.0)
+# A GIF frame lasts a whole number of centiseconds, up to 65535 (a 16-bit field);
+# browsers play 0 or 1 centisecond as 10, so 2 (50 fps) is the shortest that plays.
+GIF_FPS_RANGE = (100 / 65535, 50.0)
 
 
 def _figure(figsize):
@@ -80,6 +81,12 @@ def check_gif_fps(fps):
         raise ValueError(f"a GIF plays {lo:.4g} to {hi:g} frames per second, got {fps:g}")
 
 
+def gif_frame_centiseconds(fps):
+    """Return how long a GIF frame lasts at ``fps`` (whole centiseconds, the nearest)."""
+    check_gif_fps(fps)
+    return min(max(round(100 / fps), 2), 65535)
+
+
 def save_gif(path, frames, fps=10, min_width=256):
     """Save an animated GIF of (T, H, W) frames on one common grey scale.
 
@@ -89,7 +96,7 @@ def save_gif(path, frames, fps=10, min_width=256):
     """
     from PIL import Image
 
-    check_gif_fps(fps)
+    centiseconds = gif_frame_centiseconds(fps)
     frames = np.asarray(frames, dtype=np.float64)
     vmax = float(frames.max()) or 1.0
     zoom = max(1, int(np.ceil(min_width / frames.shape[2])))
@@ -101,6 +108,6 @@ def save_gif(path, frames, fps=10, min_width=256):
         format="GIF",
         save_all=True,
         append_images=images[1:],
-        duration=round(1000 / fps),
+        duration=10 * centiseconds,  # ms; Pillow stores whole centiseconds
         loop=0,
     )

@@ -1,5 +1,6 @@
 """Gated-SPAD depth: gate model oracles, per-pixel fit recovery, IRF path, CLI contract."""
 
+import json
 import subprocess
 import sys
 import types
@@ -356,10 +357,24 @@ def test_bad_flags_are_refused(tmp_path, response, capsys):
         assert main(["depth", str(path), "--out", str(tmp_path / "o"), *flags]) == 2
         assert len(capsys.readouterr().err.strip().splitlines()) == 1
     assert not (tmp_path / "o").exists()
-    for fps in ("0", "1000"):
+    for fps in ("0", "60", "1000"):  # a GIF frame of under 2 centiseconds plays as 10
         assert main(["transient", str(path), "--out", str(tmp_path / "t"), "--fps", fps]) == 2
         assert "--fps" in capsys.readouterr().err
     assert not (tmp_path / "t").exists()
+
+
+@pytest.mark.parametrize("fps, centiseconds", [(10, 10), (30, 3), (50, 2), (0.5, 200)])
+def test_preview_gif_plays_at_the_nearest_whole_centisecond(tmp_path, response, fps, centiseconds):
+    from PIL import Image
+
+    path, _ = write_scene_cube(tmp_path, response, shape=(2, 2))
+    out = tmp_path / "t"
+    assert main(["transient", str(path), "--out", str(out), "--fps", str(fps)]) == 0
+    with Image.open(out / "preview.gif") as gif:
+        gif.seek(1)
+        assert gif.info["duration"] == 10 * centiseconds
+    played = json.loads((out / "transient.json").read_text())["gif_fps"]
+    assert played == pytest.approx(100 / centiseconds)
 
 
 def test_scan_must_sample_the_response():
