@@ -217,6 +217,9 @@ def gate_response(model=None, step=1e-12):
     if model.pulse == "emg":
         n_tau = int(np.ceil(25 * model.tau / step))
         tail = np.concatenate([np.zeros(n_tau), np.exp(-np.arange(n_tau + 1) * step / model.tau)])
+        # The jump at 0 carries the mean of its limits: the tail's mean is then tau,
+        # not tau - step / 2.
+        tail[n_tau] *= 0.5
         kernel = np.convolve(kernel, tail / tail.sum(), mode="full")
         pad = (kernel.size - kt.size) // 2
         kt = np.arange(-(kt.size // 2) - pad, kt.size // 2 + pad + 1) * step

@@ -79,7 +79,7 @@ def test_emg_pulse_delays_the_centroid_by_tau():
     def centroid(r):
         return np.sum(r.times * r.values) / np.sum(r.values)
 
-    assert centroid(emg) - centroid(gauss) == pytest.approx(50 * PS, abs=0.5 * PS)
+    assert centroid(emg) - centroid(gauss) == pytest.approx(50 * PS, abs=0.05 * PS)
 
 
 def test_profile_is_the_gate_scanned_across_the_pulse_brute_force():
