@@ -452,7 +452,9 @@ def fit_profiles(
 
     lo_mu, hi_mu = _timing_range(t, response)
     grid = grid_step / _PS if grid_step else max(response.fwhm / _PS / 25, step)
-    floor = 1e-9 * max(1.0, float(y.max(initial=0.0)))
+    # The smallest expected count (keeps log m finite), per pixel: one bright pixel
+    # must not raise the floor of the dim ones.
+    floor = 1e-9 * np.maximum(y.max(axis=1, initial=0.0), 1.0)[:, None]
     # Chunks of pixels bound the (pixels, T, 3) work arrays of a super-resolved cube.
     starts = range(0, y.shape[0], chunk)
     if progress and len(starts) > 1:
@@ -460,7 +462,8 @@ def fit_profiles(
 
         starts = tqdm(starts, desc="fit", unit="chunk", disable=None)
     parts = [
-        _fit_chunk(y[i : i + chunk], t, table, lo_mu, hi_mu, grid, floor, max_iter) for i in starts
+        _fit_chunk(y[i : i + chunk], t, table, lo_mu, hi_mu, grid, floor[i : i + chunk], max_iter)
+        for i in starts
     ]
     a, mu, b, significance, deviance, mean = (np.concatenate(p) for p in zip(*parts, strict=True))
     # A fit stopped at an end of the searched range has no timing: its light came
@@ -519,7 +522,7 @@ def _fit_chunk(y, t, table, lo_mu, hi_mu, grid, floor, max_iter):
     a, mu, b = _poisson_lm(y, model, a, mu, b, lo_mu, hi_mu, floor, max_iter)
     m = np.maximum(model(a, mu, b)[2], floor)
     mean = y.mean(axis=1)
-    nll_bg = _poisson_nll(y, np.maximum(mean, floor)[:, None])
+    nll_bg = _poisson_nll(y, np.maximum(mean[:, None], floor))
     significance = np.maximum(2 * (nll_bg - _poisson_nll(y, m)), 0.0)
     deviance = 2 * np.sum(xlogy(y, y) - xlogy(y, m) - (y - m), axis=1)
     return a, mu, b, significance, deviance, mean
@@ -600,7 +603,7 @@ def _poisson_lm(y, model, a, mu, b, lo_mu, hi_mu, floor, max_iter):
         nmu = np.clip(mu[idx] + delta[:, 1], lo_mu, hi_mu)
         nb = np.maximum(b[idx] + delta[:, 2], 0.0)
         nh, ndh, nm = model(na, nmu, nb)
-        nm = np.maximum(nm, floor)
+        nm = np.maximum(nm, floor[idx])
         new_nll = _poisson_nll(ya, nm)
         better = new_nll <= nll[idx]
         acc = idx[better]

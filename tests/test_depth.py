@@ -202,6 +202,17 @@ def test_a_return_the_scan_cannot_place_has_no_timing(response):
     assert np.median(fit.timing[50:]) == pytest.approx(inside, abs=2 * PS)
 
 
+def test_a_bright_pixel_leaves_the_fits_of_the_others_alone(response):
+    a, mu, b = scene((4, 8), 20.0, 0.05, response, seed=14)
+    cube = simulate_cube(a, mu, b, T, SHIFT, response, np.random.default_rng(15))
+    alone = fit_profiles(cube, SHIFT, response)
+    bright = cube.astype(float)
+    bright[0, 0] *= 1e8
+    beside = fit_profiles(bright, SHIFT, response)
+    np.testing.assert_allclose(beside.significance[1:], alone.significance[1:], rtol=1e-9)
+    np.testing.assert_allclose(beside.timing[1:], alone.timing[1:], rtol=1e-9)
+
+
 def test_background_only_pixels_are_no_return(response):
     a, mu, b = scene((16, 16), 30.0, 3.0, response, seed=8)
     a[:8] = 0.0  # the top half sees no return at all
