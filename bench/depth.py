@@ -136,6 +136,23 @@ def speed(response, seed, repeats=5):
           f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")  # fmt: skip
 
 
+def memory(response, seed):
+    """Peak memory of the fit (tracemalloc): it must grow as pixels x samples, not T^2."""
+    import tracemalloc
+
+    rng = np.random.default_rng(seed + 2)
+    print()
+    for pixels, samples in ((16, 1000), (16, 4000), (2048, 200), (2048, 1000)):
+        a, mu, b = random_scene((pixels, 1), 100.0, 5.0, SHIFT, samples, response, rng)
+        cube = simulate_cube(a, mu, b, samples, SHIFT, response, rng)
+        tracemalloc.start()
+        fit_profiles(cube, SHIFT, response)
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        print(f"memory, {pixels} pixels x {samples} samples: peak {peak / 1e6:.0f} MB "
+              f"= {peak / (pixels * samples):.0f} bytes per pixel-sample")  # fmt: skip
+
+
 def _children_cpu():
     usage = resource.getrusage(resource.RUSAGE_CHILDREN)
     return usage.ru_utime + usage.ru_stime
@@ -149,6 +166,7 @@ def main():
     response = gate_response(GateModel())
     accuracy(response, args.subset, args.seed)
     speed(response, args.seed)
+    memory(response, args.seed)
 
 
 if __name__ == "__main__":

@@ -432,7 +432,7 @@ def fit_profiles(
     grid_step : float or None
         Spacing of the initial mu grid (s); default a 1/25 of h's FWHM.
     chunk : int
-        Pixels fitted together (memory: about 100 * chunk * T bytes).
+        Pixels fitted together (memory: about 200 * chunk * T bytes, bench/depth.py).
     progress : bool
         Show a tqdm bar over the chunks on stderr (when it is a terminal).
 
@@ -535,26 +535,45 @@ def _timing_range(t, response):
 
 
 def _grid_start(y, t, table, lo_mu, hi_mu, grid_step):
-    """Initial (A, mu, b) per pixel from a least-squares matched filter over a mu grid."""
+    """Initial (A, mu, b) per pixel from a least-squares matched filter over a mu grid.
+
+    The grid is scanned in blocks of at most max(16, min(P, T)) points (each with
+    its two neighbours, for the refinement), so that its work arrays stay within
+    those of the fit: the grid grows with T, and all of it at once would take
+    memory growing as T^2.
+    """
     mus = np.arange(lo_mu, hi_mu + grid_step, grid_step)
-    hg = table(t[None, :] - mus[:, None])  # (M, T)
-    hc = hg - hg.mean(axis=1, keepdims=True)
-    var = np.maximum(np.sum(hc * hc, axis=1), 1e-30)
     yc = y - y.mean(axis=1, keepdims=True)
-    cov = yc @ hc.T  # (P, M)
-    score = np.where(cov > 0, cov * cov / var, 0.0)
-    j = np.argmax(score, axis=1)
-    rows = np.arange(y.shape[0])
+    n = y.shape[0]
+    rows = np.arange(n)
+    best, j = np.full(n, -np.inf), np.zeros(n, dtype=np.intp)
+    s_left, s_right, edge = np.zeros(n), np.zeros(n), np.zeros(n, dtype=bool)
+    slope, h_mean = np.zeros(n), np.zeros(n)
+    block = max(16, min(n, t.size))
+    for first in range(0, mus.size, block):
+        lo, hi = max(first - 1, 0), min(first + block + 1, mus.size)
+        hg = table(t[None, :] - mus[lo:hi, None])  # (B + 2, T)
+        hc = hg - hg.mean(axis=1, keepdims=True)
+        var = np.maximum(np.sum(hc * hc, axis=1), 1e-30)
+        cov = yc @ hc.T  # (P, B + 2)
+        score = np.where(cov > 0, cov * cov / var, 0.0)
+        inner = score[:, first - lo : min(first + block, mus.size) - lo]
+        k = np.argmax(inner, axis=1) + (first - lo)
+        better = score[rows, k] > best
+        kl, kr = np.maximum(k - 1, 0), np.minimum(k + 1, hi - lo - 1)
+        best[better], j[better] = score[rows, k][better], lo + k[better]
+        s_left[better], s_right[better] = score[rows, kl][better], score[rows, kr][better]
+        edge[better] = ((kl == k) | (kr == k))[better]
+        slope[better] = (cov[rows, k] / var[k])[better]
+        h_mean[better] = hg.mean(axis=1)[k][better]
     # Sub-grid refinement: vertex of the parabola through the three scores around the peak.
-    jl, jr = np.clip(j - 1, 0, mus.size - 1), np.clip(j + 1, 0, mus.size - 1)
-    s0, sl, sr = score[rows, j], score[rows, jl], score[rows, jr]
-    curv = sl - 2 * s0 + sr
+    curv = s_left - 2 * best + s_right
     offset = np.where(
-        (curv < 0) & (jl != j) & (jr != j), 0.5 * (sl - sr) / np.where(curv < 0, curv, -1.0), 0.0
+        (curv < 0) & ~edge, 0.5 * (s_left - s_right) / np.where(curv < 0, curv, -1.0), 0.0
     )
     mu = mus[j] + np.clip(offset, -0.5, 0.5) * grid_step
-    a = np.maximum(cov[rows, j] / var[j], 0.0)
-    b = np.maximum(y.mean(axis=1) - a * hg[j].mean(axis=1), 0.0)
+    a = np.maximum(slope, 0.0)
+    b = np.maximum(y.mean(axis=1) - a * h_mean, 0.0)
     return a, mu, b
 
 
