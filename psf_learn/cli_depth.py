@@ -18,6 +18,10 @@ DEPTH_ARRAYS = (
     "valid",
 )
 DEPTH_FIGURES = ("intensity.png", "depth.png", "pixel_fits.png")
+# Above this median Poisson deviance per degree of freedom (1 for profiles that
+# follow the model) the returns do not follow it: the cube's time axis in the wrong
+# place or scrambled gave 15-86 in the review, pile-up 9-11.
+FIT_QUALITY_WARN = 3.0
 GATE_FLAGS = {  # flag attribute -> (default, GateModel field, help)
     "gate_width_ps": (200.0, "width", "length of the undistorted gate rectangle [0, width]"),
     "rise_ps": (40.0, "rise", "RC rise constant inside the gate, 1 - exp(-t / rise)"),
@@ -194,7 +198,10 @@ def _depth(args):
             folder.mkdir(exist_ok=True)
             stats = _fit_and_write(folder, data, shift, response, args.min_significance, save_npy)
             summary["sr" if prefix else "native"] = stats
+        summary["warnings"] = _model_warnings(summary)
         write_json(stage / "depth.json", summary)
+    for warning in summary["warnings"]:
+        print(f"depth: warning: {warning}", file=sys.stderr)
     s = summary["native"]
     timing = (
         f"timing {s['timing_ps_min']:.1f} .. {s['timing_ps_max']:.1f} ps"
@@ -263,7 +270,25 @@ def _fit_and_write(folder, cube, shift, response, threshold, save_npy):
         "timing_ps_min": float(valid_t.min()) if valid_t.size else float("nan"),
         "timing_ps_max": float(valid_t.max()) if valid_t.size else float("nan"),
         "median_fit_quality": float(np.median(fit.fit_quality)),
+        "median_fit_quality_of_returns": float(np.median(fit.fit_quality[fit.valid]))
+        if fit.valid.any()
+        else None,
     }
+
+
+def _model_warnings(summary):
+    """Say when the returns' profiles do not follow the response model at all."""
+    warnings = []
+    for key in ("native", "sr"):
+        quality = summary.get(key, {}).get("median_fit_quality_of_returns")
+        if quality is not None and quality > FIT_QUALITY_WARN:
+            warnings.append(
+                f"the {key} returns' profiles do not follow the response model (median "
+                f"fit quality {quality:.3g}; about 1 when they do): check that the cube "
+                "is (H, W, T) with time last and its frames in scan order, --shift-ps, "
+                "the gate parameters or --irf, and clipped or piled-up counts"
+            )
+    return warnings
 
 
 def _example_pixels(fit):

@@ -330,6 +330,22 @@ def test_cli_depth_with_irf(tmp_path, response):
     assert not (tmp_path / "o2").exists()
 
 
+def test_cli_depth_warns_when_the_profiles_do_not_follow_the_model(tmp_path, response, capsys):
+    path, _ = write_scene_cube(tmp_path, response, shape=(4, 40), amplitude=300.0)
+    cube = np.load(path)
+    out = tmp_path / "out"
+    assert main(["depth", str(path), "--out", str(out)]) == 0
+    assert "warning" not in capsys.readouterr().err
+    assert json.loads((out / "depth.json").read_text())["warnings"] == []
+    # The same counts with the time axis first: (T, H, W) read as (H, W, T).
+    wrong = tmp_path / "wrong.npy"
+    np.save(wrong, np.ascontiguousarray(np.moveaxis(cube, -1, 0)))
+    assert main(["depth", str(wrong), "--out", str(tmp_path / "o2")]) == 0
+    err = capsys.readouterr().err
+    assert "do not follow the response model" in err and "(H, W, T)" in err
+    assert json.loads((tmp_path / "o2" / "depth.json").read_text())["warnings"]
+
+
 def bad_cubes():
     good = np.ones((4, 5, 10))
     nan = good.copy()
