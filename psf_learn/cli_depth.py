@@ -22,6 +22,9 @@ DEPTH_FIGURES = ("intensity.png", "depth.png", "pixel_fits.png")
 # follow the model) the returns do not follow it: the cube's time axis in the wrong
 # place or scrambled gave 15-86 in the review, pile-up 9-11.
 FIT_QUALITY_WARN = 3.0
+# An IRF cut above this share of its peak is extended over much of its shape (the
+# extension is good to ~0.01 of the peak for a cut at half the peak, tested).
+IRF_CUT_WARN = 0.5
 GATE_FLAGS = {  # flag attribute -> (default, GateModel field, help)
     "gate_width_ps": (200.0, "width", "length of the undistorted gate rectangle [0, width]"),
     "rise_ps": (40.0, "rise", "RC rise constant inside the gate, 1 - exp(-t / rise)"),
@@ -120,7 +123,8 @@ def _response(args):
         t0 = 0.0 if args.irf_t0_ps is None else args.irf_t0_ps
         if not np.isfinite(t0):
             raise InputError("--irf-t0-ps", "must be a finite number")
-        return response_from_irf(irf, shift, t0 * 1e-12), {"irf": str(args.irf), "irf_t0_ps": t0}
+        summary = {"irf": str(args.irf), "irf_t0_ps": t0, "warnings": _irf_warnings(irf)}
+        return response_from_irf(irf, shift, t0 * 1e-12), summary
     if args.irf_t0_ps is not None:
         raise InputError("--irf-t0-ps", "only applies with --irf")
     params = {}
@@ -143,6 +147,19 @@ def _response(args):
         return gate_response(model), summary
     except ValueError as e:
         raise InputError("gate model", f"{e}; check the gate flags (ps)") from None
+
+
+def _irf_warnings(irf):
+    """Say when the reference's profile is cut high up at an end of the scan."""
+    y = np.clip(np.asarray(irf, dtype=np.float64), 0.0, None)
+    y = y / y.max()
+    return [
+        f"the IRF is cut at {value:.2f} of its peak at the {end} of the scan: beyond it "
+        "h is extrapolated (a few ps of timing bias); place the reference so that its "
+        "whole profile lies in the scan"
+        for end, value in (("start", y[0]), ("end", y[-1]))
+        if value > IRF_CUT_WARN
+    ]
 
 
 def _super_resolve_cube(model_dir, cube):
@@ -198,7 +215,7 @@ def _depth(args):
             folder.mkdir(exist_ok=True)
             stats = _fit_and_write(folder, data, shift, response, args.min_significance, save_npy)
             summary["sr" if prefix else "native"] = stats
-        summary["warnings"] = _model_warnings(summary)
+        summary["warnings"] = gate_summary.pop("warnings", []) + _model_warnings(summary)
         write_json(stage / "depth.json", summary)
     for warning in summary["warnings"]:
         print(f"depth: warning: {warning}", file=sys.stderr)

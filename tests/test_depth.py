@@ -346,6 +346,19 @@ def test_cli_depth_warns_when_the_profiles_do_not_follow_the_model(tmp_path, res
     assert json.loads((tmp_path / "o2" / "depth.json").read_text())["warnings"]
 
 
+def test_cli_depth_warns_when_the_irf_is_cut_high_up(tmp_path, response, capsys):
+    path, _ = write_scene_cube(tmp_path, response)
+    x = response.times[response.values >= 0.8]  # cut at 0.8 of the peak, at the end
+    t_ref = (T - 1) * SHIFT - x[-1]
+    np.save(tmp_path / "irf.npy", response(scan_times(T, SHIFT) - t_ref))
+    args = ["--irf", str(tmp_path / "irf.npy"), "--irf-t0-ps", str(t_ref / PS)]
+    assert main(["depth", str(path), *args, "--out", str(tmp_path / "out")]) == 0
+    err = capsys.readouterr().err
+    assert "IRF is cut at 0.8" in err and "end of the scan" in err
+    warnings = json.loads((tmp_path / "out" / "depth.json").read_text())["warnings"]
+    assert len(warnings) == 1 and "IRF" in warnings[0]
+
+
 def bad_cubes():
     good = np.ones((4, 5, 10))
     nan = good.copy()
