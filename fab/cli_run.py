@@ -9,6 +9,8 @@ from doe.errors import InputError
 MESH_FORMATS = "ply,glb,3mf,stl,step"
 NO_MESH = "none"  # --formats value that leaves the mesh stage out
 STAGE_NAMES = ("learn", "retrieve", "fab", "mesh")  # every stage a run can plan, in order
+# The run's own summaries of its stages: rewritten by every run that redoes a stage.
+SUMMARY_FILES = ("index.html", "manifest.json", "timings.json")
 
 
 def register(sub):
@@ -107,7 +109,12 @@ def _run_stages(args, run_dir, design):
     from fab.pipeline import check_overwrite, is_current, load_state, run_stage, save_state
     from fab.run_report import write_index, write_manifest
 
-    state = {} if args.force else load_state(run_dir)
+    try:
+        state = load_state(run_dir)  # with --force too: it tells the run's files from the lab's
+    except InputError:
+        if not args.force:
+            raise
+        state = {}
     if (
         not state
         and not args.force
@@ -118,15 +125,24 @@ def _run_stages(args, run_dir, design):
         )
     timings = {}
     stages = plan(args, run_dir, design)
+    # Before any stage runs: an edited output would stop the run half-way.
+    for stage in stages:
+        check_overwrite(stage, state, run_dir, args.force)
+    summaries_gone = False
     for i, stage in enumerate(stages, 1):
         # inputs of later stages exist only once earlier ones ran: plan lazily
         if not args.force and is_current(stage, state, run_dir):
             print(f"[{i}/{len(stages)}] {stage.name}: up to date, skipped", file=sys.stderr)
             continue
-        check_overwrite(stage, state, run_dir, args.force)
+        if not summaries_gone:
+            # The front page and manifest describe the stages as they were: a run
+            # stopped from here on must not leave them presenting a mix as current.
+            for name in SUMMARY_FILES:
+                (run_dir / name).unlink(missing_ok=True)
+            summaries_gone = True
         print(f"[{i}/{len(stages)}] {stage.name}: doefab {' '.join(stage.argv)}", file=sys.stderr)
         t0 = time.perf_counter()
-        code = run_stage(stage, run_dir, state, doefab)
+        code = run_stage(stage, run_dir, state, doefab, args.force)
         timings[stage.name] = round(time.perf_counter() - t0, 2)
         if code != 0:
             print(f"doefab run: stage {stage.name} failed (exit {code})", file=sys.stderr)

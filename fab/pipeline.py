@@ -6,8 +6,9 @@ input files; ``run_state.json`` records, per finished stage, the key and the
 SHA-256 of every file it wrote and of the files those replaced. A re-run
 skips a stage whose key and files are unchanged (so an interrupted run resumes
 at the first unfinished stage), redoes it when an input changed, and never
-overwrites a file that the run did not write itself (or that was edited since)
-unless ``force``.
+overwrites a file that was edited since the run wrote it unless ``force``. A
+lab's own files in a stage's folder (names the run never wrote) are kept
+through every re-run, ``force`` included.
 """
 
 import contextlib
@@ -123,39 +124,68 @@ def load_state(run_dir):
 
 
 def is_current(stage, state, run_dir):
-    """True when ``stage`` finished before with the same key and untouched outputs."""
+    """True when ``stage`` finished before with the same key and its outputs untouched.
+
+    Files of the lab's own beside them do not count.
+    """
     rec = state.get(stage.name)
     if not rec or rec.get("key") != stage_key(stage, run_dir):
         return False
-    return stage_files(Path(run_dir) / stage.name) == rec.get("files")
+    files = stage_files(Path(run_dir) / stage.name)
+    return all(files.get(p) == h for p, h in rec.get("files", {}).items())
+
+
+def edited_files(stage, state, run_dir):
+    """Return the files of a stage's folder that the run wrote and that were edited since.
+
+    A file is the run's when the stage's record names it (its files, or the ones
+    those replaced: a run killed while swapping a stage in leaves either).
+    """
+    folder = Path(run_dir) / stage.name
+    if not folder.exists():
+        return []
+    rec = state.get(stage.name, {})
+    ours = [rec.get("files", {}), rec.get("replaces", {})]
+    return [
+        p
+        for p, h in stage_files(folder).items()
+        if any(p in f for f in ours) and all(f.get(p) != h for f in ours)
+    ]
 
 
 def check_overwrite(stage, state, run_dir, force):
-    """Refuse to redo a stage whose folder holds files the run did not write (or were edited)."""
-    folder = Path(run_dir) / stage.name
-    if force or not folder.exists():
-        return
-    rec = state.get(stage.name, {})
-    ours = [rec.get("files", {}), rec.get("replaces", {})]
-    foreign = [p for p, h in stage_files(folder).items() if all(f.get(p) != h for f in ours)]
-    if foreign:
+    """Refuse to redo a stage whose folder holds outputs edited since the run wrote them."""
+    edited = [] if force else edited_files(stage, state, run_dir)
+    if edited:
         raise InputError(
-            folder / foreign[0],
-            f"not written by this run or edited since ({len(foreign)} such file(s)); "
+            Path(run_dir) / stage.name / edited[0],
+            f"edited since this run wrote it ({len(edited)} such file(s)); "
             "use --force to overwrite or choose another --out",
         )
 
 
-def run_stage(stage, run_dir, state, invoke):
+def own_files(stage, state, run_dir):
+    """Return the files of a stage's folder that the run never wrote (the lab's own)."""
+    rec = state.get(stage.name, {})
+    ours = {*rec.get("files", {}), *rec.get("replaces", {})}
+    return [p for p in stage_files(Path(run_dir) / stage.name) if p not in ours]
+
+
+def run_stage(stage, run_dir, state, invoke, force=False):
     """Run one stage into a fresh folder and swap it in; record it in the state.
 
     ``invoke(argv) -> exit code`` runs a doefab command. The stage writes to
     ``.NAME.new`` (kept across an interrupt, so a stage with its own checkpoints,
     such as training, resumes there), which replaces ``NAME`` only on success.
+    The lab's own files in ``NAME`` move into the new folder; one that the stage
+    now writes under the same name is refused (InputError) unless ``force``.
     """
     run_dir = Path(run_dir)
     key = stage_key(stage, run_dir)
     new = run_dir / f".{stage.name}.new"
+    # Staging folders of a stage killed before it could clean up (the run holds the lock).
+    for leftover in run_dir.glob(f".{new.name}.staging-*"):
+        _remove_tree(leftover)
     key_file = new / ".stage_key"
     if new.exists() and (not key_file.exists() or key_file.read_text() != key):
         _remove_tree(new)  # a leftover of another configuration: start clean
@@ -170,6 +200,15 @@ def run_stage(stage, run_dir, state, invoke):
     # files they replace: a run killed during the swap then finds only files it
     # can account for, and resumes instead of refusing them as foreign.
     replaced = state.get(stage.name, {}).get("files", {})
+    final = run_dir / stage.name
+    keep = own_files(stage, state, run_dir) if final.exists() else []
+    clash = [rel for rel in keep if (new / rel).exists()]
+    if clash and not force:
+        raise InputError(
+            final / clash[0],
+            "not written by this run, and the stage now writes a file of that name; "
+            "move it, or use --force to overwrite it",
+        )
     state[stage.name] = {
         "key": key,
         "files": stage_files(new),
@@ -177,7 +216,10 @@ def run_stage(stage, run_dir, state, invoke):
         "seconds": seconds,
     }
     save_state(run_dir, state)
-    final = run_dir / stage.name
+    for rel in keep:  # the lab's own files move into the new folder, unless it has the name
+        if not (new / rel).exists():
+            (new / rel).parent.mkdir(parents=True, exist_ok=True)
+            (final / rel).rename(new / rel)
     if final.exists():
         _remove_tree(final)
     new.rename(final)

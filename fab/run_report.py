@@ -42,19 +42,19 @@ HEADLINES = (
 def product_files(run_dir, stages):
     """Every product file of the run's ``stages`` and its front page, sorted.
 
-    Hidden and bookkeeping files are left out, and so are the folders of stages
-    that this run did not plan (left there by an earlier run with other flags).
+    The stages' files are those ``run_state.json`` records as theirs: bookkeeping,
+    the lab's own files in or beside the stage folders, and the folders of
+    stages that this run did not plan (left there by an earlier run with other
+    flags) are left out.
     """
+    from fab.pipeline import load_state
+
     run_dir = Path(run_dir)
-    skip = {"manifest.json", "timings.json", "run_state.json"}
-    out = []
-    for p in sorted(run_dir.rglob("*")):
-        parts = p.relative_to(run_dir).parts
-        if not p.is_file() or any(part.startswith(".") for part in parts):
-            continue
-        if (len(parts) == 1 and parts[0] not in skip) or parts[0] in stages:
-            out.append(p)
-    return out
+    state = load_state(run_dir)
+    out = [run_dir / "index.html"] if (run_dir / "index.html").is_file() else []
+    for name in stages:
+        out += [run_dir / name / rel for rel in state.get(name, {}).get("files", {})]
+    return sorted(out)
 
 
 def package_versions():

@@ -165,6 +165,85 @@ def test_folders_of_stages_left_out_are_not_listed_as_products(config, finished,
     assert (out / "mesh" / "tile.ply").is_file()  # left in place, not deleted
 
 
+def psf_run(config, finished, out, *extra):
+    """A quick run (retrieve and fab only) on the finished run's PSF."""
+    psf = str(finished / "learn" / "psf.npy")
+    argv = ["run", "--config", str(config), "--out", str(out), "--psf", psf, "--formats", "none"]
+    return main([*argv, *extra])
+
+
+def test_the_labs_own_files_are_kept_and_not_listed(config, finished, tmp_path):
+    out = tmp_path / "out"
+    assert psf_run(config, finished, out) == 0
+    own = [out / "notes.txt", out / "fab" / "my_notes.txt", out / "fab" / "sub" / "photo.png"]
+    for path in own:
+        path.parent.mkdir(exist_ok=True)
+        path.write_text("the lab's")
+    for extra in ((), ("--seed", "5"), ("--force",)):  # skipped, redone, forced
+        assert psf_run(config, finished, out, *extra) == 0, extra
+        assert all(path.read_text() == "the lab's" for path in own), extra
+        listed = [f["path"] for f in json.loads((out / "manifest.json").read_text())["files"]]
+        assert "fab/mask.gds" in listed
+        assert not {"notes.txt", "fab/my_notes.txt", "fab/sub/photo.png"} & set(listed)
+
+
+def test_a_labs_file_named_as_a_new_output_is_refused_without_force(config, finished, tmp_path):
+    out = tmp_path / "out"
+    assert psf_run(config, finished, out) == 0
+    (out / "fab" / "mask.gds").unlink()
+    (out / "fab" / "mask.gds").write_text("the lab's")  # unrecorded once the record goes
+    state = json.loads((out / "run_state.json").read_text())
+    del state["fab"]["files"]["mask.gds"]
+    (out / "run_state.json").write_text(json.dumps(state))
+    assert psf_run(config, finished, out, "--seed", "5") == 2
+    assert (out / "fab" / "mask.gds").read_text() == "the lab's"
+    assert psf_run(config, finished, out, "--seed", "5", "--force") == 0
+    assert (out / "fab" / "mask.gds").read_bytes().startswith(b"\x00")  # a GDS again
+
+
+def test_an_edited_output_stops_the_run_before_any_stage(config, finished, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert psf_run(config, finished, out) == 0
+    levels = (out / "retrieve" / "levels.npy").read_bytes()
+    (out / "fab" / "fab_report.md").write_text("my notes")
+    capsys.readouterr()
+    assert psf_run(config, finished, out, "--seed", "5") == 2  # retrieve would redo first
+    assert "fab_report.md" in capsys.readouterr().err
+    assert (out / "retrieve" / "levels.npy").read_bytes() == levels
+    assert (out / "index.html").is_file()  # nothing ran: the front page still holds
+
+
+def test_a_run_stopped_part_way_leaves_no_front_page_of_the_old_stages(
+    config, finished, tmp_path, monkeypatch
+):
+    import doe.cli
+
+    out = tmp_path / "out"
+    assert psf_run(config, finished, out) == 0
+    real = doe.cli.main
+
+    def fab_fails(argv):
+        return 1 if argv[0] == "fab" else real(argv)
+
+    monkeypatch.setattr(doe.cli, "main", fab_fails)
+    assert psf_run(config, finished, out, "--seed", "5") == 1  # retrieve redone, fab failed
+    # retrieve/ now holds the new tile, fab/ the old package: no summary may call them one run
+    assert not (out / "index.html").exists() and not (out / "manifest.json").exists()
+    monkeypatch.setattr(doe.cli, "main", real)
+    assert psf_run(config, finished, out, "--seed", "5") == 0
+    assert (out / "index.html").is_file() and (out / "manifest.json").is_file()
+
+
+def test_staging_folders_of_a_killed_stage_are_removed(config, finished, tmp_path):
+    out = tmp_path / "out"
+    assert psf_run(config, finished, out) == 0
+    leftover = out / "..fab.new.staging-abc123"
+    leftover.mkdir()
+    (leftover / "mask.gds").write_text("half")
+    assert psf_run(config, finished, out, "--seed", "5") == 0
+    assert not leftover.exists()
+
+
 def test_index_labels_the_level_count_of_the_retrieval(tmp_path):
     from doe.design import load_design
     from fab.run_report import write_index
