@@ -68,7 +68,7 @@ def run(args):
             "--tile-pixels",
             f"must be 1 to {MAX_TILE_PIXELS} pixels (time and memory grow as N^2), got {n}",
         )
-    flags.non_negative("--seed", args.seed)
+    flags.seed("--seed", args.seed)
     target = read_psf(args.psf)
     check_psf_grid(args.psf, design)
     k = target.shape[0]

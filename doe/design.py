@@ -139,10 +139,10 @@ _SCHEMA = {
         "grid_nm": (int, 1e-9, _POSITIVE),
     },
     "learning": {
-        "seed": (int, None, _NONNEG),
+        "seed": (int, None, (lambda v: 0 <= v < 2**63, "must be 0 .. 2^63 - 1")),
         "minutes": (float, None, _POSITIVE),
         "steps": (int, None, _POSITIVE),
-        "photons_per_pixel": (float, None, _POSITIVE),
+        "photons_per_pixel": (float, None, (lambda v: 0 < v <= 1e12, "must be > 0 and <= 1e12")),
     },
 }
 

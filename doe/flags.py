@@ -23,3 +23,24 @@ def non_negative(flag, value):
     if value is not None and not (math.isfinite(value) and value >= 0):
         raise InputError(flag, f"must be a finite number >= 0, got {value:g}")
     return value
+
+
+# Seeds reach torch.manual_seed, which takes a signed 64-bit integer.
+SEED_MAX = 2**63 - 1
+# Expected counts per pixel: numpy's Poisson draws stop near 1e19; no SPAD comes near.
+PHOTONS_MAX = 1e12
+
+
+def seed(flag, value):
+    """Return ``value`` if it is None or a seed 0 .. ``SEED_MAX``, else raise InputError."""
+    non_negative(flag, value)
+    if value is not None and value > SEED_MAX:
+        raise InputError(flag, f"must be at most 2^63 - 1, got {value}")
+    return value
+
+
+def at_most(flag, value, limit, why):
+    """Return ``value`` if it is None or <= ``limit``, else raise InputError saying ``why``."""
+    if value is not None and value > limit:
+        raise InputError(flag, f"must be at most {limit:g} ({why}), got {value:g}")
+    return value

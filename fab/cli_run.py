@@ -89,7 +89,7 @@ def _run(args):
 
     # Checked here, not by the stages: a bad value must stop the run before any stage.
     flags.positive("--minutes", args.minutes)
-    flags.non_negative("--seed", args.seed)
+    flags.seed("--seed", args.seed)
     design = load_design(args.config)
     if args.psf:
         read_psf(args.psf)

@@ -95,11 +95,15 @@ def _learn(args):
 
     for flag in ("steps", "minutes", "batch", "patch", "features", "stages", "threads"):
         flags.positive(f"--{flag}", getattr(args, flag))
+    # Sizes past these exhaust a workstation's memory (a traceback, not a message).
+    for flag, limit in (("batch", 1024), ("patch", 512), ("features", 512), ("stages", 64)):
+        flags.at_most(f"--{flag}", getattr(args, flag), limit, "larger runs out of memory")
     flags.positive("--lr", args.lr)
     flags.positive("--psf-lr", args.psf_lr)
-    flags.non_negative("--photons", args.photons)
-    flags.non_negative("--dark-counts", args.dark_counts)
-    flags.non_negative("--seed", args.seed)
+    for flag in ("photons", "dark_counts"):
+        value = flags.non_negative(f"--{flag.replace('_', '-')}", getattr(args, flag))
+        flags.at_most(f"--{flag.replace('_', '-')}", value, flags.PHOTONS_MAX, "counts per pixel")
+    flags.seed("--seed", args.seed)
     torch.set_num_threads(args.threads or idle_cores())
     design = load_design(args.config)
     k = design.kernel_size
@@ -261,7 +265,7 @@ def _evaluate(args):
     from psf_learn.evaluate import EVAL_SEED, evaluate
     from psf_learn.sr import load_model
 
-    flags.non_negative("--seed", args.seed)
+    flags.seed("--seed", args.seed)
     torch.set_num_threads(1)
     out = Path(args.out) if args.out else None
     if out is not None and out.is_dir():
@@ -306,6 +310,7 @@ def _sr(args):
     from psf_learn.sr import load_model, super_resolve
 
     flags.positive("--photons", args.photons)
+    flags.at_most("--photons", args.photons, flags.PHOTONS_MAX, "counts per pixel")
     torch.set_num_threads(1)
     model = load_model(args.model_dir)
     stems = [Path(r).stem for r in args.raw]

@@ -511,6 +511,14 @@ def test_learn_refuses_bad_inputs_with_exit_2(tmp_path, capsys, kind):
         ("--threads", "-1"),
         ("--seed", "-1"),
         ("--minutes", "nan"),
+        # too large: each once ended in a traceback (torch's seed overflow, numpy's
+        # Poisson refusal, an allocation failure)
+        ("--seed", str(2**63)),
+        ("--photons", "1e300"),
+        ("--dark-counts", "1e300"),
+        ("--batch", "100000000"),
+        ("--patch", "100000"),
+        ("--features", "100000"),
     ],
 )
 def test_learn_refuses_bad_numbers_with_exit_2(tmp_path, capsys, flag, value):
@@ -527,7 +535,7 @@ def test_evaluate_and_sr_refuse_bad_numbers(trained, tmp_path, capsys):
     out, images = trained
     raw = tmp_path / "raw.npy"
     np.save(raw, np.ones((6, 6)))
-    for photons in ("nan", "0", "-1"):
+    for photons in ("nan", "0", "-1", "1e300"):
         assert (
             main(["sr", str(out), str(raw), "--photons", photons, "--out", str(tmp_path / "sr")])
             == 2

@@ -294,9 +294,10 @@ def test_bad_inputs_exit_2(tmp_path, capsys):
     assert main(["run", "--out", str(tmp_path / "o"), "--psf", str(tmp_path / "none.npy")]) == 2
     assert "none.npy" in capsys.readouterr().err
     bad = tmp_path / "bad.toml"
-    bad.write_text("[fabrication]\nlevels = 3\n")
-    assert main(["run", "--config", str(bad), "--out", str(tmp_path / "o2")]) == 2
-    assert "bad.toml" in capsys.readouterr().err
+    for text in ("[fabrication]\nlevels = 3\n", "[learning]\nphotons_per_pixel = 1e300\n"):
+        bad.write_text(text)
+        assert main(["run", "--config", str(bad), "--out", str(tmp_path / "o2")]) == 2
+        assert "bad.toml" in capsys.readouterr().err
     stranger = tmp_path / "stranger"
     stranger.mkdir()
     (stranger / "thesis.tex").write_text("precious")
@@ -304,7 +305,12 @@ def test_bad_inputs_exit_2(tmp_path, capsys):
     assert (stranger / "thesis.tex").read_text() == "precious"
     # Bad values stop the run before its first stage, leaving nothing behind (a mesh
     # format typo once failed the last stage, after minutes of learning).
-    for flag, value in (("--seed", "-1"), ("--minutes", "nan"), ("--formats", "ply,obj")):
+    for flag, value in (
+        ("--seed", "-1"),
+        ("--seed", str(2**63)),  # once a traceback from torch.manual_seed, after the checks
+        ("--minutes", "nan"),
+        ("--formats", "ply,obj"),
+    ):
         fresh = tmp_path / f"o{flag}"
         assert main(["run", "--out", str(fresh), flag, value]) == 2
         assert flag in capsys.readouterr().err and not fresh.exists()
