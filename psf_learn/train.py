@@ -14,6 +14,7 @@ Multi-GPU / multi-node: launch the same command with ``torchrun``; the process
 group uses NCCL on CUDA and gloo on CPU.
 """
 
+import hashlib
 import math
 import os
 import sys
@@ -152,6 +153,16 @@ def pick_device():
     return torch.device("cpu")
 
 
+def _digest(arrays):
+    """Return the SHA-256 of arrays' shapes, types and bytes (a run's identity)."""
+    h = hashlib.sha256()
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.shape}{a.dtype.str}".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
 def train(
     config,
     images,
@@ -200,9 +211,14 @@ def train(
         groups.append({"params": [camera.psf.logits], "lr": config.psf_lr, "base": config.psf_lr})
     opt = torch.optim.Adam(groups)
     step, elapsed, history = 0, 0.0, []
-    # A checkpoint resumes only the same run: hyper-parameters, sensor and starting PSF
-    # (a new --photons or kernel size once resumed the old weights, or crashed on them).
+    # A checkpoint resumes only the same run: hyper-parameters, sensor, starting PSF,
+    # images and starting network (a new --photons or kernel size once resumed the old
+    # weights, or crashed on them; so did other --images or --init).
     identity = {
+        "images": _digest(images),
+        "init": _digest(v.detach().cpu().numpy() for v in init_state.values())
+        if init_state is not None
+        else None,
         "config": config.identity(),
         "sensor": [
             np.asarray(sensor.weights, dtype=np.float64).tolist(),

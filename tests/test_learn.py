@@ -137,12 +137,21 @@ def test_resume_from_checkpoint_equals_uninterrupted_run(tmp_path):
     assert resumed.history == full.history
     # the checkpoint holds only tensors and plain types
     torch.load(ckpt, weights_only=True)
-    # Another sensor or starting PSF is another run: its checkpoint is not resumed
-    # (a different kernel size once crashed on the old PSF logits).
-    for other_sensor, other_psf in ((SensorModel(POINT, 50.0), gaussian_psf(K)),
-                                    (sensor, gaussian_psf(K - 2))):  # fmt: skip
+    # Another sensor, starting PSF, set of images or starting network is another run:
+    # its checkpoint is not resumed (a different kernel size once crashed on the old
+    # PSF logits; other images once resumed the old weights and recorded only the new).
+    flipped = [np.ascontiguousarray(im[::-1]) for im in images]
+    start = full.camera.net.state_dict()
+    for other_sensor, other_psf, other_images, init in (
+        (SensorModel(POINT, 50.0), gaussian_psf(K), images, None),
+        (sensor, gaussian_psf(K - 2), images, None),
+        (sensor, gaussian_psf(K), flipped, None),
+        (sensor, gaussian_psf(K), images, start),
+    ):
         train(TINY, images, sensor, gaussian_psf(K), checkpoint=ckpt, stop_at_step=3)
-        fresh = train(TINY, images, other_sensor, other_psf, checkpoint=ckpt, stop_at_step=1)
+        fresh = train(
+            TINY, other_images, other_sensor, other_psf, init, checkpoint=ckpt, stop_at_step=1
+        )
         assert fresh.steps == 1
 
 
