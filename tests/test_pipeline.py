@@ -41,12 +41,12 @@ def stages(tmp_path):
 def run_all(tmp_path, fake, force=False):
     run = tmp_path / "run"
     run.mkdir(exist_ok=True)
-    state = {} if force else load_state(run)
+    state = load_state(run)  # with force too: it tells the run's files from the lab's
     for stage in stages(tmp_path):
         if not force and is_current(stage, state, run):
             continue
         check_overwrite(stage, state, run, force)
-        code = run_stage(stage, run, state, fake)
+        code = run_stage(stage, run, state, fake, force)
         if code:
             return code
     return 0
