@@ -28,7 +28,7 @@ from doe.retrieval import retrieve_phase
 from doe.targets import make_target
 from fab.capture import read_capture, repair_pixels, write_image
 from fab.capture_sim import simulate_capture
-from fab.lattice import away_from_dots, measure_orders, register_lattice
+from fab.lattice import measure_orders, register_lattice, repair_hot_pixels
 from fab.verify import analyse, design_order_power, resolve_thresholds
 
 RUNS = 5
@@ -99,8 +99,7 @@ def _bench_plate(levels, n_levels, k, der, pitch_px):
             found = repair_pixels(cap.image, cap.hot)
             lattice, _ = register_lattice(found, pitch_px, quantum=cap.quantum)
             t2 = time.perf_counter()
-            repaired = away_from_dots(cap.hot, lattice) | (cap.hot & cap.saturated)
-            image = repair_pixels(cap.image, repaired)
+            image, repaired = repair_hot_pixels(cap.image, cap.hot, cap.saturated, lattice)
             grid = measure_orders(image, lattice, cap.saturated & ~repaired, cap.quantum)
             t3 = time.perf_counter()
             _psf, eff = simulate_levels(levels, n_levels, k)

@@ -15,6 +15,7 @@ from typing import Literal
 
 from doe.errors import InputError
 from doe.files import LEVEL_COUNT_RULE, is_level_count, read_json
+from doe.flags import PHOTONS_MAX, SEED_MAX
 from doe.materials import MATERIALS, refractive_index
 
 
@@ -139,10 +140,14 @@ _SCHEMA = {
         "grid_nm": (int, 1e-9, _POSITIVE),
     },
     "learning": {
-        "seed": (int, None, (lambda v: 0 <= v < 2**63, "must be 0 .. 2^63 - 1")),
+        "seed": (int, None, (lambda v: 0 <= v <= SEED_MAX, "must be 0 .. 2^63 - 1")),
         "minutes": (float, None, _POSITIVE),
         "steps": (int, None, _POSITIVE),
-        "photons_per_pixel": (float, None, (lambda v: 0 < v <= 1e12, "must be > 0 and <= 1e12")),
+        "photons_per_pixel": (
+            float,
+            None,
+            (lambda v: 0 < v <= PHOTONS_MAX, f"must be > 0 and <= {PHOTONS_MAX:g}"),
+        ),
     },
 }
 

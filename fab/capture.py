@@ -66,7 +66,7 @@ class Capture:
         Pixels at the sensor's full-scale code (or a float plateau) in the raw capture.
     hot : (H, W) bool array
         Pixels flagged hot in the dark frame (not repaired in ``image``:
-        ``fab.lattice.away_from_dots`` tells which may be).
+        ``fab.lattice.repair_hot_pixels`` does, once the dots are known).
     full_scale : float or None
         Saturation code in DN (None for float data without a plateau).
     notes : list of str

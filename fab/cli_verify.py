@@ -171,10 +171,10 @@ def _verify(args):
     from fab.capture import read_capture, repair_pixels
     from fab.lattice import (
         LatticeNotFound,
-        away_from_dots,
         measure_orders,
         on_lattice_share,
         register_lattice,
+        repair_hot_pixels,
         repair_stray_spikes,
     )
     from fab.verify import analyse, design_order_power, resolve_thresholds
@@ -205,10 +205,7 @@ def _verify(args):
             )
             lattice, _ = register_lattice(image, nominal_px, quantum=capture.quantum)
     else:
-        # On a dot, a hot pixel less its dark still holds the dot's light (the median
-        # of its neighbours would not); unless it clipped, it is kept.
-        repaired = away_from_dots(capture.hot, lattice) | (capture.hot & capture.saturated)
-        image = repair_pixels(capture.image, repaired)
+        image, repaired = repair_hot_pixels(capture.image, capture.hot, capture.saturated, lattice)
         if capture.hot.any():
             lattice_notes.append(
                 f"{int(capture.hot.sum())} hot pixel(s) in the dark frame: "

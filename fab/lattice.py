@@ -477,6 +477,23 @@ def repair_stray_spikes(image, lattice, quantum=0.0):
     return repair_pixels(x, repaired), repaired
 
 
+def repair_hot_pixels(image, hot, saturated, lattice):
+    """Repair a dark frame's hot pixels off the dots, and those that clipped.
+
+    On a dot, a hot pixel less its dark still holds the dot's light (the median
+    of its neighbours would not): unless it clipped, it is kept.
+
+    Returns
+    -------
+    (image, repaired)
+        A repaired copy (float32) and the (H, W) bool map of the pixels repaired.
+    """
+    from fab.capture import repair_pixels
+
+    repaired = away_from_dots(hot, lattice) | (hot & saturated)
+    return repair_pixels(image, repaired), repaired
+
+
 def away_from_dots(flagged, lattice):
     """Return the (H, W) bool map of the ``flagged`` pixels outside every dot's core.
 

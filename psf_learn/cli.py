@@ -100,9 +100,8 @@ def _learn(args):
         flags.at_most(f"--{flag}", getattr(args, flag), limit, "larger runs out of memory")
     flags.positive("--lr", args.lr)
     flags.positive("--psf-lr", args.psf_lr)
-    for flag in ("photons", "dark_counts"):
-        value = flags.non_negative(f"--{flag.replace('_', '-')}", getattr(args, flag))
-        flags.at_most(f"--{flag.replace('_', '-')}", value, flags.PHOTONS_MAX, "counts per pixel")
+    for flag, value in (("--photons", args.photons), ("--dark-counts", args.dark_counts)):
+        flags.at_most(flag, flags.non_negative(flag, value), flags.PHOTONS_MAX, "counts per pixel")
     flags.seed("--seed", args.seed)
     torch.set_num_threads(args.threads or idle_cores())
     design = load_design(args.config)

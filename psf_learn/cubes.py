@@ -2,8 +2,9 @@
 
 A cube is an (H, W, T) array of non-negative counts whose k-th sample is taken
 at scan time ``k * shift``: either one ``.npy`` file or a folder of per-shift
-frames (PNG/TIFF, 8 or 16 bit, single channel) sorted by file name (numbers as numbers). The
-readers validate and raise InputError naming the file; they never rescale.
+frames (PNG/TIFF, 8 or 16 bit, single channel) sorted by file name, numbers as
+numbers. The readers validate and raise InputError naming the file; they never
+rescale.
 """
 
 import re

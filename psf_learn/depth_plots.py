@@ -74,16 +74,14 @@ def save_pixel_fits(path, times, profiles, models, labels):
     fig.savefig(path, dpi=100, metadata=PNG_META)
 
 
-def check_gif_fps(fps):
-    """Raise ValueError unless a GIF can play ``fps`` frames per second."""
+def gif_frame_centiseconds(fps):
+    """Return how long a GIF frame lasts at ``fps`` (whole centiseconds, the nearest).
+
+    Raises ValueError unless a GIF can play ``fps`` frames per second.
+    """
     lo, hi = GIF_FPS_RANGE
     if not lo <= fps <= hi:
         raise ValueError(f"a GIF plays {lo:.4g} to {hi:g} frames per second, got {fps:g}")
-
-
-def gif_frame_centiseconds(fps):
-    """Return how long a GIF frame lasts at ``fps`` (whole centiseconds, the nearest)."""
-    check_gif_fps(fps)
     return min(max(round(100 / fps), 2), 65535)
 
 
