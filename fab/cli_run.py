@@ -1,5 +1,7 @@
 """``doefab run``: the whole pipeline, sensor to fabrication package, in one command."""
 
+import dataclasses
+import json
 import sys
 import time
 from pathlib import Path
@@ -43,8 +45,11 @@ def plan(args, run_dir, design):
     """Return the list of stages for these arguments."""
     from fab.pipeline import Stage
 
-    config = ["--config", args.config] if args.config else []
-    config_inputs = (Path(args.config),) if args.config and Path(args.config).is_file() else ()
+    # The stages that read the design are keyed on its values, not on the file's bytes.
+    on_design = {
+        "config": ("--config", args.config) if args.config else (),
+        "design": json.dumps(dataclasses.asdict(design), sort_keys=True),
+    }
     seed = str(args.seed if args.seed is not None else design.learning.seed)
     stages = []
     if args.psf:
@@ -57,17 +62,18 @@ def plan(args, run_dir, design):
             else ["--steps", str(design.learning.steps)]
         )
         # One thread: the thread count changes torch's summation order, hence the bits.
-        learn = ("learn", *budget, "--threads", "1", "--seed", seed, *config)
-        stages.append(Stage("learn", learn, config_inputs))
+        learn = ("learn", *budget, "--threads", "1", "--seed", seed)
+        stages.append(Stage("learn", learn, **on_design))
         psf = run_dir / "learn" / "psf.npy"
     retrieve = run_dir / "retrieve"
     fab = run_dir / "fab"
     stages += [
-        Stage("retrieve", ("retrieve", str(psf), "--seed", seed, *config), (psf, *config_inputs)),
+        Stage("retrieve", ("retrieve", str(psf), "--seed", seed), (psf,), **on_design),
         Stage(
             "fab",
-            ("fab", str(retrieve), *config),
-            (retrieve / "levels.npy", retrieve / "target_psf.npy", *config_inputs),
+            ("fab", str(retrieve)),
+            (retrieve / "levels.npy", retrieve / "target_psf.npy"),
+            **on_design,
         ),
     ]
     if not _no_mesh(args.formats):
@@ -140,7 +146,8 @@ def _run_stages(args, run_dir, design):
             for name in SUMMARY_FILES:
                 (run_dir / name).unlink(missing_ok=True)
             summaries_gone = True
-        print(f"[{i}/{len(stages)}] {stage.name}: doefab {' '.join(stage.argv)}", file=sys.stderr)
+        command = " ".join(stage.command)
+        print(f"[{i}/{len(stages)}] {stage.name}: doefab {command}", file=sys.stderr)
         t0 = time.perf_counter()
         code = run_stage(stage, run_dir, state, doefab, args.force)
         timings[stage.name] = round(time.perf_counter() - t0, 2)

@@ -1,14 +1,14 @@
 """The whole pipeline as a list of stages with content-hash skipping and resume.
 
 Each stage is one ``doefab`` subcommand writing into its own folder of the run
-directory. A stage's key is the SHA-256 of its arguments and the contents of its
-input files; ``run_state.json`` records, per finished stage, the key and the
-SHA-256 of every file it wrote and of the files those replaced. A re-run
-skips a stage whose key and files are unchanged (so an interrupted run resumes
-at the first unfinished stage), redoes it when an input changed, and never
-overwrites a file that was edited since the run wrote it unless ``force``. A
-lab's own files in a stage's folder (names the run never wrote) are kept
-through every re-run, ``force`` included.
+directory. A stage's key is the SHA-256 of its arguments, the contents of its
+input files and the resolved design it reads; ``run_state.json`` records, per
+finished stage, the key and the SHA-256 of every file it wrote and of the files
+those replaced. A re-run skips a stage whose key and files are unchanged (so an
+interrupted run resumes at the first unfinished stage), redoes it when an input
+changed, and never overwrites a file that was edited since the run wrote it
+unless ``force``. A lab's own files in a stage's folder (names the run never
+wrote) are kept through every re-run, ``force`` included.
 """
 
 import contextlib
@@ -31,12 +31,22 @@ class Stage:
 
     ``argv`` is the doefab command line without ``--out``/``--force``; paths in it
     that are inside the run folder are written relative to it so that the key
-    does not depend on where the run folder lives.
+    does not depend on where the run folder lives. ``config`` (``--config FILE``)
+    runs with the stage but does not key it: ``design``, the resolved design as
+    canonical JSON, does, so that a comment in the design file, or the file moved,
+    redoes nothing while any changed value redoes the stage.
     """
 
     name: str
     argv: tuple[str, ...]
     inputs: tuple[Path, ...] = field(default=())
+    config: tuple[str, ...] = field(default=())
+    design: str = ""
+
+    @property
+    def command(self):
+        """The doefab command line it runs, without ``--out``/``--force``."""
+        return (*self.argv, *self.config)
 
 
 @contextlib.contextmanager
@@ -83,7 +93,7 @@ def sha256_file(path):
 
 
 def stage_key(stage, run_dir):
-    """Return the content key of a stage: its arguments and its inputs' bytes."""
+    """Return the content key of a stage: its arguments, its inputs' bytes, its design."""
     run_dir = Path(run_dir).resolve()
     argv = [_relative(a, run_dir) for a in stage.argv]
     inputs = {}
@@ -91,7 +101,8 @@ def stage_key(stage, run_dir):
         if not Path(p).is_file():
             raise InputError(p, f"input of stage {stage.name!r} is missing")
         inputs[_relative(str(p), run_dir)] = sha256_file(p)
-    blob = json.dumps({"argv": argv, "inputs": inputs}, sort_keys=True).encode()
+    blob = {"argv": argv, "inputs": inputs, "design": stage.design}
+    blob = json.dumps(blob, sort_keys=True).encode()
     return hashlib.sha256(blob).hexdigest()
 
 
@@ -191,7 +202,7 @@ def run_stage(stage, run_dir, state, invoke, force=False):
         _remove_tree(new)  # a leftover of another configuration: start clean
     new.mkdir(parents=True, exist_ok=True)
     key_file.write_text(key)
-    code = invoke([*stage.argv, "--out", str(new), "--force"])
+    code = invoke([*stage.command, "--out", str(new), "--force"])
     if code != 0:
         return code
     key_file.unlink()  # it marks an unfinished stage; the package holds only the stage's files

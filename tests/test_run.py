@@ -172,6 +172,29 @@ def psf_run(config, finished, out, *extra):
     return main([*argv, *extra])
 
 
+def test_a_design_file_edited_without_changing_a_value_redoes_nothing(
+    config, finished, tmp_path, capsys
+):
+    # The stages were keyed on the file's bytes: a comment re-ran minutes of training.
+    out = tmp_path / "out"
+    assert psf_run(config, finished, out) == 0
+    moved = tmp_path / "elsewhere" / "same.toml"
+    moved.parent.mkdir()
+    moved.write_text(
+        '# the same design, reordered\nname = "small"\n[learning]\nsteps = 12  # quick\n'
+        "[fabrication]\nfeature_size_um = 20.0\n"
+    )
+    capsys.readouterr()
+    assert psf_run(moved, finished, out) == 0
+    err = capsys.readouterr().err
+    assert err.count("up to date, skipped") == 2, err
+    moved.write_text(moved.read_text().replace('name = "small"', 'name = "renamed"'))
+    assert psf_run(moved, finished, out) == 0
+    err = capsys.readouterr().err
+    assert "up to date" not in err and f"--config {moved}" in err, err
+    assert json.loads((out / "fab" / "fab_manifest.json").read_text())["design_name"] == "renamed"
+
+
 def test_the_labs_own_files_are_kept_and_not_listed(config, finished, tmp_path):
     out = tmp_path / "out"
     assert psf_run(config, finished, out) == 0
