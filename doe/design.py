@@ -15,7 +15,7 @@ from typing import Literal
 
 from doe.errors import InputError
 from doe.files import LEVEL_COUNT_RULE, is_level_count, read_json
-from doe.flags import PHOTONS_MAX, SEED_MAX
+from doe.flags import MINUTES_MAX, PHOTONS_MAX, SEED_MAX, STEPS_MAX
 from doe.materials import MATERIALS, refractive_index
 
 
@@ -141,8 +141,12 @@ _SCHEMA = {
     },
     "learning": {
         "seed": (int, None, (lambda v: 0 <= v <= SEED_MAX, "must be 0 .. 2^63 - 1")),
-        "minutes": (float, None, _POSITIVE),
-        "steps": (int, None, _POSITIVE),
+        "minutes": (
+            float,
+            None,
+            (lambda v: 0 < v <= MINUTES_MAX, f"must be > 0 and <= {MINUTES_MAX:g} (two years)"),
+        ),
+        "steps": (int, None, (lambda v: 0 < v <= STEPS_MAX, f"must be 1 .. {STEPS_MAX:g}")),
         "photons_per_pixel": (
             float,
             None,
@@ -188,7 +192,7 @@ def load_design(path=None):
         ) from None
     except OSError as e:
         raise InputError(path, f"cannot read: {e}") from None
-    except tomllib.TOMLDecodeError as e:
+    except ValueError as e:  # TOMLDecodeError, or an integer past Python's digit limit
         raise InputError(path, f"not valid TOML: {e}") from None
     return parse_design(_merge(base, raw), path)
 
@@ -264,6 +268,12 @@ def parse_design(raw, source="design"):
 
 
 def _check_value(where, value, typ, scale, ok, why):
+    # TOML integers have no size limit; past 64 bits they are typing errors that
+    # would overflow float() or numpy with a traceback.
+    too_big = [v for v in (value if isinstance(value, list) else [value]) if _huge_int(v)]
+    if too_big:
+        digits = int(abs(too_big[0]).bit_length() * math.log10(2))
+        raise InputError(where, f"must be at most 2^63 - 1, got a number near 10^{digits}")
     if typ is float and isinstance(value, int) and not isinstance(value, bool):
         value = float(value)
     if not isinstance(value, typ) or isinstance(value, bool):
@@ -286,6 +296,10 @@ def _check_value(where, value, typ, scale, ok, why):
         if not all(_SHORTEST <= v <= _LONGEST for v in sizes):
             raise InputError(where, f"must lie between 1 pm and 1 m, got {given!r}")
     return value
+
+
+def _huge_int(v):
+    return isinstance(v, int) and not isinstance(v, bool) and abs(v) > SEED_MAX
 
 
 # Retrieval time and memory grow as N^2: N = 1024 took 183 s and 445 MB at peak on the

@@ -95,6 +95,7 @@ def _run(args):
 
     # Checked here, not by the stages: a bad value must stop the run before any stage.
     flags.positive("--minutes", args.minutes)
+    flags.at_most("--minutes", args.minutes, flags.MINUTES_MAX, "two years")
     flags.seed("--seed", args.seed)
     design = load_design(args.config)
     if args.psf:

@@ -98,6 +98,8 @@ def _learn(args):
     # Sizes past these exhaust a workstation's memory (a traceback, not a message).
     for flag, limit in (("batch", 1024), ("patch", 512), ("features", 512), ("stages", 64)):
         flags.at_most(f"--{flag}", getattr(args, flag), limit, "larger runs out of memory")
+    flags.at_most("--minutes", args.minutes, flags.MINUTES_MAX, "two years")
+    flags.at_most("--steps", args.steps, flags.STEPS_MAX, "years of training")
     flags.positive("--lr", args.lr)
     flags.positive("--psf-lr", args.psf_lr)
     for flag, value in (("--photons", args.photons), ("--dark-counts", args.dark_counts)):

@@ -109,6 +109,12 @@ def test_every_material_refuses_wavelengths_outside_its_fit():
         ("optics", "focal_length_mm", float("nan"), "finite"),
         ("sensor", "active_offset_um", [1.0], r"\[x, y\]"),
         ("sensor", "colums", 64, "unknown key"),
+        # TOML integers are unbounded: these overflowed float() or the training deadline
+        ("optics", "wavelength_nm", 10**400, "at most 2\\^63 - 1, got a number near 10\\^400"),
+        ("sensor", "active_offset_um", [0, -(10**30)], "at most 2\\^63 - 1"),
+        ("sensor", "rows", 10**19, "at most 2\\^63 - 1"),
+        ("learning", "minutes", 1e308, "<= 1e\\+06"),
+        ("learning", "steps", 10**9 + 1, "must be 1 .. 1e\\+09"),
     ],
 )
 def test_impossible_designs_are_refused(section, key, value, message):
@@ -158,6 +164,7 @@ def test_config_show_cli(capsys):
     [
         ("[fabrication]\nlevels = 6\n", "power of two"),
         ("this is = = not toml", "not valid TOML"),
+        ("[learning]\nsteps = 1" + "0" * 5000 + "\n", "not valid TOML"),  # past int() digits
         ("[fabrication]\naperture_mm = 0.1\n", "larger than the aperture"),
     ],
 )

@@ -528,6 +528,8 @@ def test_learn_refuses_bad_inputs_with_exit_2(tmp_path, capsys, kind):
         ("--batch", "100000000"),
         ("--patch", "100000"),
         ("--features", "100000"),
+        ("--minutes", "1e308"),  # overflowed the deadline after the images had loaded
+        ("--steps", str(10**9 + 1)),  # trained on for ever
     ],
 )
 def test_learn_refuses_bad_numbers_with_exit_2(tmp_path, capsys, flag, value):

@@ -314,6 +314,8 @@ def test_a_folder_that_cannot_be_locked_runs_with_a_warning(tmp_path, monkeypatc
 
 
 def test_bad_inputs_exit_2(tmp_path, capsys):
+    assert main(["run", "--out", str(tmp_path / "o"), "--minutes", "1e308"]) == 2
+    assert "--minutes: must be at most 1e+06" in capsys.readouterr().err
     assert main(["run", "--out", str(tmp_path / "o"), "--psf", str(tmp_path / "none.npy")]) == 2
     assert "none.npy" in capsys.readouterr().err
     bad = tmp_path / "bad.toml"
