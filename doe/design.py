@@ -307,6 +307,29 @@ def _huge_int(v):
 MAX_TILE_PIXELS = 4096
 
 
+# A coarse GDS grid rounds the mask pixel pitch, which scales the whole PSF: its
+# outermost orders may land at most this fraction of a sub-pixel off their sub-pixels.
+LATTICE_OFFSET_MAX = 0.05
+
+
+def lattice_problem(der, kernel_size, grid):
+    """Return why a tile's dot lattice misses the sub-pixel grid, or None if it fits.
+
+    ``der`` is :func:`derive` for the tile, ``grid`` the GDS grid (m).
+    """
+    offset = kernel_size // 2 * abs(der.lattice_mismatch) / der.subpixel_pitch
+    if offset <= LATTICE_OFFSET_MAX:
+        return None
+    return (
+        f"the {grid * 1e9:g} nm grid snaps the mask pixel pitch to "
+        f"{der.mask_pixel_pitch * 1e9:g} nm (the tile wants "
+        f"{der.tile_size_nominal / der.tile_pixels * 1e9:.1f} nm), which puts the dot "
+        f"lattice {der.lattice_mismatch / der.subpixel_pitch:+.2%} off the sub-pixel pitch: "
+        f"the {kernel_size} x {kernel_size} PSF's outermost dots land {offset:.0%} of a "
+        f"sub-pixel off theirs (at most {LATTICE_OFFSET_MAX:.0%}); use a finer grid"
+    )
+
+
 def _check_consistency(d, source):
     sensor, fab = d.sensor, d.fabrication
     if sensor.active_area > sensor.pixel_pitch:
@@ -346,6 +369,9 @@ def _check_consistency(d, source):
         )
     if der.mask_pixel_pitch <= 0:
         raise InputError(f"{source}: [fabrication] grid_nm", "the grid is coarser than a pixel")
+    problem = lattice_problem(der, d.kernel_size, fab.grid)
+    if problem:
+        raise InputError(f"{source}: [fabrication] grid_nm", problem)
     if der.tile_pixels > MAX_TILE_PIXELS:
         raise InputError(
             f"{source}: [fabrication] feature_size_um",

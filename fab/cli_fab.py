@@ -143,7 +143,7 @@ def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=Tru
     """
     from tqdm import tqdm
 
-    from doe.design import load_design
+    from doe.design import lattice_problem, load_design
     from doe.files import previous_files, save_npy, staged_output
     from doe.fraunhofer import simulate_levels
     from fab import manifest as fm
@@ -177,6 +177,9 @@ def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=Tru
             f"the tile's N = {n} pixels is smaller than the design's PSF size K = {k} "
             "(psf.kernel_size; there is no target_psf.npy)",
         )
+    problem = lattice_problem(der, k, design.fabrication.grid)
+    if problem:
+        raise InputError(Path(design_dir) / "levels.npy", f"N = {n} pixels per tile: {problem}")
     simulated, efficiency = simulate_levels(levels, n_levels, k)
     extra = {}
     if target is None:

@@ -92,6 +92,8 @@ def test_every_material_refuses_wavelengths_outside_its_fit():
         ("fabrication", "levels", 512, "levels.npy is uint8"),
         ("fabrication", "feature_size_um", 0.1, "N = 8733 pixels, more than 4096"),
         ("fabrication", "aperture_mm", 0.5, "larger than the aperture"),
+        # a 2 um grid snapped the 4990.5 nm pitch to 4000 nm: the PSF 25 % too large
+        ("fabrication", "grid_nm", 2000, r"dots land 124% of a sub-pixel off theirs"),
         ("optics", "wavelength_nm", 5000.0, "outside the Sellmeier range"),
         ("sensor", "pixel_pitch_um", -150.0, "must be > 0"),
         # found by hypothesis: a pitch of 1e160 um overflowed the fill factor

@@ -296,6 +296,20 @@ def test_kernel_larger_than_tile_exit_2(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
+def test_a_grid_too_coarse_for_the_tiles_pitch_exit_2(tmp_path, capsys):
+    # 1 um grid: N = 175 snaps 4990.5 nm to 5000 nm (dot lattice 0.19 % off: fine), but
+    # N = 400 snaps 2183.3 nm to 2000 nm, which shrinks the PSF by 8 %: a wrong plate.
+    cfg = tmp_path / "coarse.toml"
+    cfg.write_text("[fabrication]\ngrid_nm = 1000\n")
+    d = tmp_path / "design"
+    make_design_dir(d, n=400)
+    assert main(["fab", str(d), "--out", str(tmp_path / "out"), "--config", str(cfg)]) == 2
+    err = capsys.readouterr().err
+    assert "levels.npy: N = 400 pixels per tile: the 1000 nm grid snaps" in err
+    assert "+9.17% off the sub-pixel pitch" in err, err
+    assert not (tmp_path / "out").exists()
+
+
 def test_report_summary_describes_the_fabricated_tile():
     from fab.cli_fab import tile_derived, tile_summary
 
