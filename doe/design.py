@@ -194,7 +194,13 @@ def load_design(path=None):
         raise InputError(path, f"cannot read: {e}") from None
     except ValueError as e:  # TOMLDecodeError, or an integer past Python's digit limit
         raise InputError(path, f"not valid TOML: {e}") from None
-    return parse_design(_merge(base, raw), path)
+    # A file that names no design is not the preset: it goes by its own name (etched
+    # on every mask label), and its description says what it is made of.
+    own = {
+        "name": path.stem,
+        "description": f"the {DEFAULT_PRESET} preset with the values of {path.name}",
+    }
+    return parse_design(_merge({**base, **own}, raw), path)
 
 
 def _read_preset(name):

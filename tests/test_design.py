@@ -149,6 +149,17 @@ def test_partial_file_overrides_the_default(tmp_path):
     assert d.sensor == load_design().sensor
 
 
+def test_a_file_that_names_no_design_goes_by_its_own_name(tmp_path):
+    # It was labelled "sun2020", with the prototype's description, on every mask.
+    f = tmp_path / "my_bk7_plate.toml"
+    f.write_text('[material]\nname = "bk7"\n')
+    d = load_design(f)
+    assert d.name == "my_bk7_plate"
+    assert d.description == "the sun2020 preset with the values of my_bk7_plate.toml"
+    f.write_text('description = "our plate"\n')
+    assert load_design(f).description == "our plate"
+
+
 def test_presets_are_listed_and_load():
     assert "sun2020" in preset_names()
     for name in preset_names():
