@@ -16,6 +16,7 @@ All geometry is built in integer nanometres and returned as gdstk polygons in
 micrometres (the library's user unit), so every vertex lies on the 1 nm grid.
 """
 
+import unicodedata
 from dataclasses import dataclass
 
 import gdstk
@@ -185,6 +186,17 @@ def _label(text, row, rows, a, h, layer):
     ]
 
 
+def etchable(text):
+    """Return ``text`` in the printable ASCII that gdstk's font draws.
+
+    gdstk drops every other character without a word ("µ-plate" etched as "-plate"):
+    accents go (é -> e), micro signs become u, anything else becomes "?".
+    """
+    text = unicodedata.normalize("NFKD", text.replace("µ", "u").replace("μ", "u"))
+    text = "".join(c for c in text if not unicodedata.combining(c))
+    return "".join(c if " " <= c <= "~" else "?" for c in text)
+
+
 def _bbox(polys):
     """Return ((xmin, ymin), (xmax, ymax)) of polygons."""
     pts = np.concatenate([p.points for p in polys])
@@ -224,7 +236,7 @@ def marks_and_labels(masks, aperture_half_nm, design_name):
                 polys += alignment_block(bx, sy * ring, ref_layer, layer)
     h = plate_half_size_nm(a)
     for j, mk in enumerate(masks):
-        text = f"{design_name} {mk.name} {mk.etch_depth * 1e9:.1f}nm"
+        text = etchable(f"{design_name} {mk.name} {mk.etch_depth * 1e9:.1f}nm")
         polys += _label(text, j, len(masks), a, h, mark_layer(mk.gds_layer))
     polys += _frame(0, 0, 2 * h - 2 * OUTLINE_WIDTH_NM, 2 * h, OUTLINE_LAYER)
     polys += _frame(0, 0, 2 * a, 2 * a + 2 * OUTLINE_WIDTH_NM, OUTLINE_LAYER)

@@ -214,6 +214,18 @@ def test_marks_and_labels_of_different_masks_never_overlap_and_stay_on_the_plate
     assert all(np.abs(p.points).max() * 1000 > a for p in labels)
 
 
+def test_labels_etch_names_outside_ascii_legibly():
+    # gdstk's font draws printable ASCII only: "µ-plate" was etched as "-plate".
+    masks = masks_from_levels(random_levels(6, seed=3), 8, STEP)
+
+    def label_points(name):
+        polys, _ = mk_marks.marks_and_labels(masks, 7_000_000, name)
+        return [p.points.tolist() for p in polys]
+
+    assert label_points("µ-plate_été") == label_points("u-plate_ete")
+    assert label_points("设计") == label_points("??")
+
+
 def test_marks_of_too_many_masks_for_the_aperture_are_refused():
     masks = masks_from_levels(random_levels(6, seed=3) % 64, 64, STEP)
     with pytest.raises(ValueError, match="6 masks do not fit beside a 2 mm aperture"):
