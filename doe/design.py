@@ -79,8 +79,8 @@ class Derived:
     ``tile_size`` is N * ``mask_pixel_pitch`` after snapping the pitch to the
     GDS grid; the dot lattice that the tiled plate puts on the sensor then has
     pitch lambda f / tile_size, slightly off the sub-pixel pitch, and
-    ``lattice_drift_at_edge`` is how far the outermost dot has wandered when the
-    zero order sits at the sensor centre.
+    ``lattice_drift_at_edge`` is how far the outermost dot has wandered, along the
+    sensor's longer side, when the zero order sits at the sensor centre.
     """
 
     subpixel_pitch: float
@@ -178,6 +178,10 @@ def load_design(path=None):
     if path is None:
         return parse_design(base, DEFAULT_PRESET)
     if str(path) in preset_names():
+        if Path(path).exists():  # which one the lab meant cannot be guessed
+            raise InputError(
+                path, f"names both a preset and a file here; pass ./{path} for the file"
+            )
         return parse_design(_read_preset(str(path)), str(path))
     path = Path(path)
     try:
@@ -356,7 +360,14 @@ def _check_consistency(d, source):
     except InputError as e:
         raise InputError(f"{source}: [optics] wavelength_nm", e.problem) from None
     der = derive(d)
-    if der.tile_size > fab.aperture:
+    deepest = sum(der.etch_depths)
+    if d.material.thickness <= deepest:
+        raise InputError(
+            f"{source}: [material] thickness_mm",
+            f"{d.material.thickness * 1e3:g} mm of glass is not thicker than the deepest "
+            f"etch ({deepest * 1e9:.1f} nm)",
+        )
+    if der.tile_size > fab.aperture * (1 + 1e-9):  # a tile of exactly the aperture fits
         raise InputError(
             f"{source}: [fabrication] aperture_mm",
             f"the phase tile ({der.tile_size * 1e3:.3f} mm) is larger than the "
@@ -400,7 +411,7 @@ def derive(d, tile_pixels=None):
     pitch = grid_steps * fab.grid
     tile = n_pix * pitch
     lattice = wl * f / tile if tile > 0 else math.inf
-    half_width_subpixels = sensor.columns * sensor.superres_factor / 2
+    half_width_subpixels = max(sensor.columns, sensor.rows) * sensor.superres_factor / 2
     n = refractive_index(d.material.name, wl)
     step = wl / (n - 1) / fab.levels
     masks = int(math.log2(fab.levels))

@@ -64,6 +64,20 @@ def test_derived_quantities_follow_from_first_principles():
     assert [d * 1e9 for d in der.etch_depths] == pytest.approx([717.6, 358.8, 179.4], abs=0.5)
 
 
+def test_lattice_drift_is_taken_along_the_sensors_longer_side():
+    # It used the columns only: a 32 x 128 sensor reported a quarter of its drift.
+    raw = raw_default()
+    raw["sensor"].update(columns=32, rows=128)
+    der = derive(parse_design(raw, "tall.toml"))
+    assert der.lattice_drift_at_edge == pytest.approx(der.lattice_mismatch * 128 * 4 / 2)
+
+
+def test_an_aperture_of_exactly_one_tile_is_accepted():
+    # N * pitch came out 1 ulp above the aperture: "0.873 mm is larger than 0.873 mm".
+    der = derive(parse_design(with_value("fabrication", "aperture_mm", 0.87325), "one.toml"))
+    assert der.tile_size == pytest.approx(0.87325e-3) and der.tiles == 1
+
+
 @pytest.mark.parametrize(
     ("material", "wavelength_um", "index"),
     [
@@ -92,6 +106,8 @@ def test_every_material_refuses_wavelengths_outside_its_fit():
         ("fabrication", "levels", 512, "levels.npy is uint8"),
         ("fabrication", "feature_size_um", 0.1, "N = 8733 pixels, more than 4096"),
         ("fabrication", "aperture_mm", 0.5, "larger than the aperture"),
+        # 100 nm of glass under 1256 nm of etch: refused only by the mesh, after training
+        ("material", "thickness_mm", 1e-4, r"not thicker than the deepest etch \(1255.8 nm\)"),
         # a 2 um grid snapped the 4990.5 nm pitch to 4000 nm: the PSF 25 % too large
         ("fabrication", "grid_nm", 2000, r"dots land 124% of a sub-pixel off theirs"),
         ("optics", "wavelength_nm", 5000.0, "outside the Sellmeier range"),
@@ -158,6 +174,15 @@ def test_a_file_that_names_no_design_goes_by_its_own_name(tmp_path):
     assert d.description == "the sun2020 preset with the values of my_bk7_plate.toml"
     f.write_text('description = "our plate"\n')
     assert load_design(f).description == "our plate"
+
+
+def test_a_file_named_as_a_preset_is_not_mistaken_for_it(tmp_path, monkeypatch):
+    # --config sun2020 loaded the preset although the lab's file "sun2020" lay here.
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "sun2020").write_text('[material]\nname = "bk7"\n')
+    with pytest.raises(InputError, match=r"names both a preset and a file here; pass \./sun2020"):
+        load_design("sun2020")
+    assert load_design("./sun2020").material.name == "bk7"
 
 
 def test_presets_are_listed_and_load():
