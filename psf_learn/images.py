@@ -73,6 +73,8 @@ def decode(path):
     The decoder follows the suffix: tifffile for TIFF, Pillow for everything
     else. Naming it keeps imageio from trying its other plugins (DICOM, ...)
     on a damaged file, which costs time and raises their deprecation warnings.
+    16-bit PNGs go through OpenImageIO: Pillow reads 16-bit colour (and grey with
+    alpha) as 8-bit, dropping the low byte without a word.
     """
     path = Path(path)
     if path.is_dir():
@@ -85,6 +87,8 @@ def decode(path):
                 pages = sum(not page.is_reduced for page in tif.pages)  # thumbnails aside
                 separated = tif.pages[0].photometric == tifffile.PHOTOMETRIC.SEPARATED
                 a = tif.series[0].asarray()
+        elif _png_bit_depth(path) == 16:
+            separated, pages, a = False, 1, _decode_oiio(path)
         else:
             import imageio.v3 as iio
             from PIL import Image
@@ -107,6 +111,34 @@ def decode(path):
     if separated:
         a = _ink_to_rgb(a, path)
     return a
+
+
+def _png_bit_depth(path):
+    """Return the bit depth in a PNG's header, or None for a file that is no PNG."""
+    with open(path, "rb") as f:
+        head = f.read(26)
+    if head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR" or len(head) < 26:
+        return None
+    return head[24]
+
+
+def _decode_oiio(path):
+    """Decode an image with OpenImageIO at its stored precision, alpha left as stored."""
+    import OpenImageIO as oiio
+
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)  # colour not multiplied by alpha
+    inp = oiio.ImageInput.open(str(path), config)
+    if inp is None:
+        raise ValueError(oiio.geterror().strip())
+    try:
+        spec = inp.spec()
+        a = inp.read_image(0, 0, 0, spec.nchannels, spec.format)
+    finally:
+        inp.close()
+    if a is None:
+        raise ValueError(oiio.geterror().strip())
+    return a[..., 0] if a.shape[-1] == 1 else a
 
 
 def _ink_to_rgb(cmyk, path):
@@ -198,8 +230,8 @@ def read_raw(path):
 
     Returns float64 counts: npy values as stored, integer images as their integer
     values (a 16-bit frame keeps its counts, not a [0, 1] scaling). Grey stored as
-    RGB(A) is read from its first channel; colour images and negative counts are
-    refused.
+    RGB(A) or with alpha is read from its first channel; colour images and
+    negative counts are refused.
     """
     path = Path(path)
     if path.suffix.lower() == ".npy":
@@ -212,6 +244,8 @@ def read_raw(path):
             )
     else:
         a = decode(path)
+        if a.ndim == 3 and a.shape[2] == 2:  # grey and alpha
+            a = a[..., :1]
         if a.ndim == 3 and a.shape[2] in (3, 4):
             # Grey saved as RGB(A) holds the counts in each channel; colour holds no counts.
             if not np.all(a[..., :3] == a[..., :1]):

@@ -126,6 +126,41 @@ def test_raw_frames_are_counts(tmp_path):
         read_raw(tmp_path / "dark_subtracted.npy")
 
 
+def write_png16(path, image):
+    """A 16-bit PNG written by hand, byte by byte as the PNG standard lays it out."""
+    import struct
+    import zlib
+
+    image = np.asarray(image, dtype=">u2")
+    colour_type = {1: 0, 2: 4, 3: 2, 4: 6}[1 if image.ndim == 2 else image.shape[2]]
+    rows = b"".join(b"\x00" + row.tobytes() for row in image)  # filter 0 on every row
+
+    def chunk(kind, data):
+        crc = zlib.crc32(kind + data)
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", crc)
+
+    header = struct.pack(">IIBBBBB", image.shape[1], image.shape[0], 16, colour_type, 0, 0, 0)
+    body = chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(rows)) + chunk(b"IEND", b"")
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + body)
+
+
+def test_sixteen_bit_colour_pngs_keep_their_low_byte(tmp_path):
+    # Pillow reads 16-bit RGB, RGBA and grey+alpha PNGs as 8-bit: sr took 62123
+    # counts for 242, silently, while the same counts in a grey PNG read right.
+    counts = (np.arange(63).reshape(9, 7) * 1000 + 123).astype(np.uint16)
+    alpha = np.full_like(counts, 30000)  # partial: colour must not be multiplied by it
+    for name, image in (
+        ("grey", counts),
+        ("grey_alpha", np.dstack([counts, alpha])),
+        ("rgb", np.dstack([counts] * 3)),
+        ("rgba", np.dstack([counts] * 3 + [alpha])),
+    ):
+        path = tmp_path / f"{name}.png"
+        write_png16(path, image)
+        np.testing.assert_array_equal(read_raw(path), counts, err_msg=name)
+        np.testing.assert_allclose(read_image(path), counts / 65535, atol=1e-6, err_msg=name)
+
+
 def test_float_training_images_must_lie_in_zero_one(tmp_path):
     # Images are grey in [0, 1]; a float TIFF of [-0.5, 0.5] once went into PSNRs as is.
     import tifffile
