@@ -60,7 +60,13 @@ def gaussian_psf(k, sigma=GAUSSIAN_SIGMA, centre=(0.0, 0.0)):
 
     def profile(c):
         d = np.abs(r - c)
-        return np.where(d <= k // 2 - abs(c), np.exp(-(d**2) / two_var), 0.0)
+        inside = d <= k // 2 - abs(c)
+        # Measured from the nearest cell, a tiny sigma tends to its limit (the light on
+        # the nearest cells); from the centre, every sample underflowed to 0 / 0.
+        excess = d**2 - d[inside].min() ** 2
+        with np.errstate(divide="ignore", invalid="ignore"):
+            p = np.where(excess == 0, 1.0, np.exp(-excess / two_var))
+        return np.where(inside, p, 0.0)
 
     g = profile(centre[0])[:, None] * profile(centre[1])[None, :]
     return g / g.sum()

@@ -57,6 +57,17 @@ def test_learned_psf_starts_at_its_initial_psf_and_frozen_keeps_zeros():
     np.testing.assert_allclose(frozen.numpy(), box_psf(K), atol=1e-12)
 
 
+@pytest.mark.parametrize("sigma", [0.01, 1e-200])
+def test_a_gaussian_narrower_than_a_cell_tends_to_its_limit(sigma):
+    # Centred between cells every sample underflowed: 0 / 0, then a flat 11 x 11 PSF.
+    between = gaussian_psf(K, sigma, centre=(0.5, 0.5))
+    expected = np.zeros((K, K))
+    expected[K // 2 : K // 2 + 2, K // 2 : K // 2 + 2] = 0.25  # the four nearest cells
+    np.testing.assert_allclose(between, expected, atol=1e-12)
+    on_axis = gaussian_psf(K, sigma)
+    assert on_axis[K // 2, K // 2] == pytest.approx(1)
+
+
 def test_baseline_psfs():
     g = gaussian_psf(K)
     assert g.sum() == pytest.approx(1) and np.argmax(g) == (K // 2) * K + K // 2
