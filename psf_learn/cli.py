@@ -273,6 +273,9 @@ def _evaluate(args):
         raise InputError(out, "is a folder; --out names the JSON file to write")
     if out is not None and out.exists() and not args.force:
         raise InputError(out, "exists; use --force or another --out")
+    parent = next((q for q in (out.parents if out else ()) if q.exists()), None)
+    if parent is not None and not parent.is_dir():  # found now, not after the evaluation
+        raise InputError(parent, f"is a file, so {out.name} cannot be written inside it")
     model = load_model(args.model_dir)
     psf = None
     if args.psf_file:
@@ -282,7 +285,9 @@ def _evaluate(args):
         if problem:
             path, text = problem
             raise InputError(path, f"{text}; --psf-file must be made for the model's grid")
-    names, images = imgio.read_folder(args.images, min_size=4 * model.sensor.factor)
+    # The capture mirrors each image by K // 2 at its borders: narrower ones cannot be.
+    k = (model.psf if psf is None else psf).shape[0]
+    names, images = imgio.read_folder(args.images, min_size=max(4 * model.sensor.factor, k))
     seed = EVAL_SEED if args.seed is None else args.seed
     res = evaluate(model, names, images, psf, seed, progress=sys.stderr.isatty())
     for name, v in res["images"].items():

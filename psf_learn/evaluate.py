@@ -1,10 +1,11 @@
-"""Evaluation of a learned camera on whole images: PSNR and SSIM as in SR benchmarks.
+"""Evaluation of a learned camera on whole images: PSNR and SSIM.
 
 Each grayscale image is cropped to a multiple of the factor f, captured through
 the PSF with the sensor model (mirror padding at the borders, photon noise
 from a fixed seed per image, so evaluation is deterministic), super-resolved,
 clipped to [0, 1] and compared after cropping ``border`` = f pixels on every
-side (the usual SR-benchmark border crop).
+side (the usual SR-benchmark border crop). SSIM is scikit-image's default
+(7 x 7 uniform window), not the Gaussian window of Wang et al. 2004.
 """
 
 import numpy as np

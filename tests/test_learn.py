@@ -600,6 +600,19 @@ def test_evaluate_and_sr_refuse_bad_inputs(trained, tmp_path, capsys):
         args = ["evaluate", str(out), "--images", str(images), "--out", str(tmp_path), *force]
         assert main(args) == 2
         assert f"{tmp_path}: is a folder" in capsys.readouterr().err
+    # --out inside a file: refused before the evaluation, not by mkdir after it
+    (tmp_path / "notes.txt").write_text("the lab's")
+    args = ["evaluate", str(out), "--images", str(images), "--out"]
+    assert main([*args, str(tmp_path / "notes.txt" / "e.json")]) == 2
+    assert f"{tmp_path / 'notes.txt'}: is a file, so e.json" in capsys.readouterr().err
+    # a PSF wider than an image cannot be mirrored at its borders: torch raised
+    small = tmp_path / "small"
+    small.mkdir()
+    io.imsave(small / "s.png", np.arange(324, dtype=np.uint8).reshape(18, 18))
+    wide = tmp_path / "wide.npy"
+    np.save(wide, gaussian_psf(41))
+    assert main(["evaluate", str(out), "--images", str(small), "--psf-file", str(wide)]) == 2
+    assert "s.png: image (18, 18) is smaller than 41 pixels" in capsys.readouterr().err
     bad = tmp_path / "raw.npy"
     np.save(bad, np.zeros((2, 3, 4, 5)))
     assert main(["sr", str(out), str(bad), "--out", str(tmp_path / "sr")]) == 2
