@@ -340,6 +340,11 @@ def _notes(result, capture, design):
             "the orders match a reflection of the design: a faulty plate, or a "
             "camera mounted otherwise than --orientation says (it is never guessed)"
         )
+        notes.append(
+            f"measured as that reflection ({result['measured_as']}), at its own zero order: "
+            "the figures and measured_psf.npy describe the plate as it is; correlation "
+            "and rmse still compare it with the design"
+        )
     if "zero_order_ambiguous" in result.get("diagnosis", []):
         z = result["zero_order_search"]
         gains = ", ".join(f"{k} {v:.3g}" for k, v in z["delta_chi2"].items())

@@ -84,6 +84,19 @@ _TRANSFORMS = {
     "mirror-x": lambda p: np.roll(p[:, ::-1], 1, axis=1),
     "mirror-y": lambda p: np.roll(p[::-1, :], 1, axis=0),
 }
+# The tile that gives each of those order patterns (a plate made so).
+_PLATE_LEVELS = {
+    "design": lambda lv, n_levels: lv,
+    "rot180": lambda lv, n_levels: (n_levels - 1 - lv.astype(np.int64)).astype(lv.dtype),
+    "mirror-x": lambda lv, n_levels: np.ascontiguousarray(lv[:, ::-1]),
+    "mirror-y": lambda lv, n_levels: np.ascontiguousarray(lv[::-1, :]),
+}
+# Diagnoses after which the process figures are not judged: the plate is not this
+# design as oriented, or its figures cannot be trusted.
+UNJUDGED_AFTER = (
+    "saturated", "low_signal", "conjugate_plate", "mirrored", "other_design",
+    "zero_order_ambiguous",
+)  # fmt: skip
 
 
 def resolve_thresholds(acceptance, design_efficiency, design_zero_order):
@@ -472,11 +485,9 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
         name: locate_zero_order(power, valid, sigma, transform(period), kernel_size // 2)
         for name, transform in _TRANSFORMS.items()
     }
-    m0, n0 = searches["design"]["m0"], searches["design"]["n0"]
     k, half = kernel_size, kernel_size // 2
     design_psf, design_eff = simulate_levels(levels, n_levels, k)
     result = {
-        "zero_order_px": [float(rows[m0, n0]), float(cols[m0, n0])],
         "frame_correlation": {name: s["score"] for name, s in searches.items()},
         "outside_window_correlation": {
             name: _finite(s["outside_score"]) for name, s in searches.items()
@@ -487,6 +498,14 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
         "design_zero_order": float(period[0, 0]),
         "pitch_px": grid.pitch_px,
     }
+    # A plate that a reflection of the design explains (conjugate or mirrored) is
+    # measured as what it is, at its own zero order: at the design's, three orders
+    # away, its figures and measured PSF described nothing.
+    plate = winning_reflection(result) or "design"
+    levels, period = _PLATE_LEVELS[plate](levels, n_levels), _TRANSFORMS[plate](period)
+    m0, n0 = searches[plate]["m0"], searches[plate]["n0"]
+    result["measured_as"] = plate
+    result["zero_order_px"] = [float(rows[m0, n0]), float(cols[m0, n0])]
     sl = (slice(m0 - half, m0 + half + 1), slice(n0 - half, n0 + half + 1))
     in_frame = (
         m0 - half >= 0
@@ -660,6 +679,18 @@ def _ambiguous(search, thresholds):
     )
 
 
+def winning_reflection(result):
+    """Return the reflection of the design that explains the capture decisively better, or None.
+
+    "rot180" is a conjugate plate (etch and glass swapped), "mirror-x"/"mirror-y"
+    a mirrored one.
+    """
+    frame = result["frame_correlation"]
+    delta = result["zero_order_search"]["delta_chi2"]
+    better = [t for t in delta if delta[t] > DECISIVE_CHI2 and frame[t] >= OTHER_DESIGN_MAX]
+    return max(better, key=lambda t: delta[t]) if better else None
+
+
 def diagnose(result, thresholds):
     """Return the list of short diagnosis codes (["ok"] when every check holds).
 
@@ -673,13 +704,10 @@ def diagnose(result, thresholds):
         codes.append("saturated")
     if result["window_snr"] < thresholds["min_window_snr"]:
         codes.append("low_signal")
-    frame = result["frame_correlation"]
     search = result["zero_order_search"]
-    delta = search["delta_chi2"]
-    better = [t for t in delta if delta[t] > DECISIVE_CHI2 and frame[t] >= OTHER_DESIGN_MAX]
-    if better:
-        best_other = max(better, key=lambda t: delta[t])
-        codes.append("conjugate_plate" if best_other == "rot180" else "mirrored")
+    reflection = winning_reflection(result)
+    if reflection:
+        codes.append("conjugate_plate" if reflection == "rot180" else "mirrored")
     elif not codes and _other_design(result):  # clipped or noisy windows explain nothing
         codes.append("other_design")
     elif not codes and _ambiguous(search, thresholds):

@@ -8,6 +8,8 @@ import html
 
 import numpy as np
 
+from fab.verify import UNJUDGED_AFTER
+
 _PNG_META = {"Software": None}
 
 
@@ -95,6 +97,9 @@ def _html(report):
     t = report["thresholds"]
     lat = report["lattice"]
     sig = t["significance_sigmas"]
+    # After a diagnosis that the plate is not this design as oriented (or clipped or
+    # too faint), the PSF and process figures are shown but not judged.
+    judged = not set(report["diagnosis"]) & set(UNJUDGED_AFTER)
     checks = [
         (
             "correlation",
@@ -129,9 +134,11 @@ def _html(report):
         ),
         ("saturated dots", report["saturated_dots"], "0", report["saturated_dots"] == 0),
     ]
+    checks[:5] = [(n, v, lim, ok if judged else None) for n, v, lim, ok in checks[:5]]
+    verdicts = {True: "ok", False: "<b>FAIL</b>", None: "not judged"}
     rows = "\n".join(
         f"<tr><td>{html.escape(n)}</td><td>{v:.5g}</td><td>{html.escape(lim)}</td>"
-        f"<td>{'ok' if ok else '<b>FAIL</b>'}</td></tr>"
+        f"<td>{verdicts[ok]}</td></tr>"
         for n, v, lim, ok in checks
     )
     info = [
@@ -179,6 +186,10 @@ def _html(report):
             f"{report['zero_order_px'][1]:.2f})",
         ),
         ("orientation", report["orientation"]),
+        (
+            "measured as (the design, or the reflection of it that the plate is)",
+            report.get("measured_as", "design"),
+        ),
         ("thresholds from", t["source"]),
         ("capture / dark", f"{report['inputs']['capture']} / {report['inputs']['dark']}"),
     ]

@@ -202,8 +202,11 @@ def test_conjugate_of_half_order_symmetric_psf_fails(tmp_path, half_order_levels
     assert code == 1
     assert report["diagnosis"] == ["conjugate_plate"]
     assert report["zero_order_search"]["delta_chi2"]["rot180"] > 25
-    # The window search alone is fooled: the shifted window matches the design.
-    assert report["correlation"] > 0.95
+    # A window search alone is fooled (the window one order off matches the design);
+    # measured at its own zero order, the plate shows its own, reflected PSF.
+    measured = read_psf(tmp_path / "conj" / "out" / "measured_psf.npy")
+    assert np.corrcoef(measured.ravel(), reflected.ravel())[0, 1] > 0.99
+    assert report["correlation"] < 0.9
 
 
 def test_ambiguous_zero_order_is_reported_not_passed(tmp_path, half_order_levels):
@@ -544,6 +547,32 @@ def test_designed_conjugate_plate_fails(tmp_path, designed):
         tmp_path, designed, dict(seed=23, faults=PlateFaults(conjugate=True))
     )
     assert code == 1 and report["diagnosis"] == ["conjugate_plate"]
+
+
+@pytest.mark.parametrize("fault", ["conjugate", "mirrored"])
+def test_a_reflected_plate_is_measured_as_what_it_is(tmp_path, designed, fault):
+    # Its figures were taken where the design would put its zero order, three orders
+    # off: a 20 % "zero order", an "implied deep-etch error" of 338 nm, and a
+    # measured_psf.npy that matched neither the design nor the plate.
+    from doe.fraunhofer import correlation
+
+    if fault == "conjugate":
+        plate, faults, code_name = L - 1 - designed, PlateFaults(conjugate=True), "conjugate_plate"
+    else:
+        plate = np.ascontiguousarray(designed[:, ::-1])
+        faults, code_name = PlateFaults(other_levels=plate), "mirrored"
+    sim_kwargs = dict(seed=24, faults=faults, centre=(280.2, 310.6))
+    code, report, sim = run_verify(tmp_path, designed, sim_kwargs)
+    assert code == 1 and report["diagnosis"] == [code_name]
+    assert np.allclose(report["zero_order_px"], sim["zero_order_px"], atol=0.3)
+    measured = read_psf(tmp_path / "out" / "measured_psf.npy")
+    assert correlation(measured, simulate_levels(plate, L, K)[0]) > 0.99
+    assert report["correlation"] < 0.9  # still compared with the design
+    # a reflection of the design has its efficiency and zero order
+    assert report["efficiency"] == pytest.approx(report["design_efficiency"], abs=0.03)
+    assert report["zero_order"] == pytest.approx(report["design_zero_order"], abs=0.005)
+    html = (tmp_path / "out" / "verify_report.html").read_text()
+    assert html.count("<td>not judged</td>") == 5
 
 
 def test_compact_psf_registers_from_a_few_dots(tmp_path):
