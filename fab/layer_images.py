@@ -59,7 +59,6 @@ def plate_preview(bitmap, tiles, pitch_nm, plate_half_nm, aperture_half_nm, max_
     # pixels of each f x f block from the tile alone: rows @ tile @ cols.T, exact integers.
     small = _block_counts(ny * n, n, f) @ b.astype(float) @ _block_counts(nx * n, n, f).T / f**2
     size = math.ceil(2 * plate_half_nm / s)
-    canvas = np.zeros((size, size))
     centre = size / 2
     # Row 0 of the array is its top edge: place it at y = +ny * n * p / 2.
     top = round(centre - ny * n * pitch_nm / 2 / s)
@@ -67,14 +66,16 @@ def plate_preview(bitmap, tiles, pitch_nm, plate_half_nm, aperture_half_nm, max_
     h, w = min(small.shape[0], size - top), min(small.shape[1], size - left)
     if top < 0 or left < 0 or h <= 0 or w <= 0:
         raise ValueError("the tiled array does not fit inside the plate")
-    canvas[top : top + h, left : left + w] = small[:h, :w]
-    img = np.rint(canvas * ETCHED).astype(np.uint8)
+    img = np.zeros((size, size), np.uint8)
     for half in (plate_half_nm, aperture_half_nm):
         r = half / s
         lo = int(np.clip(round(centre - r), 0, size - 1))
         hi = int(np.clip(round(centre + r) - 1, 0, size - 1))
         img[lo, lo : hi + 1] = img[hi, lo : hi + 1] = OUTLINE_GREY
         img[lo : hi + 1, lo] = img[lo : hi + 1, hi] = OUTLINE_GREY
+    # The array goes over the frames: an aperture edge that rounds into its first
+    # row or column must not hide the pattern there.
+    img[top : top + h, left : left + w] = np.rint(small[:h, :w] * ETCHED)
     return img[:, :, None]
 
 
