@@ -199,10 +199,11 @@ def load_design(path=None):
     except ValueError as e:  # TOMLDecodeError, or an integer past Python's digit limit
         raise InputError(path, f"not valid TOML: {e}") from None
     # A file that names no design is not the preset: it goes by its own name (etched
-    # on every mask label), and its description says what it is made of.
+    # on every mask label), and its description says what it is made of (not where
+    # the file lies: a moved file is the same design).
     own = {
         "name": path.stem,
-        "description": f"the {DEFAULT_PRESET} preset with the values of {path.name}",
+        "description": f"the {DEFAULT_PRESET} preset with the values set in its design file",
     }
     return parse_design(_merge({**base, **own}, raw), path)
 

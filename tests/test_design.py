@@ -171,7 +171,7 @@ def test_a_file_that_names_no_design_goes_by_its_own_name(tmp_path):
     f.write_text('[material]\nname = "bk7"\n')
     d = load_design(f)
     assert d.name == "my_bk7_plate"
-    assert d.description == "the sun2020 preset with the values of my_bk7_plate.toml"
+    assert d.description == "the sun2020 preset with the values set in its design file"
     f.write_text('description = "our plate"\n')
     assert load_design(f).description == "our plate"
 
