@@ -364,7 +364,7 @@ def _mtf(args):
 
     from doe.files import staged_output, write_json
     from fab.capture import read_raw_image
-    from fab.mtf import EdgeNotFound, slanted_edge_mtf
+    from fab.mtf import REACH_PER_RISE, EdgeNotFound, slanted_edge_mtf
 
     if not 1 <= args.oversample <= 16:
         raise InputError("--oversample", f"must be 1..16, got {args.oversample}")
@@ -381,6 +381,14 @@ def _mtf(args):
         print(
             f"doefab mtf: warning: {args.image}: {clipped} pixel(s) at the full-scale code "
             f"{raw.full_scale:g}; a clipped edge overstates the MTF: shorten the exposure",
+            file=sys.stderr,
+        )
+    if result["region_too_small"]:
+        print(
+            f"doefab mtf: warning: {args.image}: the region reaches "
+            f"{result['edge_reach_px']:.1f} px either side of the edge, under "
+            f"{REACH_PER_RISE:g} times its 10-90 % rise ({result['edge_rise_px']:.2f} px): "
+            "the cut edge profile overstates the MTF; give a larger region",
             file=sys.stderr,
         )
     with staged_output(args.out, args.force, names=MTF_FILES) as stage:

@@ -249,7 +249,8 @@ def write_mtf_plot(path, result):
     ax.axvline(0.5, color="gray", lw=0.6, ls=":")
     ax.set_xlabel("spatial frequency (cycles/pixel)")
     ax.set_ylabel("MTF")
-    ax.set_ylim(0, 1.05)
+    # A sharpened edge peaks above 1: the axis must show it, not cut it.
+    ax.set_ylim(0, max(1.05, 1.05 * float(np.nanmax(np.asarray(result["mtf"], float)))))
     ax.set_title(f"slanted-edge MTF, MTF50 {mtf50_text(result)}")
     fig.tight_layout()
     fig.savefig(path, dpi=90, metadata=_PNG_META)
