@@ -33,6 +33,8 @@ def load_npy(path):
         raise InputError(path, "no such file") from None
     except (OSError, ValueError, EOFError) as e:
         raise InputError(path, f"not a readable .npy array ({e})") from None
+    except MemoryError:  # a damaged header can claim terabytes
+        raise InputError(path, "its header claims an array too large for memory") from None
 
 
 def check_psf(psf, source, tol=1e-6):
@@ -44,6 +46,8 @@ def check_psf(psf, source, tol=1e-6):
     psf = np.asarray(psf)
     if psf.dtype.kind != "f":
         raise InputError(source, f"PSF must be a float array, got dtype {psf.dtype}")
+    if psf.dtype.itemsize < 4:  # 3 significant digits: no sum within tol of 1
+        raise InputError(source, f"PSF must be float64 (or float32), got {psf.dtype}")
     if psf.ndim != 2 or psf.shape[0] != psf.shape[1]:
         raise InputError(source, f"PSF must be square (K, K), got shape {psf.shape}")
     if psf.shape[0] % 2 == 0:
@@ -54,12 +58,15 @@ def check_psf(psf, source, tol=1e-6):
         raise InputError(source, "PSF contains NaN or infinite values")
     if np.any(psf < 0):
         raise InputError(source, f"PSF has negative values (min {psf.min():.3g})")
+    # Summed in float64 and C order: a float32 sum rounds, and a Fortran-ordered copy
+    # summed to another last bit (so another design for the same values and seed).
+    psf = np.ascontiguousarray(psf, dtype=np.float64)
     total = float(psf.sum())
     if total <= 0:
         raise InputError(source, "PSF sums to zero")
     if abs(total - 1) > tol:
-        raise InputError(source, f"PSF must sum to 1 (sums to {total:.6g}); normalise it first")
-    return psf.astype(np.float64) / total
+        raise InputError(source, f"PSF must sum to 1 (sums to {total:.10g}); normalise it first")
+    return psf / total
 
 
 def read_psf(path):

@@ -76,6 +76,31 @@ def test_read_psf_normalises_within_tolerance_only(tmp_path):
         read_psf(tmp_path / "bad.npy")
 
 
+def test_a_psf_is_checked_and_normalised_in_float64_and_c_order(tmp_path):
+    # float16 summed 1.0004 to exactly 1: retrieve passed it and wrote a target that
+    # fab then refused; a Fortran-ordered copy gave another design for the same values.
+    from doe.files import check_psf
+
+    psf = np.random.default_rng(0).random((11, 11))
+    psf /= psf.sum()
+    with pytest.raises(InputError, match=r"must be float64 \(or float32\), got float16"):
+        check_psf((psf * 1.0004).astype(np.float16), "f16.npy")
+    fortran = check_psf(np.asfortranarray(psf), "f.npy")
+    assert fortran.flags.c_contiguous and np.array_equal(fortran, check_psf(psf, "c.npy"))
+    single = check_psf(psf.astype(np.float32), "single.npy")
+    assert single.dtype == np.float64 and single.sum() == pytest.approx(1, abs=1e-15)
+
+
+def test_a_npy_header_claiming_terabytes_is_refused_plainly(tmp_path):
+    path = tmp_path / "huge.npy"
+    header = "{'descr': '<f8', 'fortran_order': False, 'shape': (1000001, 1000001), }"
+    header = header.ljust(118) + "\n"
+    path.write_bytes(b"\x93NUMPY\x01\x00" + len(header).to_bytes(2, "little") + header.encode()
+                     + bytes(968))  # fmt: skip
+    with pytest.raises(InputError, match="too large for memory"):
+        read_psf(path)
+
+
 @pytest.mark.parametrize(
     ("array", "message"),
     [
