@@ -177,6 +177,9 @@ def _ddp_worker(rank, world, port, out):
     torch.set_num_threads(1)
     result = train(TINY, _images(), SensorModel(POINT, 200.0), gaussian_psf(K))
     torch.save(_params(result.camera), out / f"rank{rank}.pt")
+    # Both ranks leave together: a rank tearing gloo down while the other still
+    # talked once aborted ("terminate called without an active exception").
+    torch.distributed.barrier()
     torch.distributed.destroy_process_group()
 
 
