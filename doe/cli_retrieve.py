@@ -104,7 +104,8 @@ def run(args):
                 # name and digest, not the path: the same input gives the same bytes
                 "target_psf": Path(args.psf).name,
                 "target_psf_sha256": hashlib.sha256(Path(args.psf).read_bytes()).hexdigest(),
-                "design": design_summary(design),
+                # the design as this tile realises it: its N and L, where flags set them
+                "design": design_summary(_with_levels(design, n_levels), tile_pixels=n),
                 "versions": _versions(),
             },
         )
@@ -145,3 +146,10 @@ def _versions():
         "nlopt": nlopt.__version__,
         "doefab": doefab,
     }
+
+
+def _with_levels(design, n_levels):
+    """Return ``design`` quantised to ``n_levels`` (``--levels`` may differ from its own)."""
+    from dataclasses import replace
+
+    return replace(design, fabrication=replace(design.fabrication, levels=n_levels))

@@ -560,6 +560,14 @@ def test_cli_levels_and_tile_default_from_the_design(tmp_path, capsys):
     assert np.load(out / "levels.npy").max() < 4
 
 
+def test_cli_records_the_design_as_the_tile_realises_it(tmp_path, capsys):
+    # With --tile-pixels 31 --levels 4 the record read N = 175 and 3 masks of 8 levels.
+    _psf, _out, info, _err = _retrieve_asymmetric(tmp_path, capsys, "--levels", 4)
+    derived = info["design"]["derived"]
+    assert derived["tile_pixels"] == 31 and derived["masks"] == 2
+    assert info["design"]["fabrication"]["levels"] == 4
+
+
 def test_cli_refuses_a_psf_learned_for_another_sub_pixel_grid(tmp_path, capsys):
     # learn.json beside psf.npy says the PSF is sampled on a factor-3 grid (50 um)
     cfg = tmp_path / "factor3.toml"
