@@ -6,8 +6,10 @@ build123d, klayout) happen inside the commands, so ``doefab --help`` is fast and
 """
 
 import argparse
+import contextlib
 import importlib
 import os
+import signal
 import sys
 
 from doe.errors import InputError
@@ -36,10 +38,22 @@ def build_parser():
     return parser
 
 
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM (timeout, CI, a job scheduler), unwound as Ctrl-C is."""
+
+
+def _terminated(signum, frame):
+    # By default SIGTERM killed the process and left the staging folder behind;
+    # unwound, staged outputs are removed and a checkpointed stage resumes.
+    raise _Terminated()
+
+
 def main(argv=None):
     """Run the command line; return the exit code (0 ok, 1 check failed, 2 bad input)."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    with contextlib.suppress(ValueError):  # only the main thread may set handlers
+        signal.signal(signal.SIGTERM, _terminated)
     try:
         if getattr(args, "out", None) is not None and not args.out.strip():
             # An unset shell variable ($OUT) would otherwise mean the current folder.
@@ -57,6 +71,9 @@ def main(argv=None):
         where = e.filename if e.filename is not None else "file system"
         print(f"doefab {args.command}: error: {where}: {e.strerror or e}", file=sys.stderr)
         return 2
+    except _Terminated:
+        print(f"doefab {args.command}: terminated", file=sys.stderr)
+        return 128 + signal.SIGTERM
     except KeyboardInterrupt:
         print(f"doefab {args.command}: interrupted", file=sys.stderr)
         return 130

@@ -673,3 +673,25 @@ def test_one_order_target_is_an_unetched_plate_without_warnings(tmp_path, capsys
     assert code == 0 and "efficiency 1.0000" in capsys.readouterr().out
     levels = np.load(out / "levels.npy")
     assert levels.shape == (16, 16) and (levels == 7).all()
+
+
+@pytest.mark.slow  # a subprocess that imports numpy and scipy, then retrieves N = 175
+def test_sigterm_leaves_no_staging_folder(tmp_path):
+    # SIGTERM (timeout, CI) killed the process and left .out.staging-* behind.
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    psf = _psf_file(tmp_path, targets.asymmetric(11))
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "doe.cli", "retrieve", str(psf), "--out", str(out)]
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 60
+    while not list(tmp_path.glob(".out.staging-*")) and time.time() < deadline:
+        time.sleep(0.02)
+    assert proc.poll() is None, "retrieve ended before it could be stopped"
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 128 + signal.SIGTERM and "terminated" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == [psf.name]
