@@ -13,9 +13,15 @@ def minimise(fun, x0, max_eval, ftol_rel=1e-10):
     import nlopt
 
     best = {"x": x0.copy(), "f": np.inf}
+    interrupted = []
 
     def f(x, grad):
-        value, g = fun(x)
+        try:
+            value, g = fun(x)
+        except KeyboardInterrupt as e:  # Ctrl-C, SIGTERM: nlopt would end as if converged
+            interrupted.append(e)
+            opt.force_stop()
+            return float("inf")
         if grad.size:
             grad[:] = g.ravel()
         if value < best["f"]:
@@ -31,6 +37,7 @@ def minimise(fun, x0, max_eval, ftol_rel=1e-10):
     # as Python's RuntimeError
     stops = (
         nlopt.RoundoffLimited,
+        nlopt.ForcedStop,
         ValueError,
         RuntimeError,
         getattr(nlopt, "exception", RuntimeError),
@@ -39,4 +46,6 @@ def minimise(fun, x0, max_eval, ftol_rel=1e-10):
         opt.optimize(x0.ravel().copy())
     except stops:
         pass  # keep our own best point: nlopt drops it on these exceptions
+    if interrupted:
+        raise interrupted[0]
     return best["x"], best["f"]

@@ -26,3 +26,19 @@ def test_a_failed_run_returns_the_best_point_seen():
     x, value = minimise(upside_down, x0, 100)
     assert value == min(seen)
     assert float((x**2).sum()) == value
+
+
+def test_an_interrupt_in_the_objective_stops_the_minimisation():
+    # nlopt turned Ctrl-C (or SIGTERM) inside the objective into an ordinary stop:
+    # retrieval went on as if it had converged, and the command finished with exit 0.
+    calls = []
+
+    def fun(x):
+        calls.append(1)
+        if len(calls) == 5:
+            raise KeyboardInterrupt
+        return float(((x - 3.0) ** 4).sum()), 4 * (x - 3.0) ** 3
+
+    with pytest.raises(KeyboardInterrupt):
+        minimise(fun, np.zeros(4), max_eval=100)
+    assert len(calls) <= 6
