@@ -52,8 +52,17 @@ def main(argv=None):
     """Run the command line; return the exit code (0 ok, 1 check failed, 2 bad input)."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    previous = None
     with contextlib.suppress(ValueError):  # only the main thread may set handlers
-        signal.signal(signal.SIGTERM, _terminated)
+        previous = signal.signal(signal.SIGTERM, _terminated)
+    try:
+        return _dispatch(args)
+    finally:  # a caller in the same process (a test, doefab run) keeps its own
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _dispatch(args):
     try:
         if getattr(args, "out", None) is not None and not args.out.strip():
             # An unset shell variable ($OUT) would otherwise mean the current folder.

@@ -695,3 +695,12 @@ def test_sigterm_leaves_no_staging_folder(tmp_path):
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 128 + signal.SIGTERM and "terminated" in err
     assert sorted(p.name for p in tmp_path.iterdir()) == [psf.name]
+
+
+def test_the_command_gives_its_callers_sigterm_handler_back(capsys):
+    # In-process callers (tests, doefab run's stages) keep their own SIGTERM handling.
+    import signal
+
+    before = signal.getsignal(signal.SIGTERM)
+    assert main(["presets"]) == 0
+    assert signal.getsignal(signal.SIGTERM) is before
