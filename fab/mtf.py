@@ -146,7 +146,7 @@ def _check_single_edge(deriv):
     ``MIN_EDGE_SNR`` times out of the noise of a mean over the rows.
     """
     profile = deriv.mean(axis=0)
-    noise = np.median(np.abs(deriv)) * 1.4826 / np.sqrt(deriv.shape[0])
+    noise = robust_sigma(deriv) / np.sqrt(deriv.shape[0])
     weaker = min(profile.max(), -profile.min())
     if weaker > 0.3 * np.abs(profile).max() and weaker > MIN_EDGE_SNR * noise:
         raise EdgeNotFound(
