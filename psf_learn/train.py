@@ -265,7 +265,7 @@ def train(
     show = sys.stderr.isatty() if progress is None else progress
     bar = tqdm(
         total=config.steps if by_steps else round(budget),
-        initial=step if by_steps else 0,
+        initial=step if by_steps else min(round(elapsed), round(budget)),
         disable=not show or rank != 0,
         unit="step" if by_steps else "s",
         file=sys.stderr,
@@ -274,14 +274,17 @@ def train(
     last_save = time.monotonic()
     while True:
         done = step >= config.steps if by_steps else elapsed >= budget
-        if world > 1:  # rank 0 decides, so every rank runs the same number of steps
-            flag = torch.tensor([int(done)], device=device)
-            torch.distributed.broadcast(flag, 0)
-            done = bool(flag.item())
+        frac = step / max(config.steps, 1) if by_steps else elapsed / max(budget, 1e-9)
+        if world > 1:
+            # Rank 0's clock decides for all: every rank runs the same number of steps at
+            # the same learning rate (each rank's own clock once gave each replica its own
+            # rate under --minutes, and the weights drifted apart).
+            shared = torch.tensor([float(done), frac], dtype=torch.float64, device=device)
+            torch.distributed.broadcast(shared, 0)
+            done, frac = bool(shared[0].item()), float(shared[1].item())
         if done or (stop_at_step is not None and step >= stop_at_step):
             break
         t0 = time.monotonic()
-        frac = step / max(config.steps, 1) if by_steps else elapsed / max(budget, 1e-9)
         for g in opt.param_groups:
             g["lr"] = g["base"] * lr_factor(frac)
         ids = range(rank * local, (rank + 1) * local)
@@ -294,8 +297,11 @@ def train(
         # long runs at a high learning rate spike without this (seen at 14 k steps)
         nn.utils.clip_grad_norm_(camera.parameters(), 1.0)
         opt.step()
-        mse = float(F.mse_loss(estimate.detach().clamp(0, 1), target))
-        history.append([loss.item(), psnr_from_mse(mse)])
+        figures = torch.stack([loss.detach(), F.mse_loss(estimate.detach().clamp(0, 1), target)])
+        if world > 1:  # the global batch's figures, as one process would have them
+            torch.distributed.all_reduce(figures)
+            figures = figures / world
+        history.append([float(figures[0]), psnr_from_mse(float(figures[1]))])
         step += 1
         dt = time.monotonic() - t0
         elapsed += dt

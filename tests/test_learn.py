@@ -166,7 +166,7 @@ def test_resume_from_checkpoint_equals_uninterrupted_run(tmp_path):
         assert fresh.steps == 1
 
 
-def _ddp_worker(rank, world, port, out):
+def _ddp_worker(rank, world, port, out, config=TINY):
     os.environ.update(
         MASTER_ADDR="127.0.0.1",
         MASTER_PORT=str(port),
@@ -175,8 +175,9 @@ def _ddp_worker(rank, world, port, out):
         LOCAL_RANK=str(rank),
     )
     torch.set_num_threads(1)
-    result = train(TINY, _images(), SensorModel(POINT, 200.0), gaussian_psf(K))
+    result = train(config, _images(), SensorModel(POINT, 200.0), gaussian_psf(K))
     torch.save(_params(result.camera), out / f"rank{rank}.pt")
+    torch.save(torch.tensor(result.history), out / f"history{rank}.pt")
     # Both ranks leave together: a rank tearing gloo down while the other still
     # talked once aborted ("terminate called without an active exception").
     torch.distributed.barrier()
@@ -185,17 +186,15 @@ def _ddp_worker(rank, world, port, out):
 
 @pytest.mark.slow  # spawns two Python processes that import torch
 def test_ddp_with_gloo_on_two_processes_matches_one_process(tmp_path):
-    import torch.multiprocessing as mp
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    mp.spawn(_ddp_worker, args=(2, port, tmp_path), nprocs=2, join=True)
-    r0, r1 = torch.load(tmp_path / "rank0.pt"), torch.load(tmp_path / "rank1.pt")
+    r0, r1 = _spawn_two_ranks(tmp_path, TINY)
     assert torch.equal(r0, r1)  # DDP keeps the replicas identical
     single = train(TINY, _images(), SensorModel(POINT, 200.0), gaussian_psf(K))
     # each rank took half of the same global batch: same run up to summation order
     torch.testing.assert_close(r0, _params(single.camera), atol=2e-5, rtol=1e-4)
+    # the recorded loss and PSNR are the global batch's (each rank's half once)
+    h0, h1 = torch.load(tmp_path / "history0.pt"), torch.load(tmp_path / "history1.pt")
+    assert torch.equal(h0, h1)
+    torch.testing.assert_close(h0, torch.tensor(single.history), atol=1e-5, rtol=1e-5)
     assert not torch.allclose(
         r0,
         _params(
@@ -207,6 +206,25 @@ def test_ddp_with_gloo_on_two_processes_matches_one_process(tmp_path):
             ).camera
         ),
     )
+
+
+def _spawn_two_ranks(tmp_path, config):
+    import torch.multiprocessing as mp
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    mp.spawn(_ddp_worker, args=(2, port, tmp_path, config), nprocs=2, join=True)
+    return torch.load(tmp_path / "rank0.pt"), torch.load(tmp_path / "rank1.pt")
+
+
+@pytest.mark.slow  # spawns two Python processes that import torch
+def test_ddp_with_a_time_budget_keeps_the_replicas_identical(tmp_path):
+    # Under --minutes each rank once took its learning rate from its own clock.
+    r0, r1 = _spawn_two_ranks(
+        tmp_path, TrainConfig(**{**TINY.__dict__, "steps": None, "minutes": 0.02})
+    )
+    assert torch.equal(r0, r1)
 
 
 # --- evaluation and super-resolution ---------------------------------------------------------
