@@ -55,7 +55,8 @@ def register(sub):
     p.add_argument(
         "--threads",
         type=int,
-        help="CPU threads (default: the idle cores, from the load average; 1 on a busy "
+        help="CPU threads (default: 1 with --steps, whose result then depends on neither the "
+        "machine's cores nor its load; else the idle cores, from the load average: 1 on a busy "
         "machine, where one thread runs far faster than two fighting for cores)",
     )
     p.add_argument("--restart", action="store_true", help="ignore an existing checkpoint")
@@ -105,7 +106,9 @@ def _learn(args):
     for flag, value in (("--photons", args.photons), ("--dark-counts", args.dark_counts)):
         flags.at_most(flag, flags.non_negative(flag, value), flags.PHOTONS_MAX, "counts per pixel")
     flags.seed("--seed", args.seed)
-    torch.set_num_threads(args.threads or idle_cores())
+    # The thread count changes a run's last bits: a --steps run (deterministic,
+    # resumable) takes a fixed one, not one read from the load of the moment.
+    torch.set_num_threads(args.threads or (1 if args.steps else idle_cores()))
     design = load_design(args.config)
     k = design.kernel_size
     sensor = sensor_from_design(design, photons=args.photons, dark_counts=args.dark_counts)
@@ -185,8 +188,8 @@ def _learn(args):
     if not args.force:
         _refuse_overwrite(out, OUTPUTS)
     checkpoint = out / "checkpoint.pt"
-    if args.restart and checkpoint.exists():
-        checkpoint.unlink()
+    if args.restart:  # every rank of a torchrun job gets here before any reads it
+        checkpoint.unlink(missing_ok=True)
     result = train(config, images, sensor, psf0, init_state=init_state, checkpoint=checkpoint)
     if torch.distributed.is_available() and torch.distributed.is_initialized():
         rank = torch.distributed.get_rank()

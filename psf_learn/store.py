@@ -26,11 +26,21 @@ def save_checkpoint(path, state):
 
 
 def load_checkpoint(path):
-    """Read a checkpoint dict written by :func:`save_checkpoint`."""
+    """Read a checkpoint dict written by :func:`save_checkpoint` (InputError if it is not one)."""
     try:
-        return torch.load(path, map_location="cpu", weights_only=True)
+        state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:
-        raise InputError(path, f"not a readable checkpoint ({type(e).__name__}: {e})") from None
+        state, reason = None, f"not readable: {type(e).__name__}: {_first_line(e)}"
+    else:
+        reason = "not a doefab checkpoint"
+    if not isinstance(state, dict) or not {"identity", "camera", "step"} <= state.keys():
+        raise InputError(path, f"{reason}; --restart trains afresh and replaces it")
+    return state
+
+
+def _first_line(error):
+    """Return the first line of an exception's text (torch's run to a page)."""
+    return (str(error).strip().splitlines() or [""])[0]
 
 
 def model_record(net, net_config, sensor):
@@ -66,7 +76,9 @@ def load_model_dir(model_dir):
     try:
         record = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:
-        raise InputError(path, f"not a readable model ({type(e).__name__}: {e})") from None
+        raise InputError(
+            path, f"not a readable model ({type(e).__name__}: {_first_line(e)})"
+        ) from None
     if not isinstance(record, dict) or record.get("format") != MODEL_FORMAT:
         raise InputError(path, f"not a {MODEL_FORMAT} model file")
     psf = read_psf(model_dir / "psf.npy")

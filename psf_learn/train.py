@@ -235,6 +235,14 @@ def train(
             step, elapsed, history = state["step"], state["elapsed"], list(state["history"])
             if rank == 0:
                 print(f"resuming from {checkpoint} at step {step}", file=sys.stderr)
+                threads = state.get("threads")
+                if threads is not None and threads != torch.get_num_threads():
+                    print(
+                        f"note: the checkpoint was written with {threads} threads, this run "
+                        f"has {torch.get_num_threads()}; the result will differ in the last "
+                        "bits from an uninterrupted run",
+                        file=sys.stderr,
+                    )
         elif rank == 0:
             print(f"ignoring {checkpoint}: it belongs to another configuration", file=sys.stderr)
     model = camera
@@ -257,6 +265,7 @@ def train(
                     "step": step,
                     "elapsed": elapsed,
                     "history": history,
+                    "threads": torch.get_num_threads(),
                 },
             )
 

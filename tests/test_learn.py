@@ -531,6 +531,75 @@ def _bad_input(tmp_path, kind):
     return ["--psf", str(psf_file)], psf_file
 
 
+def test_a_steps_run_takes_one_thread_whatever_the_load(trained, tmp_path, monkeypatch):
+    # The default once came from the load average, and 1 or 2 threads give different
+    # last bits: the same --steps command gave another model.pt on a busier machine.
+    from psf_learn import cli as learn_cli
+
+    _, images = trained
+    monkeypatch.setattr(learn_cli, "idle_cores", lambda: 2)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        assert main(["learn", "--out", str(tmp_path / "a"), "--images", str(images), *SMALL]) == 0
+        assert torch.get_num_threads() == 1
+        args = ["--out", str(tmp_path / "b"), "--images", str(images), "--threads", "2"]
+        assert main(["learn", *args, *SMALL]) == 0
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_a_foreign_checkpoint_is_refused_in_one_line(tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    torch.save(torch.zeros(3), out / "checkpoint.pt")  # once an AttributeError traceback
+    assert main(["learn", "--out", str(out), *SMALL]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "checkpoint.pt" in err and "--restart" in err
+    (out / "checkpoint.pt").write_text("not a torch file\n" * 5)  # torch's text: 6 lines
+    assert main(["learn", "--out", str(out), *SMALL]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--restart" in err
+
+
+def test_resuming_with_another_thread_count_says_so(tmp_path, capsys):
+    before = torch.get_num_threads()
+    ckpt = tmp_path / "ckpt.pt"
+    try:
+        torch.set_num_threads(1)
+        train(
+            TINY,
+            _images(),
+            SensorModel(POINT, 200.0),
+            gaussian_psf(K),
+            checkpoint=ckpt,
+            stop_at_step=2,
+        )
+        capsys.readouterr()
+        torch.set_num_threads(2)
+        train(
+            TINY,
+            _images(),
+            SensorModel(POINT, 200.0),
+            gaussian_psf(K),
+            checkpoint=ckpt,
+            stop_at_step=3,
+        )
+        assert "written with 1 threads" in capsys.readouterr().err
+        train(
+            TINY,
+            _images(),
+            SensorModel(POINT, 200.0),
+            gaussian_psf(K),
+            checkpoint=ckpt,
+            stop_at_step=4,
+        )
+        assert "threads" not in capsys.readouterr().err
+    finally:
+        torch.set_num_threads(before)
+
+
 @pytest.mark.parametrize("kind", ["empty", "corrupt", "negative", "unnormalised", "even"])
 def test_learn_refuses_bad_inputs_with_exit_2(tmp_path, capsys, kind):
     extra, culprit = _bad_input(tmp_path, kind)
