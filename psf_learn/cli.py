@@ -227,6 +227,8 @@ def _learn(args):
         save_npy(stage / "psf.npy", psf)
         record = store.model_record(result.camera.net, result.camera.net_config, sensor)
         store.save_model(stage / "model.pt", record)
+        # so that a model.pt or psf.npy from another run is not taken for this one's
+        info["files"] = {n: store.file_sha256(stage / n) for n in ("model.pt", "psf.npy")}
         write_json(stage / "learn.json", info)
     checkpoint.unlink(missing_ok=True)
     print(

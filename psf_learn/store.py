@@ -5,6 +5,7 @@ stored as tensors and plain Python types, so it loads with
 ``torch.load(..., weights_only=True)`` (no pickled code).
 """
 
+import hashlib
 import os
 from pathlib import Path
 
@@ -84,4 +85,18 @@ def load_model_dir(model_dir):
     psf = read_psf(model_dir / "psf.npy")
     learn_path = model_dir / "learn.json"
     learn = read_json(learn_path) if learn_path.exists() else None
+    recorded = learn.get("files") if learn is not None else None
+    if isinstance(recorded, dict):  # learn.json of before 2026-11-24 records none
+        for name in ("model.pt", "psf.npy"):
+            if name in recorded and file_sha256(model_dir / name) != recorded[name]:
+                raise InputError(
+                    model_dir / name,
+                    f"is not the file {learn_path.name} beside it was written with (another "
+                    "training's?); keep psf.npy, model.pt and learn.json of one run together",
+                )
     return record, psf, learn
+
+
+def file_sha256(path):
+    """Return the SHA-256 of a file's bytes (learn.json records its siblings')."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()

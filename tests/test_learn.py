@@ -1,5 +1,6 @@
 """PSF parametrisation, SR network, training (resume, DDP), and the learn/evaluate/sr commands."""
 
+import hashlib
 import json
 import os
 import socket
@@ -305,6 +306,32 @@ def test_learn_writes_the_contract_files(trained):
     assert info["design"]["sensor"]["superres_factor"] == 4  # the grid psf.npy is sampled on
     assert {"final_loss", "final_psnr_db", "seconds", "versions"} <= set(info)
     torch.load(out / "model.pt", weights_only=True)
+
+
+@pytest.mark.parametrize("swapped", ["model.pt", "psf.npy"])
+def test_a_file_from_another_training_is_refused(trained, tmp_path, capsys, swapped):
+    # A model.pt of another design (factor 3) beside this psf.npy and learn.json once
+    # evaluated and super-resolved with exit 0.
+    import shutil
+
+    out, images = trained
+    other = tmp_path / "other"
+    assert main(["learn", "--out", str(other), "--images", str(images), *SMALL, "--seed", "1"]) == 0
+    mixed = tmp_path / "mixed"
+    shutil.copytree(out, mixed)
+    shutil.copy(other / swapped, mixed / swapped)
+    np.save(tmp_path / "raw.npy", np.ones((6, 6)))
+    capsys.readouterr()
+    for command in (
+        ["evaluate", str(mixed), "--images", str(images)],
+        ["sr", str(mixed), str(tmp_path / "raw.npy"), "--out", str(tmp_path / "sr")],
+        ["learn", "--out", str(tmp_path / "tuned"), "--init", str(mixed), *SMALL],
+    ):
+        assert main(command) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and str(mixed / swapped) in err
+    info = json.loads((out / "learn.json").read_text())
+    assert info["files"]["psf.npy"] == hashlib.sha256((out / "psf.npy").read_bytes()).hexdigest()
 
 
 def test_default_patch_holds_whole_pixels_of_any_factor(tmp_path):
