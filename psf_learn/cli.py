@@ -137,6 +137,7 @@ def _learn(args):
 
         base = load_model(args.init)
         init_psf = base.psf
+        check_psf_grid(Path(args.init) / "psf.npy", design)  # as --psf FILE is
         init_state = base.net.state_dict()
         record, _, _ = store.load_model_dir(args.init)
         net = record["network"]
@@ -170,6 +171,12 @@ def _learn(args):
     else:
         psf0, learn_psf = read_psf(spec), False
         check_psf_grid(spec, design)
+    if psf0.shape[0] != k:  # else learn.json's design contradicts the PSF learned
+        raise InputError(
+            Path(args.init) / "psf.npy" if spec == "learned" else spec,
+            f"is {psf0.shape[0]} x {psf0.shape[0]}, but the kernel of design {design.name!r} "
+            f"is {k} x {k}; pass the design it was made for with --config",
+        )
     config = with_overrides(config, learn_psf=learn_psf)
 
     margin = psf0.shape[0] - 1

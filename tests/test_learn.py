@@ -334,6 +334,27 @@ def test_a_file_from_another_training_is_refused(trained, tmp_path, capsys, swap
     assert info["files"]["psf.npy"] == hashlib.sha256((out / "psf.npy").read_bytes()).hexdigest()
 
 
+@pytest.mark.parametrize(
+    "design_text, init, culprit",
+    [
+        ("[sensor]\npixel_pitch_um = 100\n", True, "learn.json"),  # another sub-pixel grid
+        ("[psf]\nkernel_size = 15\n", True, "psf.npy"),  # once trained an 11 x 11 all the same
+        ("[psf]\nkernel_size = 15\n", False, "fixed.npy"),
+    ],
+)
+def test_a_starting_psf_must_fit_the_design(trained, tmp_path, capsys, design_text, init, culprit):
+    out, images = trained
+    design = tmp_path / "design.toml"
+    design.write_text(design_text)
+    np.save(tmp_path / "fixed.npy", gaussian_psf(K))
+    start = ["--init", str(out)] if init else ["--psf", str(tmp_path / "fixed.npy")]
+    args = ["--out", str(tmp_path / "m"), "--images", str(images), "--config", str(design)]
+    assert main(["learn", *args, *start, *SMALL]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and culprit in err and "--config" in err
+    assert not (tmp_path / "m").exists()
+
+
 def test_default_patch_holds_whole_pixels_of_any_factor(tmp_path):
     # 64 sub-pixels, the prototype's patch, is no whole number of 3 x 3 SPAD pixels
     design = tmp_path / "factor3.toml"
