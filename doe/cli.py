@@ -9,6 +9,7 @@ import argparse
 import contextlib
 import importlib
 import os
+import re
 import signal
 import sys
 
@@ -70,8 +71,8 @@ def _dispatch(args):
         code = int(args.func(args) or 0)
         sys.stdout.flush()  # a closed pipe shows here, in the handlers below, not at exit
         return code
-    except InputError as e:
-        print(f"doefab {args.command}: error: {e}", file=sys.stderr)
+    except InputError as e:  # one line, even when it quotes a library's page of text
+        print(f"doefab {args.command}: error: {_one_line(str(e))}", file=sys.stderr)
         return 2
     except BrokenPipeError:  # the reader of stdout stopped (| head): end quietly, as SIGPIPE would
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
@@ -90,3 +91,8 @@ def _dispatch(args):
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+def _one_line(text):
+    """Return text with its line breaks (and the indentation after them) as single spaces."""
+    return re.sub(r"[ \t]*[\r\n]+\s*", " ", text.strip())

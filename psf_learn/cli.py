@@ -112,6 +112,8 @@ def _learn(args):
     design = load_design(args.config)
     k = design.kernel_size
     sensor = sensor_from_design(design, photons=args.photons, dark_counts=args.dark_counts)
+    if sensor.photons <= 0 and sensor.dark_counts > 0:  # model.pt would record them all the same
+        raise InputError("--dark-counts", "needs photon noise: --photons 0 simulates no counts")
     config = with_overrides(
         TrainConfig(minutes=design.learning.minutes, seed=design.learning.seed),
         steps=args.steps,

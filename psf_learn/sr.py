@@ -39,10 +39,24 @@ def load_model(model_dir):
         sensor = SensorModel(
             tuple(tuple(r) for r in s["weights"]), float(s["photons"]), float(s["dark_counts"])
         )
+        _check_sensor(sensor, net.factor)
     except (KeyError, TypeError, RuntimeError, ValueError) as e:
         raise InputError(Path(model_dir) / "model.pt", f"inconsistent model ({e})") from None
     net.eval()
     return SRModel(net, psf, sensor, learn)
+
+
+def _check_sensor(sensor, factor):
+    """Raise ValueError unless the sensor record is one the network can be run with."""
+    w = np.asarray(sensor.weights, dtype=np.float64)
+    if w.shape != (factor, factor) or not (np.isfinite(w).all() and (w >= 0).all()):
+        raise ValueError(f"sensor weights must be {factor} x {factor} finite values >= 0")
+    if not abs(w.sum() - 1) < 1e-6:
+        raise ValueError(f"sensor weights sum to {w.sum():g}, not 1")
+    for name in ("photons", "dark_counts"):
+        value = getattr(sensor, name)
+        if not (np.isfinite(value) and value >= 0):
+            raise ValueError(f"sensor {name} must be a finite number >= 0, got {value}")
 
 
 def super_resolve(model, frames, photons=None, chunk=16):

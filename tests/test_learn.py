@@ -758,6 +758,42 @@ def test_evaluate_and_sr_refuse_bad_inputs(trained, tmp_path, capsys):
     assert not (tmp_path / "sr").exists()
 
 
+@pytest.mark.parametrize(
+    "damage",
+    [
+        lambda r: r["sensor"].update(photons=float("nan")),  # ran, writing NaN
+        lambda r: r["sensor"].update(weights=[]),  # tracebacks: a broadcast error
+        lambda r: r["sensor"].update(weights=[[1 / 9] * 3] * 3),  # for a factor-4 network
+        lambda r: r["sensor"].update(dark_counts=-1.0),
+        lambda r: r["network"].update(factor=3),  # six lines of torch's size mismatches
+    ],
+)
+def test_a_damaged_model_record_is_refused_in_one_line(trained, tmp_path, capsys, damage):
+    import shutil
+
+    out, _ = trained
+    model = tmp_path / "model"
+    shutil.copytree(out, model)
+    (model / "learn.json").unlink()  # its hashes would catch the edit first
+    record = torch.load(model / "model.pt", weights_only=True)
+    damage(record)
+    torch.save(record, model / "model.pt")
+    np.save(tmp_path / "raw.npy", np.ones((6, 6)))
+    assert main(["sr", str(model), str(tmp_path / "raw.npy"), "--out", str(tmp_path / "sr")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(model / "model.pt") in err
+    assert not (tmp_path / "sr").exists()
+
+
+def test_dark_counts_without_noise_are_refused(tmp_path, capsys):
+    # Noise is off at --photons 0, dark counts included, yet model.pt recorded them and
+    # sr subtracted them: a 0.5 grey frame came out at -4.4.
+    out = tmp_path / "m"
+    assert main(["learn", "--out", str(out), "--photons", "0", "--dark-counts", "5", *SMALL]) == 2
+    err = capsys.readouterr().err
+    assert "--dark-counts" in err and "--photons 0" in err and not out.exists()
+
+
 def test_gaussian_sigma_spec(tmp_path, capsys):
     np.testing.assert_allclose(baseline_psf("gaussian:1.5", K), gaussian_psf(K, 1.5, (0.5, 0.5)))
     np.testing.assert_allclose(baseline_psf("gaussian", K), gaussian_psf(K, 0.459, (0.5, 0.5)))
