@@ -8,6 +8,7 @@ links), so the two never disagree. Output is deterministic for the same input.
 """
 
 import html
+import math
 from pathlib import Path
 
 import numpy as np
@@ -337,9 +338,12 @@ def _tolerance_blocks(tol):
         (
             "p",
             f"rmse limit {tol['rmse_limit']:.4f} ({model['rmse_limit_rule']}); the "
-            f"nominal plate in this model: correlation {nom['correlation']:.4f}, rmse "
-            f"{nom['rmse']:.4f}, efficiency {nom['efficiency']:.4f}, zero order "
-            f"{nom['zero_order']:.2e}.",
+            f"nominal plate in this model: correlation {_num(nom['correlation'], '.4f')}, "
+            f"rmse {nom['rmse']:.4f}, efficiency {nom['efficiency']:.4f}, zero order "
+            f"{nom['zero_order']:.2e}. Its efficiency is below the Summary's because the "
+            "continuous plate's orders carry each mask pixel's sinc^2 envelope, which the "
+            "contract's model (CONVENTIONS.md, the Summary) leaves out; the table's "
+            "changes are taken against this nominal plate.",
         )
     )
     out.append(("h3", "Budget"))
@@ -366,7 +370,7 @@ def _tolerance_blocks(tol):
             "table",
             ["threshold", "value"],
             [
-                ["correlation_min", f"{acc['correlation_min']:.4f}"],
+                ["correlation_min", _num(acc["correlation_min"], ".4f")],
                 ["rmse_max", f"{acc['rmse_max']:.4f}"],
                 ["efficiency_min", f"{acc['efficiency_min']:.4f}"],
                 ["zero_order_max", f"{acc['zero_order_max']:.4f}"],
@@ -395,7 +399,7 @@ def _tolerance_blocks(tol):
                     r["mask"],
                     r["axis"] or "-",
                     f"{r['value']:+.3g} {r['unit']}".strip(),
-                    f"{r['correlation']:.4f}",
+                    _num(r["correlation"], ".4f"),
                     f"{r['rmse']:.4f}",
                     f"{r['efficiency']:.4f}",
                     f"{r['zero_order']:.2e}",
@@ -408,9 +412,14 @@ def _tolerance_blocks(tol):
     return out
 
 
+def _num(v, spec):
+    """Format a figure; None or NaN (a correlation with a uniform or 1 x 1 PSF) is undefined."""
+    return "undefined" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:{spec}}"
+
+
 def _fmt(v):
     if isinstance(v, float):
-        return f"{v:.6g}"
+        return _num(v, ".6g")
     if isinstance(v, list | tuple):
         return "[" + ", ".join(_fmt(x) for x in v) + "]"
     return str(v)

@@ -192,13 +192,15 @@ def window_amplitudes(model, errors=PlateErrors()):
     n_masks, n = model.bitmaps.shape[0], model.bitmaps.shape[-1]
     etch = np.asarray(errors.etch or (0.0,) * n_masks, dtype=float)
     shift = np.asarray(errors.shift or ((0.0, 0.0),) * n_masks, dtype=float).reshape(n_masks, 2)
+    if errors.etch and len(errors.etch) != n_masks:  # once broadcast one value to every mask
+        raise ValueError(f"etch errors must be one per mask ({n_masks}), got {len(errors.etch)}")
     bias = _bias_pixels(errors.cd_bias, model)
     # Shifts in pixels along array axes: columns follow +x, rows grow towards -y.
     col_shift, row_shift = shift[:, 0] / model.pixel_pitch, -shift[:, 1] / model.pixel_pitch
     if model.supersample is not None:
         s = model.supersample
         col_shift, row_shift = np.round(col_shift * s) / s, np.round(row_shift * s) / s
-    if not abs(bias) < 0.5:
+    if not _below_half_pixel(bias):
         raise ValueError(f"CD bias {errors.cd_bias:.3g} m must be below half the pixel pitch")
     rows = _axis_cells(row_shift, bias, model.supersample)
     cols = _axis_cells(col_shift, bias, model.supersample)
@@ -489,7 +491,7 @@ def tolerance_analysis(
     entries = [("etch", i, spec.etch_fractions) for i in range(n_masks)]
     entries += [("overlay", i, spec.overlay) for i in range(n_masks) if i != ref]
     # An edge moved by half a pixel or more closes the one-pixel gaps: another plate, not an error.
-    cd_values = tuple(v for v in spec.cd_bias if abs(_bias_pixels(v, model)) < 0.5)
+    cd_values = tuple(v for v in spec.cd_bias if _below_half_pixel(_bias_pixels(v, model)))
     if cd_values:
         entries += [("cd_bias", None, cd_values)]
     budget = []
@@ -567,6 +569,14 @@ def _bias_pixels(cd_bias, model):
     if model.supersample is not None:
         bias = round(bias * model.supersample) / model.supersample
     return bias
+
+
+def _below_half_pixel(bias):
+    """Whether a bias (pixels) is below half a pixel, and not half a pixel in rounding.
+
+    The pitch is grid steps x 1e-9 m, so 0.25 um over a 500 nm pitch is 0.4999999999999999.
+    """
+    return abs(bias) < 0.5 - 1e-9
 
 
 def _budget(kind, mask, worst, limit, worst_rmse, iterations=10):

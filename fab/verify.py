@@ -18,6 +18,9 @@ mask pixels); the contract's PSF leaves out the sinc envelope, which inside the
 K x K window of an N = 175 tile changes powers by under 0.3 %.
 """
 
+import json
+import math
+
 import numpy as np
 
 from doe.fraunhofer import (
@@ -115,7 +118,7 @@ def resolve_thresholds(acceptance, design_efficiency, design_zero_order):
         if missing:
             raise ValueError(f"acceptance lacks {sorted(missing)}")
         out = {
-            k: float(acceptance[k])
+            k: _threshold(acceptance, k)
             for k in ("correlation_min", "rmse_max", "efficiency_min", "zero_order_max")
         }
         out["source"] = "fab_manifest.json acceptance"
@@ -129,11 +132,24 @@ def resolve_thresholds(acceptance, design_efficiency, design_zero_order):
             "source": "defaults (fab.verify.DEFAULT_ACCEPTANCE)",
         }
     out["min_window_snr"] = MIN_WINDOW_SNR
-    out["deep_etch_error_max"] = float(
-        (acceptance or {}).get("deep_etch_error_max", DEEP_ETCH_TOLERANCE)
+    out["deep_etch_error_max"] = (
+        _threshold(acceptance, "deep_etch_error_max")
+        if acceptance and "deep_etch_error_max" in acceptance
+        else DEEP_ETCH_TOLERANCE
     )
     out["significance_sigmas"] = SIGNIFICANCE
     return out
+
+
+def _threshold(acceptance, key):
+    """Return acceptance[key] as a float; ValueError unless it is a finite number.
+
+    A correlation threshold is null for a design whose PSF has no correlation (1 x 1).
+    """
+    v = acceptance[key]
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        raise ValueError(f"acceptance {key} is {json.dumps(v)}, not a finite number")
+    return float(v)
 
 
 def to_design_frame(array, orientation):

@@ -200,3 +200,20 @@ def test_summary_states_whether_the_design_meets_the_goals(written, tmp_path):
     text = (tmp_path / "own" / REPORT_MD).read_text()
     assert "design goals (correlation >= 0.9999, rmse <= 0.005) | met |" in text
     assert "1.000000 / 0.00000" in text
+
+
+def test_an_undefined_correlation_reads_undefined_not_nan(tmp_path):
+    # A 1 x 1 or uniform PSF has no correlation: the tolerance section printed "nan".
+    context = make_context(tmp_path)
+    tol = context["tolerance"]
+    tol["nominal"]["correlation"] = float("nan")
+    tol["acceptance"]["correlation_min"] = float("nan")
+    for row in tol["rows"]:
+        row["correlation"] = float("nan")
+    write_fab_report(tmp_path / "out", context)
+    for name in (REPORT_MD, REPORT_HTML):
+        text = (tmp_path / "out" / name).read_text()
+        assert "nominal plate in this model: correlation undefined" in text
+        assert not re.search(r"\bnan\b", text, re.IGNORECASE)
+    text = (tmp_path / "out" / REPORT_MD).read_text()
+    assert "| correlation_min | undefined |" in text

@@ -331,7 +331,24 @@ def test_cd_bias_of_half_a_pixel_is_refused():
         window_amplitudes(model, PlateErrors(cd_bias=PITCH / 2))
 
 
-@pytest.mark.parametrize("pitch, tabulated", [(0.3e-6, [0.1e-6]), (0.15e-6, [])])
+def test_etch_errors_are_one_per_mask():
+    # one value was once applied to every mask without a word
+    model, _ = model_of(random_levels(8), 3)
+    with pytest.raises(ValueError, match="one per mask"):
+        window_amplitudes(model, PlateErrors(etch=(0.05,)))
+
+
+@pytest.mark.parametrize(
+    "pitch, tabulated",
+    [
+        (0.3e-6, [0.1e-6]),
+        (0.15e-6, []),
+        # pitches as the design makes them, grid steps x 1e-9: 0.25 um over 500 * 1e-9 m
+        # is 0.4999999999999999 pixel, and half-pixel biases were once tabulated
+        (500 * 1e-9, [0.1e-6]),
+        (200 * 1e-9, []),
+    ],
+)
 def test_fine_pitch_tabulates_only_cd_biases_below_half_a_pixel(pitch, tabulated):
     # the table's 0.25 um bias closes a 0.3 um pixel's gaps; 0.1 um does too at 0.15 um
     levels = gs_levels(16, np.full((3, 3), 1 / 9))

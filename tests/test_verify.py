@@ -137,6 +137,20 @@ def test_deep_etch_error_fails_on_zero_order_with_implied_error(tmp_path, levels
     assert report["implied_deep_etch_error_nm"] == pytest.approx(0.15 * 717.6, abs=15)
 
 
+@pytest.mark.parametrize("value", [None, float("nan"), "0.9", True])
+def test_an_acceptance_threshold_that_is_no_number_is_refused(value):
+    # fab writes a null correlation_min for a 1 x 1 PSF (no correlation): float(None)
+    # was a TypeError traceback in verify, and NaN passed every plate
+    acceptance = {"correlation_min": value, "rmse_max": 1, "efficiency_min": 0.5}
+    acceptance["zero_order_max"] = 0.01
+    with pytest.raises(ValueError, match=r"acceptance correlation_min is .*not a finite number"):
+        resolve_thresholds(acceptance, 0.9, 0)
+    with pytest.raises(ValueError, match="deep_etch_error_max"):
+        resolve_thresholds(
+            {**acceptance, "correlation_min": 0.9, "deep_etch_error_max": value}, 0.9, 0
+        )
+
+
 def test_zero_order_check_catches_what_correlation_misses(levels):
     """With a lenient correlation threshold the zero order alone must fail the plate."""
     sim = simulate_capture(
