@@ -371,8 +371,8 @@ def _check_consistency(d, source):
     if der.tile_size > fab.aperture * (1 + 1e-9):  # a tile of exactly the aperture fits
         raise InputError(
             f"{source}: [fabrication] aperture_mm",
-            f"the phase tile ({der.tile_size * 1e3:.3f} mm) is larger than the "
-            f"aperture ({fab.aperture * 1e3:.3f} mm)",
+            f"the phase tile ({der.tile_size * 1e3:.6g} mm) is larger than the "
+            f"aperture ({fab.aperture * 1e3:.6g} mm)",
         )
     from layouts.marks import check_marks_fit
 

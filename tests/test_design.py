@@ -204,6 +204,8 @@ def test_config_show_cli(capsys):
         ("this is = = not toml", "not valid TOML"),
         ("[learning]\nsteps = 1" + "0" * 5000 + "\n", "not valid TOML"),  # past int() digits
         ("[fabrication]\naperture_mm = 0.1\n", "larger than the aperture"),
+        # a tile a quarter of a micron too large read "(0.873 mm) is larger than ... (0.873 mm)"
+        ("[fabrication]\naperture_mm = 0.873\n", "(0.87325 mm) is larger than the aperture (0.873"),
     ],
 )
 def test_config_show_refuses_bad_files_with_exit_2(tmp_path, capsys, content, message):
