@@ -89,10 +89,10 @@ def _dispatch(args):
         return 130
 
 
-if __name__ == "__main__":
-    sys.exit(main())
-
-
 def _one_line(text):
     """Return text with its line breaks (and the indentation after them) as single spaces."""
     return re.sub(r"[ \t]*[\r\n]+\s*", " ", text.strip())
+
+
+if __name__ == "__main__":
+    sys.exit(main())
