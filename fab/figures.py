@@ -189,14 +189,17 @@ def tolerance_curves(path, tolerance):
             if r["kind"] == kind:
                 key = r["mask"] + (f" {r['axis']}" if r["axis"] else "")
                 series.setdefault(key, [(0.0, nominal["rmse"])]).append((r["value"], r["rmse"]))
+        colours = {}
         for key in sorted(series):
             pts = sorted(series[key])
-            ax.plot([p[0] for p in pts], [p[1] for p in pts], marker="o", ms=3, label=key)
+            (line,) = ax.plot([p[0] for p in pts], [p[1] for p in pts], marker="o", ms=3, label=key)
+            colours.setdefault(key.split(" ")[0], line.get_color())
         ax.axhline(limit, color="k", ls="--", lw=0.8, label="rmse limit")
         for b in tolerance["budget"]:
-            if b["kind"] == kind:
+            if b["kind"] == kind:  # in its mask's colour: masks' budgets differ
                 for sign in (1, -1):
-                    ax.axvline(sign * b["value"], color="gray", ls=":", lw=0.8)
+                    colour = colours.get(b["mask"], "gray")
+                    ax.axvline(sign * b["value"], color=colour, ls=":", lw=1.0)
         ax.set(xlabel=label, ylabel="rmse", title=kind)
         ax.legend(fontsize=7)
     ax = axes[3]
@@ -209,5 +212,5 @@ def tolerance_curves(path, tolerance):
         ax.plot([p[0] for p in pts], [p[1] for p in pts], marker="o", ms=3, label=key)
     ax.set(xlabel="etch-depth error (%)", ylabel="zero-order power - nominal", title="zero order")
     ax.legend(fontsize=7)
-    fig.suptitle("Tolerance of the fabricated plate (dotted: budget)")
+    fig.suptitle("Tolerance of the fabricated plate (dotted: budget, in its mask's colour)")
     _save(fig, path)
