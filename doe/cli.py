@@ -6,13 +6,13 @@ build123d, klayout) happen inside the commands, so ``doefab --help`` is fast and
 """
 
 import argparse
-import contextlib
 import importlib
 import os
 import re
 import signal
 import sys
 
+from doe import interrupts
 from doe.errors import InputError
 
 COMMAND_MODULES = (
@@ -39,38 +39,29 @@ def build_parser():
     return parser
 
 
-class _Terminated(KeyboardInterrupt):
-    """SIGTERM (timeout, CI, a job scheduler), unwound as Ctrl-C is."""
-
-
-def _terminated(signum, frame):
-    # By default SIGTERM killed the process and left the staging folder behind;
-    # unwound, staged outputs are removed and a checkpointed stage resumes.
-    raise _Terminated()
-
-
 def main(argv=None):
     """Run the command line; return the exit code (0 ok, 1 check failed, 2 bad input)."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    previous = None
-    with contextlib.suppress(ValueError):  # only the main thread may set handlers
-        previous = signal.signal(signal.SIGTERM, _terminated)
-    try:
+    # Ctrl-C and SIGTERM unwind (SIGTERM once killed the process and left the staging
+    # folder behind), and are remembered when a library swallows their exception.
+    with interrupts.handled():
         return _dispatch(args)
-    finally:  # a caller in the same process (a test, doefab run) keeps its own
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
 
 
 def _dispatch(args):
     try:
-        if getattr(args, "out", None) is not None and not args.out.strip():
-            # An unset shell variable ($OUT) would otherwise mean the current folder.
-            raise InputError("--out", "is empty")
-        code = int(args.func(args) or 0)
-        sys.stdout.flush()  # a closed pipe shows here, in the handlers below, not at exit
-        return code
+        try:
+            if getattr(args, "out", None) is not None and not args.out.strip():
+                # An unset shell variable ($OUT) would otherwise mean the current folder.
+                raise InputError("--out", "is empty")
+            code = int(args.func(args) or 0)
+            interrupts.check()  # asked to stop, though nlopt took it for a stop and went on
+            sys.stdout.flush()  # a closed pipe shows here, in the handlers below, not at exit
+            return code
+        except Exception:
+            interrupts.check()  # the signal, not what it broke ("Invalid bounding box")
+            raise
     except InputError as e:  # one line, even when it quotes a library's page of text
         print(f"doefab {args.command}: error: {_one_line(str(e))}", file=sys.stderr)
         return 2
@@ -81,7 +72,7 @@ def _dispatch(args):
         where = e.filename if e.filename is not None else "file system"
         print(f"doefab {args.command}: error: {where}: {e.strerror or e}", file=sys.stderr)
         return 2
-    except _Terminated:
+    except interrupts.Terminated:
         print(f"doefab {args.command}: terminated", file=sys.stderr)
         return 128 + signal.SIGTERM
     except KeyboardInterrupt:

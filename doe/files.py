@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from doe import interrupts
 from doe.errors import InputError
 
 _UMASK = os.umask(0)
@@ -210,10 +211,8 @@ def staged_output(out_dir, force=False, names=None, stale=()):
     check_out_folder(out_dir)
     if names is not None and not force:
         _refuse_overwrite(out_dir, names)
-    parent = out_dir.parent
     try:
-        parent.mkdir(parents=True, exist_ok=True)
-        stage = Path(tempfile.mkdtemp(dir=parent, prefix=f".{out_dir.name}.staging-"))
+        stage = _staging_folder(out_dir)
     except OSError as e:
         raise InputError(out_dir, f"cannot write here ({e.strerror})") from None
     try:
@@ -221,21 +220,40 @@ def staged_output(out_dir, force=False, names=None, stale=()):
         written = sorted(p.relative_to(stage) for p in stage.rglob("*") if p.is_file())
         if not force:
             _refuse_overwrite(out_dir, [str(p) for p in written])
+        interrupts.check()  # asked to stop while a library held the signal: publish nothing
         out_dir.mkdir(parents=True, exist_ok=True)
-        for rel in written:
-            dest = out_dir / rel
-            dest.parent.mkdir(parents=True, exist_ok=True)
-            os.replace(stage / rel, dest)
-        if force:
-            for rel in sorted(set(map(Path, stale)) - set(written)):
-                inside = not rel.is_absolute() and ".." not in rel.parts
-                if inside and (out_dir / rel).is_file():
-                    (out_dir / rel).unlink()
-                    with contextlib.suppress(OSError):  # a sub-folder it emptied
-                        if rel.parent != Path():
-                            (out_dir / rel.parent).rmdir()
+        with interrupts.deferred():  # stopped half-way, the package would be half old
+            for rel in written:
+                dest = out_dir / rel
+                dest.parent.mkdir(parents=True, exist_ok=True)
+                try:
+                    os.replace(stage / rel, dest)
+                except OSError as e:  # name the output, not the staging file that vanishes
+                    raise OSError(e.errno, e.strerror, str(dest)) from None
+            if force:
+                for rel in sorted(set(map(Path, stale)) - set(written)):
+                    inside = not rel.is_absolute() and ".." not in rel.parts
+                    if inside and (out_dir / rel).is_file():
+                        (out_dir / rel).unlink()
+                        with contextlib.suppress(OSError):  # a sub-folder it emptied
+                            if rel.parent != Path():
+                                (out_dir / rel.parent).rmdir()
     finally:
         shutil.rmtree(stage, ignore_errors=True)
+
+
+def _staging_folder(out_dir):
+    """Make the staging folder on out_dir's file system: files are moved, not copied, in.
+
+    Beside out_dir as a rule; inside it when it is a mount point or a link to
+    another file system (a container's bind mount), where a move from beside it
+    fails ("Invalid cross-device link").
+    """
+    parent = out_dir.parent
+    parent.mkdir(parents=True, exist_ok=True)
+    if out_dir.is_dir() and os.stat(out_dir).st_dev != os.stat(parent).st_dev:
+        return Path(tempfile.mkdtemp(dir=out_dir, prefix=".staging-"))
+    return Path(tempfile.mkdtemp(dir=parent, prefix=f".{out_dir.name}.staging-"))
 
 
 def check_out_folder(out_dir):

@@ -2,6 +2,8 @@
 
 import numpy as np
 
+from doe import interrupts
+
 
 def minimise(fun, x0, max_eval, ftol_rel=1e-10):
     """Minimise ``fun(x) -> (value, grad)`` with nlopt L-BFGS; return (best x, best value).
@@ -48,4 +50,7 @@ def minimise(fun, x0, max_eval, ftol_rel=1e-10):
         pass  # keep our own best point: nlopt drops it on these exceptions
     if interrupted:
         raise interrupted[0]
+    # A signal at the edge of f, outside its try, reaches nlopt, which ends with
+    # ForcedStop as if converged; the command line has still recorded it.
+    interrupts.check()
     return best["x"], best["f"]

@@ -220,20 +220,25 @@ def run_stage(stage, run_dir, state, invoke, force=False):
             "not written by this run, and the stage now writes a file of that name; "
             "move it, or use --force to overwrite it",
         )
+    from doe import interrupts
+
     state[stage.name] = {
         "key": key,
         "files": stage_files(new),
         "replaces": replaced,
         "seconds": seconds,
     }
-    save_state(run_dir, state)
-    for rel in keep:  # the lab's own files move into the new folder, unless it has the name
-        if not (new / rel).exists():
-            (new / rel).parent.mkdir(parents=True, exist_ok=True)
-            (final / rel).rename(new / rel)
-    if final.exists():
-        _remove_tree(final)
-    new.rename(final)
+    # Not stopped half-way by Ctrl-C: between the removal of NAME and the rename, the
+    # lab's files sit in a folder that a resumed run, finding no key in it, removes.
+    with interrupts.deferred():
+        save_state(run_dir, state)
+        for rel in keep:  # the lab's own files move into the new folder, unless it has the name
+            if not (new / rel).exists():
+                (new / rel).parent.mkdir(parents=True, exist_ok=True)
+                (final / rel).rename(new / rel)
+        if final.exists():
+            _remove_tree(final)
+        new.rename(final)
     return 0
 
 

@@ -1,11 +1,18 @@
 """Contract readers and the staged (all-or-nothing) output folder."""
 
+import os
+import shutil
+import signal
 import subprocess
 import sys
+import tempfile
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from doe import interrupts
 from doe.cli import main
 from doe.errors import InputError
 from doe.files import read_json, read_levels, read_psf, save_npy, staged_output, write_json
@@ -47,6 +54,74 @@ def test_staged_output_removes_stale_files_only_with_force_and_only_inside(tmp_p
         (stage / "new.txt").write_text("newer")
     assert sorted(p.name for p in out.iterdir()) == ["keep.txt", "new.txt"]
     assert (out / "new.txt").read_text() == "newer" and (tmp_path / "outside.txt").exists()
+
+
+def test_an_interrupt_during_publishing_completes_the_package_first(tmp_path, monkeypatch):
+    # Stopped between two moves, --force over an older package left it half old.
+    import doe.files
+
+    out = tmp_path / "out"
+    out.mkdir()
+    for name in "abc":
+        (out / name).write_text("old")
+    real, moved = os.replace, []
+
+    def replace(src, dst):
+        real(src, dst)
+        moved.append(dst)
+        if len(moved) == 1:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)  # the handler runs here
+
+    monkeypatch.setattr(doe.files.os, "replace", replace)
+    with interrupts.handled(), pytest.raises(KeyboardInterrupt):
+        with staged_output(out, force=True) as stage:
+            for name in "abc":
+                (stage / name).write_text("new")
+    assert [(out / n).read_text() for n in "abc"] == ["new"] * 3
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no staging folder
+
+
+def test_a_swallowed_interrupt_publishes_nothing_and_exits_130(tmp_path, monkeypatch, capsys):
+    # nlopt and matplotlib can swallow the KeyboardInterrupt: retrieve then finished,
+    # exit 0, with a design the seed does not give.
+    import doe.figures
+
+    real = doe.figures.save_retrieval_figure
+
+    def swallowing(*args, **kwargs):
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)
+        except KeyboardInterrupt:
+            pass
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(doe.figures, "save_retrieval_figure", swallowing)
+    psf = tmp_path / "psf.npy"
+    np.save(psf, np.full((3, 3), 1 / 9))
+    out = tmp_path / "out"
+    assert main(["retrieve", str(psf), "--out", str(out), "--tile-pixels", "15"]) == 130
+    assert "interrupted" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["psf.npy"]
+
+
+def test_an_out_folder_on_another_file_system_is_written(tmp_path):
+    # Staged beside a mount point or a link to another file system (a container's bind
+    # mount), every command failed: "Invalid cross-device link".
+    shm = Path("/dev/shm")
+    if not shm.is_dir() or os.stat(shm).st_dev == os.stat(tmp_path).st_dev:
+        pytest.skip("needs /dev/shm on another file system than the test folder")
+    target = Path(tempfile.mkdtemp(dir=shm))
+    try:
+        (tmp_path / "out").symlink_to(target)
+        with staged_output(tmp_path / "out") as stage:
+            (stage / "a.txt").write_text("made")
+        assert (target / "a.txt").read_text() == "made"
+        assert sorted(p.name for p in target.iterdir()) == ["a.txt"]
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+    finally:
+        shutil.rmtree(target)
 
 
 def test_previous_files_reads_the_record_and_ignores_what_it_cannot(tmp_path):

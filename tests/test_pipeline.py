@@ -95,6 +95,33 @@ def test_run_killed_while_swapping_a_stage_in_resumes(tmp_path, monkeypatch):
     assert (tmp_path / "run" / "second" / "second.txt").read_text() == "XYZ"
 
 
+def test_ctrl_c_while_swapping_a_stage_in_keeps_the_labs_files(tmp_path, monkeypatch):
+    # Stopped between removing the old folder and the rename, the lab's files sat in a
+    # .NAME.new without a key, which the resumed run removed whole.
+    import os
+    import signal
+
+    from doe import interrupts
+
+    (tmp_path / "input.txt").write_text("abc")
+    assert run_all(tmp_path, FakeDoefab()) == 0
+    (tmp_path / "run" / "first" / "lab_notes.txt").write_text("mine")
+    (tmp_path / "input.txt").write_text("xyz")
+    real = pipeline._remove_tree
+
+    def interrupted(path):
+        os.kill(os.getpid(), signal.SIGINT)
+        real(path)
+
+    monkeypatch.setattr(pipeline, "_remove_tree", interrupted)
+    with interrupts.handled(), pytest.raises(KeyboardInterrupt):
+        run_all(tmp_path, FakeDoefab())
+    monkeypatch.undo()
+    assert run_all(tmp_path, FakeDoefab()) == 0
+    assert (tmp_path / "run" / "first" / "lab_notes.txt").read_text() == "mine"
+    assert (tmp_path / "run" / "second" / "second.txt").read_text() == "XYZ"
+
+
 def test_edited_output_is_not_overwritten_without_force(tmp_path):
     (tmp_path / "input.txt").write_text("abc")
     assert run_all(tmp_path, FakeDoefab()) == 0

@@ -701,6 +701,6 @@ def test_the_command_gives_its_callers_sigterm_handler_back(capsys):
     # In-process callers (tests, doefab run's stages) keep their own SIGTERM handling.
     import signal
 
-    before = signal.getsignal(signal.SIGTERM)
+    before = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
     assert main(["presets"]) == 0
-    assert signal.getsignal(signal.SIGTERM) is before
+    assert {s: signal.getsignal(s) for s in before} == before
