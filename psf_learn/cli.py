@@ -3,6 +3,7 @@
 import json
 import platform
 import sys
+import tempfile
 from pathlib import Path
 
 from doe.errors import InputError
@@ -196,6 +197,14 @@ def _learn(args):
     check_out_folder(out)
     if not args.force:
         _refuse_overwrite(out, OUTPUTS)
+    # The checkpoint goes there: a folder it cannot write to is refused now, not after
+    # the training (a read-only --out once failed, with a traceback, at the end).
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=out):
+            pass
+    except OSError as e:
+        raise InputError(out, f"cannot write here ({e.strerror})") from None
     checkpoint = out / "checkpoint.pt"
     if args.restart:  # every rank of a torchrun job gets here before any reads it
         checkpoint.unlink(missing_ok=True)

@@ -22,8 +22,21 @@ def save_checkpoint(path, state):
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
-    torch.save(state, tmp)
+    _save(state, tmp, shown_as=path)
     os.replace(tmp, path)
+
+
+def _save(obj, path, shown_as=None):
+    """torch.save, but a refused write (full disk, read-only folder) is one line, file gone.
+
+    torch reports it as a RuntimeError, not an OSError, and leaves the part written.
+    """
+    try:
+        torch.save(obj, path)
+    except (RuntimeError, OSError) as e:
+        Path(path).unlink(missing_ok=True)
+        reason = e.strerror if isinstance(e, OSError) and e.strerror else _first_line(e)
+        raise InputError(shown_as or path, f"cannot be written ({reason})") from None
 
 
 def load_checkpoint(path):
@@ -60,7 +73,7 @@ def model_record(net, net_config, sensor):
 
 def save_model(path, record):
     """Write ``model.pt`` (a :func:`model_record`)."""
-    torch.save(record, path)
+    _save(record, path)
 
 
 def load_model_dir(model_dir):

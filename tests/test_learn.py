@@ -611,6 +611,31 @@ def test_a_foreign_checkpoint_is_refused_in_one_line(tmp_path, capsys):
     assert len(err.splitlines()) == 1 and "--restart" in err
 
 
+def test_a_refused_torch_write_is_one_line_and_leaves_no_part(tmp_path):
+    # torch reports a full disk or a missing folder as a RuntimeError (a traceback from
+    # learn, after the whole training) and leaves what it wrote.
+    from doe.errors import InputError
+    from psf_learn import store
+
+    target = tmp_path / "gone" / "model.pt"
+    with pytest.raises(InputError, match=r"model\.pt: cannot be written"):
+        store.save_model(target, {"format": "x"})
+    assert not target.exists()
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
+def test_an_unwritable_out_is_refused_before_training(tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    out.chmod(0o555)
+    try:
+        assert main(["learn", "--out", str(out), *SMALL]) == 2
+        err = capsys.readouterr().err
+        assert f"{out}: cannot write here" in err and "trained" not in err
+    finally:
+        out.chmod(0o755)
+
+
 def test_resuming_with_another_thread_count_says_so(tmp_path, capsys):
     before = torch.get_num_threads()
     ckpt = tmp_path / "ckpt.pt"
