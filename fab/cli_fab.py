@@ -206,12 +206,19 @@ def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=Tru
         bar.set_postfix_str("gds")
         lib, layout = build_library(masks, pitch_nm, tiles, design.name, aperture_nm)
         write_gds(lib, stage / fm.GDS_NAME)
-        if oasis:
-            write_oasis(stage / fm.GDS_NAME, stage / fm.OASIS_NAME)
-            extra["oasis"] = fm.OASIS_NAME
-        bar.update()
-        bar.set_postfix_str("check")
-        problems = check_written_gds(stage / fm.GDS_NAME, layout, masks)
+        try:  # KLayout reads the file back: gdstk truncates it on a full disk without a word
+            if oasis:
+                write_oasis(stage / fm.GDS_NAME, stage / fm.OASIS_NAME)
+                extra["oasis"] = fm.OASIS_NAME
+            bar.update()
+            bar.set_postfix_str("check")
+            problems = check_written_gds(stage / fm.GDS_NAME, layout, masks)
+        except RuntimeError as e:
+            reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            raise InputError(
+                Path(out) / fm.GDS_NAME,
+                f"KLayout cannot read back the file written ({reason}); is the disk full?",
+            ) from None
         if problems:
             raise _CheckFailed("; ".join(problems))
         bar.update()

@@ -318,3 +318,25 @@ def test_report_summary_describes_the_fabricated_tile():
     assert summary["tile_pixels"] == 35
     assert summary["mask_pixel_pitch_nm"] == round(derive(design).tile_size_nominal / 35 * 1e9)
     assert abs(summary["tile_size_um"] - 35 * summary["mask_pixel_pitch_nm"] / 1000) < 1e-6
+
+
+def test_a_gds_cut_short_by_a_full_disk_is_exit_2(tmp_path, capsys, monkeypatch):
+    # gdstk truncates on a full disk without a word; KLayout's read-back then raised a
+    # RuntimeError traceback (exit 1).
+    import layouts.gds
+
+    real = layouts.gds.write_gds
+
+    def cut_short(lib, path):
+        real(lib, path)
+        data = path.read_bytes()
+        path.write_bytes(data[: len(data) // 2])
+
+    monkeypatch.setattr(layouts.gds, "write_gds", cut_short)
+    d = tmp_path / "design"
+    make_design_dir(d, n=21)
+    out = tmp_path / "out"
+    assert main(["fab", str(d), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and f"{out / 'mask.gds'}: KLayout cannot read" in err
+    assert not out.exists()
