@@ -181,7 +181,7 @@ def _super_resolve_cube(model_dir, cube):
 
 
 def _depth(args):
-    from doe.files import save_npy, staged_output, write_json
+    from doe.files import previous_files, save_npy, staged_output, write_json
     from psf_learn.cubes import read_cube
     from psf_learn.depth import check_scan
 
@@ -198,7 +198,10 @@ def _depth(args):
         cubes["sr/"] = _super_resolve_cube(args.sr, cube)
     per_cube = [*(a + ".npy" for a in DEPTH_ARRAYS), *DEPTH_FIGURES]
     names = [f"{prefix}{n}" for prefix in cubes for n in per_cube] + ["depth.json"]
-    stale = [f"sr/{n}" for n in per_cube]  # an earlier run's with --sr
+    # An earlier run's with --sr, as its depth.json says: a lab's own sr/ files stay.
+    stale = previous_files(
+        Path(args.out) / "depth.json", lambda old: [f"sr/{n}" for n in per_cube if "sr" in old]
+    )
     with staged_output(args.out, args.force, names=names, stale=stale) as stage:
         summary = {
             "cube": str(args.cube),

@@ -554,6 +554,11 @@ def test_cli_force_leaves_no_frames_or_sr_maps_of_an_older_cube(tmp_path, respon
     assert main(["depth", str(path), "--out", str(out), "--sr", str(sr_model)]) == 0
     assert main(["depth", str(path), "--out", str(out), "--force"]) == 0
     assert not (out / "sr").exists()
+    # a lab's own sr/ files, in a folder no run with --sr wrote, are not the run's to remove
+    (out / "sr").mkdir()
+    (out / "sr" / "depth.png").write_text("the lab's")
+    assert main(["depth", str(path), "--out", str(out), "--force"]) == 0
+    assert (out / "sr" / "depth.png").read_text() == "the lab's"
 
 
 def test_depth_module_does_not_import_torch():
