@@ -294,7 +294,7 @@ def _evaluate(args):
     out = Path(args.out) if args.out else None
     if out is not None and out.is_dir():
         raise InputError(out, "is a folder; --out names the JSON file to write")
-    if out is not None and out.exists() and not args.force:
+    if out is not None and (out.exists() or out.is_symlink()) and not args.force:
         raise InputError(out, "exists; use --force or another --out")
     parent = next((q for q in (out.parents if out else ()) if q.exists()), None)
     if parent is not None and not parent.is_dir():  # found now, not after the evaluation
@@ -343,8 +343,12 @@ def _sr(args):
     torch.set_num_threads(1)
     model = load_model(args.model_dir)
     stems = [Path(r).stem for r in args.raw]
-    if len(set(stems)) != len(stems):
-        raise InputError(args.raw[0], "two inputs share a file name; outputs would collide")
+    for i, stem in enumerate(stems):
+        if stem in stems[:i]:
+            first = args.raw[stems.index(stem)]
+            raise InputError(
+                args.raw[i], f"shares its name with {first}; their outputs would collide"
+            )
     frames = [imgio.read_raw(r) for r in args.raw]
     names = [f"{s}_sr{ext}" for s in stems for ext in (".npy", ".png")]
     with staged_output(args.out, force=args.force, names=names) as stage:

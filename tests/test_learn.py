@@ -819,6 +819,22 @@ def test_dark_counts_without_noise_are_refused(tmp_path, capsys):
     assert "--dark-counts" in err and "--photons 0" in err and not out.exists()
 
 
+def test_sr_names_both_inputs_that_collide_and_evaluate_keeps_a_link(trained, tmp_path, capsys):
+    out, images = trained
+    for folder in ("a", "b"):
+        (tmp_path / folder).mkdir()
+        np.save(tmp_path / folder / "frame.npy", np.ones((6, 6)))
+    a, b = tmp_path / "a" / "frame.npy", tmp_path / "b" / "frame.npy"
+    assert main(["sr", str(out), str(a), str(b), "--out", str(tmp_path / "sr")]) == 2
+    err = capsys.readouterr().err
+    assert f"{b}: shares its name with {a}" in err  # only the first was named
+    # a dangling link at --out was replaced without --force
+    link = tmp_path / "e.json"
+    link.symlink_to(tmp_path / "elsewhere.json")
+    assert main(["evaluate", str(out), "--images", str(images), "--out", str(link)]) == 2
+    assert "--force" in capsys.readouterr().err and link.is_symlink()
+
+
 def test_gaussian_sigma_spec(tmp_path, capsys):
     np.testing.assert_allclose(baseline_psf("gaussian:1.5", K), gaussian_psf(K, 1.5, (0.5, 0.5)))
     np.testing.assert_allclose(baseline_psf("gaussian", K), gaussian_psf(K, 0.459, (0.5, 0.5)))
