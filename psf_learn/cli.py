@@ -215,7 +215,8 @@ def _learn(args):
         torch.distributed.destroy_process_group()
         if rank != 0:
             return 0
-    psf = result.camera.psf.numpy()
+    # A fixed PSF is written as given (through float32 logits it came back 4e-7 off).
+    psf = result.camera.psf.numpy() if learn_psf else np.asarray(psf0, dtype=np.float64)
     info = {
         "config": {
             **config.identity(),
