@@ -639,36 +639,17 @@ def test_an_unwritable_out_is_refused_before_training(tmp_path, capsys):
 def test_resuming_with_another_thread_count_says_so(tmp_path, capsys):
     before = torch.get_num_threads()
     ckpt = tmp_path / "ckpt.pt"
+
+    def train_to(step, threads):
+        torch.set_num_threads(threads)
+        psf, sensor = gaussian_psf(K), SensorModel(POINT, 200.0)
+        train(TINY, _images(), sensor, psf, checkpoint=ckpt, stop_at_step=step)
+        return capsys.readouterr().err
+
     try:
-        torch.set_num_threads(1)
-        train(
-            TINY,
-            _images(),
-            SensorModel(POINT, 200.0),
-            gaussian_psf(K),
-            checkpoint=ckpt,
-            stop_at_step=2,
-        )
-        capsys.readouterr()
-        torch.set_num_threads(2)
-        train(
-            TINY,
-            _images(),
-            SensorModel(POINT, 200.0),
-            gaussian_psf(K),
-            checkpoint=ckpt,
-            stop_at_step=3,
-        )
-        assert "written with 1 threads" in capsys.readouterr().err
-        train(
-            TINY,
-            _images(),
-            SensorModel(POINT, 200.0),
-            gaussian_psf(K),
-            checkpoint=ckpt,
-            stop_at_step=4,
-        )
-        assert "threads" not in capsys.readouterr().err
+        train_to(2, threads=1)
+        assert "written with 1 threads" in train_to(3, threads=2)
+        assert "threads" not in train_to(4, threads=2)
     finally:
         torch.set_num_threads(before)
 
