@@ -18,3 +18,12 @@ class InputError(Exception):
         self.source = str(source)
         self.problem = problem
         super().__init__(f"{self.source}: {problem}")
+
+
+def first_line(error):
+    """Return the first line of an exception's text, or its type's name when it has none.
+
+    For messages that quote a library: torch's and KLayout's run to a page.
+    """
+    lines = str(error).strip().splitlines()
+    return lines[0] if lines else type(error).__name__

@@ -9,7 +9,7 @@ import shutil
 import sys
 from pathlib import Path
 
-from doe.errors import InputError
+from doe.errors import InputError, first_line
 
 
 def register(sub):
@@ -214,10 +214,9 @@ def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=Tru
             bar.set_postfix_str("check")
             problems = check_written_gds(stage / fm.GDS_NAME, layout, masks)
         except RuntimeError as e:
-            reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
             raise InputError(
                 Path(out) / fm.GDS_NAME,
-                f"KLayout cannot read back the file written ({reason}); is the disk full?",
+                f"KLayout cannot read back the file written ({first_line(e)}); is the disk full?",
             ) from None
         if problems:
             raise _CheckFailed("; ".join(problems))

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import torch
 
-from doe.errors import InputError
+from doe.errors import InputError, first_line
 from doe.files import read_json, read_psf
 
 MODEL_FORMAT = "doefab-sr-1"
@@ -35,7 +35,7 @@ def _save(obj, path, shown_as=None):
         torch.save(obj, path)
     except (RuntimeError, OSError) as e:
         Path(path).unlink(missing_ok=True)
-        reason = e.strerror if isinstance(e, OSError) and e.strerror else _first_line(e)
+        reason = e.strerror if isinstance(e, OSError) and e.strerror else first_line(e)
         raise InputError(shown_as or path, f"cannot be written ({reason})") from None
 
 
@@ -44,17 +44,12 @@ def load_checkpoint(path):
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:
-        state, reason = None, f"not readable: {type(e).__name__}: {_first_line(e)}"
+        state, reason = None, f"not readable: {type(e).__name__}: {first_line(e)}"
     else:
         reason = "not a doefab checkpoint"
     if not isinstance(state, dict) or not {"identity", "camera", "step"} <= state.keys():
         raise InputError(path, f"{reason}; --restart trains afresh and replaces it")
     return state
-
-
-def _first_line(error):
-    """Return the first line of an exception's text (torch's run to a page)."""
-    return (str(error).strip().splitlines() or [""])[0]
 
 
 def model_record(net, net_config, sensor):
@@ -91,7 +86,7 @@ def load_model_dir(model_dir):
         record = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:
         raise InputError(
-            path, f"not a readable model ({type(e).__name__}: {_first_line(e)})"
+            path, f"not a readable model ({type(e).__name__}: {first_line(e)})"
         ) from None
     if not isinstance(record, dict) or record.get("format") != MODEL_FORMAT:
         raise InputError(path, f"not a {MODEL_FORMAT} model file")
