@@ -1,6 +1,5 @@
 """``doefab retrieve``: an 8-level phase tile from a target PSF (see doe.retrieval)."""
 
-import hashlib
 import sys
 from pathlib import Path
 
@@ -53,6 +52,7 @@ def run(args):
         is_level_count,
         read_psf,
         save_npy,
+        sha256_file,
         staged_output,
         write_json,
     )
@@ -103,7 +103,7 @@ def run(args):
                 "kernel_size": k,
                 # name and digest, not the path: the same input gives the same bytes
                 "target_psf": Path(args.psf).name,
-                "target_psf_sha256": hashlib.sha256(Path(args.psf).read_bytes()).hexdigest(),
+                "target_psf_sha256": sha256_file(args.psf),
                 # the design as this tile realises it: its N and L, where flags set them
                 "design": design_summary(_with_levels(design, n_levels), tile_pixels=n),
                 "versions": _versions(),

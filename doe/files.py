@@ -6,6 +6,7 @@ no half-written output behind.
 """
 
 import contextlib
+import hashlib
 import json
 import os
 import shutil
@@ -254,6 +255,15 @@ def _staging_folder(out_dir):
     if out_dir.is_dir() and os.stat(out_dir).st_dev != os.stat(parent).st_dev:
         return Path(tempfile.mkdtemp(dir=out_dir, prefix=".staging-"))
     return Path(tempfile.mkdtemp(dir=parent, prefix=f".{out_dir.name}.staging-"))
+
+
+def sha256_file(path):
+    """Return the hex SHA-256 of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
 
 
 def check_out_folder(out_dir):

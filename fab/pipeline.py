@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from doe.errors import InputError
+from doe.files import sha256_file
 
 STATE_FILE = "run_state.json"
 LOCK_FILE = ".doefab_run.lock"  # hidden: not a product; kept, so every run locks one inode
@@ -81,15 +82,6 @@ def run_lock(run_dir):
         f.write(str(os.getpid()))
         f.flush()
         yield
-
-
-def sha256_file(path):
-    """Return the hex SHA-256 of a file's bytes."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def stage_key(stage, run_dir):

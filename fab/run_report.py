@@ -7,8 +7,7 @@ from importlib import metadata
 from pathlib import Path
 
 from doe.design import design_summary
-from doe.files import atomic_write_bytes, write_json
-from fab.pipeline import sha256_file
+from doe.files import atomic_write_bytes, sha256_file, write_json
 
 PACKAGES = (
     "doefab",

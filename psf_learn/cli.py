@@ -88,7 +88,7 @@ def _learn(args):
 
     from doe import flags
     from doe.design import check_psf_grid, design_summary, load_design
-    from doe.files import read_psf, save_npy, staged_output, write_json
+    from doe.files import read_psf, save_npy, sha256_file, staged_output, write_json
     from psf_learn import images as imgio
     from psf_learn import store
     from psf_learn.psf import baseline_psf, gaussian_psf
@@ -247,7 +247,7 @@ def _learn(args):
         record = store.model_record(result.camera.net, result.camera.net_config, sensor)
         store.save_model(stage / "model.pt", record)
         # so that a model.pt or psf.npy from another run is not taken for this one's
-        info["files"] = {n: store.file_sha256(stage / n) for n in ("model.pt", "psf.npy")}
+        info["files"] = {n: sha256_file(stage / n) for n in ("model.pt", "psf.npy")}
         write_json(stage / "learn.json", info)
     checkpoint.unlink(missing_ok=True)
     print(

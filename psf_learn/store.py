@@ -5,14 +5,13 @@ stored as tensors and plain Python types, so it loads with
 ``torch.load(..., weights_only=True)`` (no pickled code).
 """
 
-import hashlib
 import os
 from pathlib import Path
 
 import torch
 
 from doe.errors import InputError, first_line
-from doe.files import read_json, read_psf
+from doe.files import read_json, read_psf, sha256_file
 
 MODEL_FORMAT = "doefab-sr-1"
 
@@ -96,15 +95,10 @@ def load_model_dir(model_dir):
     recorded = learn.get("files") if learn is not None else None
     if isinstance(recorded, dict):  # learn.json of before 2026-11-24 records none
         for name in ("model.pt", "psf.npy"):
-            if name in recorded and file_sha256(model_dir / name) != recorded[name]:
+            if name in recorded and sha256_file(model_dir / name) != recorded[name]:
                 raise InputError(
                     model_dir / name,
                     f"is not the file {learn_path.name} beside it was written with (another "
                     "training's?); keep psf.npy, model.pt and learn.json of one run together",
                 )
     return record, psf, learn
-
-
-def file_sha256(path):
-    """Return the SHA-256 of a file's bytes (learn.json records its siblings')."""
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
