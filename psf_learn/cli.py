@@ -333,11 +333,12 @@ def _evaluate(args):
 
 def _sr(args):
     import torch
+    from tqdm import tqdm
 
     from doe import flags
-    from doe.files import save_npy, staged_output
+    from doe.files import save_npy, sha256_file, staged_output, write_json
     from psf_learn import images as imgio
-    from psf_learn.sr import load_model, super_resolve
+    from psf_learn.sr import load_model, super_resolve, white_counts
 
     flags.positive("--photons", args.photons)
     flags.at_most("--photons", args.photons, flags.PHOTONS_MAX, "counts per pixel")
@@ -351,12 +352,33 @@ def _sr(args):
                 args.raw[i], f"shares its name with {first}; their outputs would collide"
             )
     frames = [imgio.read_raw(r) for r in args.raw]
-    names = [f"{s}_sr{ext}" for s in stems for ext in (".npy", ".png")]
+    # Each output has its own record, so that a folder can gather several batches.
+    names = [f"{s}_sr{ext}" for s in stems for ext in (".npy", ".png", ".json")]
+    record = {
+        "model": str(args.model_dir),
+        "model_sha256": sha256_file(Path(args.model_dir) / "model.pt"),
+        "photons": white_counts(model, args.photons),
+        "dark_counts": model.sensor.dark_counts,
+        "doefab": _version(),
+    }
     with staged_output(args.out, force=args.force, names=names) as stage:
-        for stem, raw in zip(stems, frames, strict=True):
+        bar = tqdm(frames, desc="sr", unit="input", disable=None)
+        for raw_path, stem, raw in zip(args.raw, stems, bar, strict=True):
             hr = super_resolve(model, raw, photons=args.photons)
+            made = {f"{stem}_sr.npy": hr, f"{stem}_sr.png": hr if hr.ndim == 2 else hr.mean(0)}
             save_npy(stage / f"{stem}_sr.npy", hr)
-            _write_preview(stage / f"{stem}_sr.png", hr if hr.ndim == 2 else hr.mean(axis=0))
+            _write_preview(stage / f"{stem}_sr.png", made[f"{stem}_sr.png"])
+            write_json(
+                stage / f"{stem}_sr.json",
+                {
+                    **record,
+                    "input": str(raw_path),
+                    "input_sha256": sha256_file(raw_path),
+                    "input_shape": list(raw.shape),
+                    "output_shape": list(hr.shape),
+                    "files": {n: sha256_file(stage / n) for n in made},
+                },
+            )
             print(f"{stem}: {raw.shape} -> {hr.shape}", file=sys.stderr)
     print(json.dumps({"outputs": names}))
     return 0

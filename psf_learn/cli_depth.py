@@ -358,12 +358,7 @@ def _transient(args):
     with staged_output(args.out, args.force, names=names, stale=stale) as stage:
         save_npy(stage / "frames.npy", frames)
         (stage / "frames").mkdir()
-        try:
-            from tqdm import tqdm
-        except ImportError:  # progress bars are a nicety
-
-            def tqdm(x, **_):
-                return x
+        from tqdm import tqdm
 
         for k, name in enumerate(tqdm(pngs, desc="frames", disable=None)):
             write_frame_png16(stage / name, frames[k] / scale)

@@ -59,6 +59,16 @@ def _check_sensor(sensor, factor):
             raise ValueError(f"sensor {name} must be a finite number >= 0, got {value}")
 
 
+def white_counts(model, photons=None):
+    """Return the counts that mean a white scene: ``photons``, or the model's by default."""
+    if photons is None:
+        # A model trained without noise (photons 0) saw frames scaled to white = 1.
+        return float(model.sensor.photons or 1.0)
+    if not (np.isfinite(photons) and photons > 0):
+        raise ValueError(f"photons must be a finite number > 0, got {photons}")
+    return float(photons)
+
+
 def super_resolve(model, frames, photons=None, chunk=16):
     """Super-resolve SPAD frames of photon counts.
 
@@ -85,12 +95,7 @@ def super_resolve(model, frames, photons=None, chunk=16):
     frames = np.asarray(frames, dtype=np.float64)
     if frames.ndim < 2:
         raise ValueError(f"frames must be (..., h, w), got shape {frames.shape}")
-    if photons is None:
-        # A model trained without noise (photons 0) saw frames scaled to white = 1.
-        photons = model.sensor.photons or 1.0
-    elif not (np.isfinite(photons) and photons > 0):
-        raise ValueError(f"photons must be a finite number > 0, got {photons}")
-    photons = float(photons)
+    photons = white_counts(model, photons)
     f = model.sensor.factor
     lead, (h, w) = frames.shape[:-2], frames.shape[-2:]
     flat = frames.reshape(-1, 1, h, w)

@@ -559,6 +559,32 @@ def test_sr_on_npy_stack_and_16_bit_image(trained, tmp_path):
     )
 
 
+def test_sr_records_what_made_each_output_and_gathers_batches(trained, tmp_path):
+    # A super-resolved frame must say which model, photon level and input made it.
+    out, _ = trained
+    rng = np.random.default_rng(2)
+    dest = tmp_path / "sr"
+    for name in ("a", "b"):  # two batches into one folder need no --force
+        np.save(tmp_path / f"{name}.npy", rng.poisson(300, size=(6, 5)).astype(np.uint16))
+        assert main(["sr", str(out), str(tmp_path / f"{name}.npy"), "--out", str(dest)]) == 0
+    record = json.loads((dest / "b_sr.json").read_text())
+    digest = hashlib.sha256((tmp_path / "b.npy").read_bytes()).hexdigest()
+    assert record["input"] == str(tmp_path / "b.npy") and record["input_sha256"] == digest
+    assert record["input_shape"] == [6, 5] and record["output_shape"] == [24, 20]
+    assert record["model_sha256"] == hashlib.sha256((out / "model.pt").read_bytes()).hexdigest()
+    assert record["photons"] == load_model(out).sensor.photons
+    for name in ("b_sr.npy", "b_sr.png"):
+        assert record["files"][name] == hashlib.sha256((dest / name).read_bytes()).hexdigest()
+    assert sorted(p.name for p in dest.iterdir()) == [
+        f"{n}_sr.{ext}" for n in "ab" for ext in ("json", "npy", "png")
+    ]
+    np.save(tmp_path / "c.npy", np.full((4, 4), 50, np.uint16))
+    assert (
+        main(["sr", str(out), str(tmp_path / "c.npy"), "--out", str(dest), "--photons", "80"]) == 0
+    )
+    assert json.loads((dest / "c_sr.json").read_text())["photons"] == 80
+
+
 def _bad_input(tmp_path, kind):
     folder = tmp_path / "imgs"
     if kind == "empty":
