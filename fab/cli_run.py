@@ -113,7 +113,14 @@ def _run(args):
 
 def _run_stages(args, run_dir, design):
     from doe.cli import main as doefab
-    from fab.pipeline import check_overwrite, is_current, load_state, run_stage, save_state
+    from fab.pipeline import (
+        check_overwrite,
+        finish_swaps,
+        is_current,
+        load_state,
+        run_stage,
+        save_state,
+    )
     from fab.run_report import write_index, write_manifest
 
     try:
@@ -122,6 +129,7 @@ def _run_stages(args, run_dir, design):
         if not args.force:
             raise
         state = {}
+    finish_swaps(state, run_dir)
     if (
         not state
         and not args.force

@@ -169,9 +169,12 @@ def check_overwrite(stage, state, run_dir, force):
 
 def own_files(stage, state, run_dir):
     """Return the files of a stage's folder that the run never wrote (the lab's own)."""
-    rec = state.get(stage.name, {})
+    return _own_files(state.get(stage.name, {}), Path(run_dir) / stage.name)
+
+
+def _own_files(rec, folder):
     ours = {*rec.get("files", {}), *rec.get("replaces", {})}
-    return [p for p in stage_files(Path(run_dir) / stage.name) if p not in ours]
+    return [p for p in stage_files(folder) if p not in ours]
 
 
 def run_stage(stage, run_dir, state, invoke, force=False):
@@ -220,18 +223,40 @@ def run_stage(stage, run_dir, state, invoke, force=False):
         "replaces": replaced,
         "seconds": seconds,
     }
-    # Not stopped half-way by Ctrl-C: between the removal of NAME and the rename, the
-    # lab's files sit in a folder that a resumed run, finding no key in it, removes.
+    # Not stopped half-way by Ctrl-C (a SIGKILL is mended by finish_swaps on resume).
     with interrupts.deferred():
         save_state(run_dir, state)
-        for rel in keep:  # the lab's own files move into the new folder, unless it has the name
-            if not (new / rel).exists():
-                (new / rel).parent.mkdir(parents=True, exist_ok=True)
-                (final / rel).rename(new / rel)
-        if final.exists():
-            _remove_tree(final)
-        new.rename(final)
+        _swap_in(new, final, keep)
     return 0
+
+
+def _swap_in(new, final, keep):
+    """Move the lab's files ``keep`` from ``final`` into ``new``, then replace ``final``."""
+    for rel in keep:  # unless the stage wrote a file of that name
+        if (final / rel).exists() and not (new / rel).exists():
+            (new / rel).parent.mkdir(parents=True, exist_ok=True)
+            (final / rel).rename(new / rel)
+    if final.exists():
+        _remove_tree(final)
+    new.rename(final)
+
+
+def finish_swaps(state, run_dir):
+    """Finish the swaps of stages that a killed run (SIGKILL, power cut) left half done.
+
+    A ``.NAME.new`` without its key is a finished stage. Once the state records its
+    files, the swap may have moved the lab's files into it and removed ``NAME``:
+    removing it as a leftover would lose them, so the swap is completed instead.
+    Before that record, ``NAME`` is untouched and run_stage redoes the stage.
+    """
+    run_dir = Path(run_dir)
+    for name, rec in state.items():
+        new, final = run_dir / f".{name}.new", run_dir / name
+        if not isinstance(rec, dict) or not new.is_dir() or (new / ".stage_key").exists():
+            continue
+        files = stage_files(new)
+        if rec.get("files") and all(files.get(p) == h for p, h in rec["files"].items()):
+            _swap_in(new, final, _own_files(rec, final) if final.exists() else [])
 
 
 def move_timings(folder):

@@ -42,6 +42,7 @@ def run_all(tmp_path, fake, force=False):
     run = tmp_path / "run"
     run.mkdir(exist_ok=True)
     state = load_state(run)  # with force too: it tells the run's files from the lab's
+    pipeline.finish_swaps(state, run)
     for stage in stages(tmp_path):
         if not force and is_current(stage, state, run):
             continue
@@ -91,7 +92,8 @@ def test_run_killed_while_swapping_a_stage_in_resumes(tmp_path, monkeypatch):
     monkeypatch.undo()
     fake = FakeDoefab()
     assert run_all(tmp_path, fake) == 0  # not refused: every file there is the run's
-    assert fake.calls == ["first", "second"]
+    assert fake.calls == ["second"]  # the first stage's swap is finished, not redone
+    assert (tmp_path / "run" / "first" / "first.txt").read_text() == "XYZ"
     assert (tmp_path / "run" / "second" / "second.txt").read_text() == "XYZ"
 
 
@@ -118,6 +120,55 @@ def test_ctrl_c_while_swapping_a_stage_in_keeps_the_labs_files(tmp_path, monkeyp
         run_all(tmp_path, FakeDoefab())
     monkeypatch.undo()
     assert run_all(tmp_path, FakeDoefab()) == 0
+    assert (tmp_path / "run" / "first" / "lab_notes.txt").read_text() == "mine"
+    assert (tmp_path / "run" / "second" / "second.txt").read_text() == "XYZ"
+
+
+def test_run_killed_after_removing_the_old_folder_finishes_the_swap(tmp_path, monkeypatch):
+    # A SIGKILL (no handler runs) after the old folder was removed, before the rename:
+    # the lab's files then sit in the key-less .first.new, which resuming once removed.
+    (tmp_path / "input.txt").write_text("abc")
+    assert run_all(tmp_path, FakeDoefab()) == 0
+    (tmp_path / "run" / "first" / "lab_notes.txt").write_text("mine")
+    (tmp_path / "input.txt").write_text("xyz")
+    real = pipeline._remove_tree
+
+    def killed_after(path):
+        real(path)
+        raise SystemExit("killed")
+
+    monkeypatch.setattr(pipeline, "_remove_tree", killed_after)
+    with pytest.raises(SystemExit):
+        run_all(tmp_path, FakeDoefab())
+    monkeypatch.undo()
+    assert not (tmp_path / "run" / "first").exists()
+    fake = FakeDoefab()
+    assert run_all(tmp_path, fake) == 0
+    assert (tmp_path / "run" / "first" / "lab_notes.txt").read_text() == "mine"
+    assert (tmp_path / "run" / "first" / "first.txt").read_text() == "XYZ"
+    assert fake.calls == ["second"]  # the first stage had finished: not redone
+    assert not (tmp_path / "run" / ".first.new").exists()
+
+
+def test_run_killed_before_recording_a_finished_stage_redoes_it(tmp_path, monkeypatch):
+    # Killed before the state names the new files: the old folder is whole, the
+    # key-less .first.new holds only the stage's outputs and is redone.
+    (tmp_path / "input.txt").write_text("abc")
+    assert run_all(tmp_path, FakeDoefab()) == 0
+    (tmp_path / "run" / "first" / "lab_notes.txt").write_text("mine")
+    (tmp_path / "input.txt").write_text("xyz")
+
+    def killed(run_dir, state):
+        raise SystemExit("killed")
+
+    monkeypatch.setattr(pipeline, "save_state", killed)
+    with pytest.raises(SystemExit):
+        run_all(tmp_path, FakeDoefab())
+    monkeypatch.undo()
+    assert (tmp_path / "run" / "first" / "first.txt").read_text() == "ABC"
+    fake = FakeDoefab()
+    assert run_all(tmp_path, fake) == 0
+    assert fake.calls == ["first", "second"]
     assert (tmp_path / "run" / "first" / "lab_notes.txt").read_text() == "mine"
     assert (tmp_path / "run" / "second" / "second.txt").read_text() == "XYZ"
 
