@@ -79,12 +79,12 @@ def register(sub):
         "transient",
         help="write the per-time-bin frames of a gated SPAD cube (npy, PNG, animated GIF)",
     )
-    _common(p)
+    _common(p, "super-resolve the frames with a model from 'doefab learn' (they replace them)")
     p.add_argument("--fps", type=float, default=10.0, help="GIF frame rate (default 10)")
     p.set_defaults(func=_transient)
 
 
-def _common(p):
+def _common(p, sr_help="also super-resolve with a model from 'doefab learn' (into sr/)"):
     p.add_argument(
         "cube",
         metavar="CUBE",
@@ -100,7 +100,7 @@ def _common(p):
     p.add_argument(
         "--sr",
         metavar="MODEL_DIR",
-        help="also super-resolve with a model from 'doefab learn' (into sr/)",
+        help=sr_help,
     )
     p.add_argument("--force", action="store_true", help="overwrite existing outputs")
 
@@ -335,19 +335,21 @@ def _example_pixels(fit):
 def _transient(args):
     from doe.files import previous_files, save_npy, staged_output, write_json
     from psf_learn.cubes import read_cube, write_frame_png16
-    from psf_learn.depth import scan_times
-    from psf_learn.depth_plots import gif_frame_centiseconds, save_gif
+    from psf_learn.depth_plots import gif_frame_centiseconds, gif_zoom, save_gif
 
-    shift = flags.positive("--shift-ps", args.shift_ps) * 1e-12
+    flags.positive("--shift-ps", args.shift_ps)
     try:
         gif_fps = 100 / gif_frame_centiseconds(args.fps)
     except ValueError as e:
         raise InputError("--fps", str(e)) from None
-    cube = read_cube(args.cube)
+    cube = read_cube(args.cube, min_samples=1)
     if args.sr:
         cube = _super_resolve_cube(args.sr, cube)
     frames = np.moveaxis(cube, -1, 0)
-    times = scan_times(frames.shape[0], shift)
+    try:
+        gif_zoom(*frames.shape[1:])
+    except ValueError as e:
+        raise InputError(args.cube, f"{e}; preview.gif cannot be written") from None
     scale = float(frames.max()) or 1.0
     pngs = [f"frames/frame_{k:04d}.png" for k in range(frames.shape[0])]
     names = ["frames.npy", "transient.json", "preview.gif", *pngs]
@@ -369,7 +371,7 @@ def _transient(args):
                 "cube": str(args.cube),
                 "frames": list(frames.shape),
                 "shift_ps": args.shift_ps,
-                "times_ps": (times / 1e-12).tolist(),
+                "times_ps": [k * args.shift_ps for k in range(frames.shape[0])],
                 "super_resolved": bool(args.sr),
                 "png_full_scale_counts": scale,
                 "png_note": "frame PNGs are 16-bit, counts = value / 65535 * png_full_scale_counts",

@@ -18,11 +18,11 @@ from doe.files import load_npy
 FRAME_SUFFIXES = (".png", ".tif", ".tiff")
 
 
-def check_cube(cube, source):
+def check_cube(cube, source, min_samples=4):
     """Validate a gated cube; return it as float64 (H, W, T).
 
     Refuses a wrong rank, non-numeric data, NaN/inf, negative counts and
-    profiles too short to fit (T < 4).
+    profiles shorter than ``min_samples`` (4 to fit a return; 1 to show frames).
     """
     cube = np.asarray(cube)
     if cube.dtype.kind not in "uif":
@@ -31,9 +31,10 @@ def check_cube(cube, source):
         raise InputError(
             source, f"cube must be (H, W, T) with T time samples, got shape {cube.shape}"
         )
-    if min(cube.shape) < 1 or cube.shape[2] < 4:
+    if min(cube.shape) < 1 or cube.shape[2] < min_samples:
         raise InputError(
-            source, f"cube must have H, W >= 1 and T >= 4 samples, got shape {cube.shape}"
+            source,
+            f"cube must have H, W >= 1 and T >= {min_samples} samples, got shape {cube.shape}",
         )
     if cube.dtype.kind == "f" and not np.all(np.isfinite(cube)):
         raise InputError(
@@ -48,16 +49,19 @@ def check_cube(cube, source):
     return cube.astype(np.float64)
 
 
-def read_cube(path):
-    """Read a gated cube from a ``.npy`` file or a folder of frames; return float64 (H, W, T)."""
+def read_cube(path, min_samples=4):
+    """Read a gated cube from a ``.npy`` file or a folder of frames; return float64 (H, W, T).
+
+    ``min_samples``: the fewest time samples accepted (see :func:`check_cube`).
+    """
     path = Path(path)
     if path.is_dir():
-        return check_cube(_read_frame_folder(path), path)
+        return check_cube(_read_frame_folder(path), path, min_samples)
     if not path.exists():
         raise InputError(path, "no such file or folder")
     if path.suffix.lower() != ".npy":
         raise InputError(path, "a cube must be a .npy file or a folder of PNG/TIFF frames")
-    return check_cube(load_npy(path), path)
+    return check_cube(load_npy(path), path, min_samples)
 
 
 def frame_order(path):

@@ -10,6 +10,7 @@ PNG_META = {"Software": None}
 # A GIF frame lasts a whole number of centiseconds, up to 65535 (a 16-bit field);
 # browsers play 0 or 1 centisecond as 10, so 2 (50 fps) is the shortest that plays.
 GIF_FPS_RANGE = (100 / 65535, 50.0)
+GIF_MAX_SIDE = 65535  # a GIF stores its width and height in 16 bits
 
 
 def _figure(figsize):
@@ -75,14 +76,30 @@ def save_pixel_fits(path, times, profiles, models, labels):
 
 
 def gif_frame_centiseconds(fps):
-    """Return how long a GIF frame lasts at ``fps`` (whole centiseconds, the nearest).
+    """Return how long a GIF frame lasts to play nearest ``fps`` (whole centiseconds).
 
+    The nearest rate, not the nearest duration: 41 fps plays at 33.3 (3 cs), not 50.
     Raises ValueError unless a GIF can play ``fps`` frames per second.
     """
     lo, hi = GIF_FPS_RANGE
     if not lo <= fps <= hi:
         raise ValueError(f"a GIF plays {lo:.4g} to {hi:g} frames per second, got {fps:g}")
-    return min(max(round(100 / fps), 2), 65535)
+    shorter = min(max(int(100 // fps), 2), 65535)
+    return min((shorter, min(shorter + 1, 65535)), key=lambda cs: abs(100 / cs - fps))
+
+
+def gif_zoom(height, width, min_width=256):
+    """Return the whole enlargement that makes frames ``min_width`` wide, within a GIF's sides.
+
+    Raises ValueError for frames a GIF cannot hold (a side over 65535 pixels).
+    """
+    if max(height, width) > GIF_MAX_SIDE:
+        raise ValueError(
+            f"frames of {height} x {width} pixels do not fit a GIF "
+            f"(at most {GIF_MAX_SIDE} pixels a side)"
+        )
+    wanted = int(np.ceil(min_width / width))
+    return max(1, min(wanted, GIF_MAX_SIDE // height, GIF_MAX_SIDE // width))
 
 
 def save_gif(path, frames, fps=10, min_width=256):
@@ -97,7 +114,7 @@ def save_gif(path, frames, fps=10, min_width=256):
     centiseconds = gif_frame_centiseconds(fps)
     frames = np.asarray(frames, dtype=np.float64)
     vmax = float(frames.max()) or 1.0
-    zoom = max(1, int(np.ceil(min_width / frames.shape[2])))
+    zoom = gif_zoom(*frames.shape[1:], min_width)
     grey = np.round(np.clip(frames / vmax, 0, 1) * 255).astype(np.uint8)
     grey = np.repeat(np.repeat(grey, zoom, axis=1), zoom, axis=2)
     images = [Image.fromarray(g) for g in grey]  # uint8 (H, W): greyscale "L"

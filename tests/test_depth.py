@@ -403,8 +403,11 @@ def test_bad_flags_are_refused(tmp_path, response, capsys):
     assert not (tmp_path / "t").exists()
 
 
-@pytest.mark.parametrize("fps, centiseconds", [(10, 10), (30, 3), (50, 2), (0.5, 200)])
-def test_preview_gif_plays_at_the_nearest_whole_centisecond(tmp_path, response, fps, centiseconds):
+@pytest.mark.parametrize(
+    "fps, centiseconds", [(10, 10), (30, 3), (50, 2), (0.5, 200), (41, 3), (29, 4)]
+)
+def test_preview_gif_plays_at_the_nearest_rate(tmp_path, response, fps, centiseconds):
+    # 41 fps: 3 cs plays 33.3, nearer than 2 cs (50); 29 fps: 4 cs (25) beats 3 cs (33.3).
     from PIL import Image
 
     path, _ = write_scene_cube(tmp_path, response, shape=(2, 2))
@@ -504,6 +507,22 @@ def test_cli_transient(tmp_path, response):
     np.testing.assert_array_equal(frames, np.moveaxis(cube, -1, 0))
     assert len(list((out / "frames").glob("frame_*.png"))) == T
     assert (out / "preview.gif").read_bytes()[:6] in (b"GIF89a", b"GIF87a")
+    times = json.loads((out / "transient.json").read_text())["times_ps"]
+    assert times == [k * 20.0 for k in range(T)] and times[5] == 100.0  # not 99.99999999999999
+
+
+def test_cli_transient_shows_one_frame_and_a_tall_sensor(tmp_path):
+    # Frames need no fit: one is enough. A 300 x 1 sensor enlarged to 256 px wide
+    # would be 76800 px tall, more than a GIF can hold.
+    from PIL import Image
+
+    np.save(tmp_path / "one.npy", np.full((3, 2, 1), 7.0))
+    assert main(["transient", str(tmp_path / "one.npy"), "--out", str(tmp_path / "a")]) == 0
+    assert np.load(tmp_path / "a" / "frames.npy").shape == (1, 3, 2)
+    np.save(tmp_path / "tall.npy", np.arange(600.0).reshape(300, 1, 2))
+    assert main(["transient", str(tmp_path / "tall.npy"), "--out", str(tmp_path / "b")]) == 0
+    with Image.open(tmp_path / "b" / "preview.gif") as gif:
+        assert gif.size == (218, 300 * 218)  # the largest whole factor within 65535
 
 
 def fake_sr_module():
