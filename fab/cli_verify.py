@@ -308,9 +308,26 @@ def _pitch_hint(result, on_lattice, pitch_px, args):
 
 def _orientation_hint(result, grid, design, orientation):
     """Return a note when a capture failed as another design matches this one seen otherwise."""
-    from fab.verify import orientations_matching
+    from fab.verify import orientations_fitting_better, orientations_matching
 
-    if "other_design" not in result.get("diagnosis", []):
+    diagnosis = result.get("diagnosis", [])
+    if {"conjugate_plate", "mirrored"} & set(diagnosis):
+        z = result["zero_order_search"]
+        turned = orientations_fitting_better(
+            grid,
+            design.levels,
+            design.n_levels,
+            design.kernel_size,
+            min(z["chi2"].values()),
+            z["inflation"],
+        )
+        if turned:
+            return (
+                f"the orders fit the design seen with --orientation {turned[0]} far better "
+                f"than as {result['measured_as']}: if the camera or the plate is mounted so, "
+                "verify again with that flag (it is never guessed)"
+            )
+    if "other_design" not in diagnosis:
         return None
     others = [
         o

@@ -469,6 +469,25 @@ def orientations_matching(grid, levels, n_levels, kernel_size):
     return found
 
 
+def orientations_fitting_better(grid, levels, n_levels, kernel_size, chi2, inflation):
+    """Return the orientations under which the design fits decisively better than ``chi2``.
+
+    ``chi2`` is the best fit of the hypotheses weighed (the design and its
+    reflections under the flag given; ``inflation`` their reduced chi-square
+    scale, see ``_search_summary``). A camera or plate turned by 90 degrees is
+    none of them: its capture can fit a reflection better than the design and
+    pass for a mirrored plate, while the design seen turned fits far better
+    still. Best first; a hint, never a verdict.
+    """
+    period = design_order_power(levels, n_levels)
+    fits = {}
+    for orientation in ORIENTATIONS:
+        power, valid, sigma = _in_design_frame(grid, orientation)
+        fits[orientation] = locate_zero_order(power, valid, sigma, period, kernel_size // 2)["chi2"]
+    better = [o for o, c in fits.items() if (chi2 - c) / inflation > DECISIVE_CHI2]
+    return sorted(better, key=fits.get)
+
+
 def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
     """Measure the PSF in a registered order grid, compare it with the design and diagnose.
 

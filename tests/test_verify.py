@@ -294,6 +294,32 @@ def test_capture_seen_otherwise_than_the_flag_names_the_orientation_that_fits(
     assert len(hints) == 1 and f"--orientation {orientation}:" in hints[0]
 
 
+@pytest.fixture(scope="module")
+def compact_levels():
+    """A tile whose PSF is a compact, lopsided blob: every orientation correlates highly."""
+    from doe.retrieval import retrieve_phase
+
+    y, x = np.mgrid[-(K // 2) : K // 2 + 1, -(K // 2) : K // 2 + 1]
+    target = np.exp(-((x - 1) ** 2 + y**2) / 2.5) + 0.4 * np.exp(
+        -((x + 1.5) ** 2 + (y - 2) ** 2) / 1.2
+    )
+    return retrieve_phase(target / target.sum(), n_pixels=N, n_levels=L, seed=0).levels
+
+
+@pytest.mark.parametrize("seen", ["rot90", "rot270", "mirror-x"])
+def test_compact_design_seen_turned_is_not_left_as_a_mirrored_plate(tmp_path, compact_levels, seen):
+    # Seen turned by 90 degrees, a compact design fits a reflection better than
+    # itself and failed as "mirrored" with no word of the turn: a lab would remake
+    # a good plate. The design seen turned fits far better, and the note says so.
+    code, report, _ = run_verify(tmp_path, compact_levels, dict(seed=10, orientation=seen))
+    assert code == 1 and {"mirrored", "conjugate_plate"} & set(report["diagnosis"])
+    turned = [n for n in report["notes"] if "far better" in n]
+    if seen == "mirror-x":  # a mirrored plate (or camera): the reflection is the best fit
+        assert turned == []
+    else:
+        assert len(turned) == 1 and f"--orientation {seen} far better" in turned[0]
+
+
 def test_overlay_error_within_budget_passes_and_reports_outside_power(tmp_path, levels):
     faults = PlateFaults(overlay_mask=2, overlay_shift=(0.5e-6, -0.5e-6))
     code, report, _ = run_verify(tmp_path, levels, dict(seed=11, faults=faults, supersample=10))
