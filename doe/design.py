@@ -549,19 +549,42 @@ def check_psf_grid(psf_path, d):
 
     A PSF sampled on another sub-pixel grid makes a wrong tile or a wrong sensor model.
     """
+    check_measured_psf(psf_path)
     problem = psf_grid_problem(psf_path, design_summary(d), f"design {d.name!r}")
     if problem:
         path, text = problem
         raise InputError(path, f"{text}; pass the design it was made for with --config")
 
 
+def check_measured_psf(psf_path):
+    """Refuse a measured PSF whose ``verify.json`` says verify could not judge the capture.
+
+    A capture of a mirrored, conjugate or other plate, a camera mounted otherwise
+    than the flag said, clipped or too faint dots: its ``measured_psf.npy`` is not
+    the plate's PSF in the design's frame, and a network tuned to it is tuned wrong.
+    """
+    verified = Path(psf_path).with_name("verify.json")
+    if not verified.is_file():
+        return
+    report = read_json(verified)
+    if report.get("measured_psf_usable") is False:
+        codes = report.get("diagnosis")
+        codes = ", ".join(map(str, codes)) if isinstance(codes, list) else "no diagnosis"
+        raise InputError(
+            verified,
+            f"the PSF beside it comes from a capture that verify could not judge ({codes}): "
+            "it is not the plate's PSF in the design's frame; see the report's notes",
+        )
+
+
 def psf_grid_problem(psf_path, summary, whose):
     """Return (report file, reason) when a PSF is sampled on another grid than ``summary``'s.
 
     The grid is read from the report written beside the PSF: ``learn.json`` (a
-    learned psf.npy) or ``verify.json`` (a measured_psf.npy: the lattice pitch of
-    the captured plate). ``summary`` is a :func:`design_summary` dict; ``whose``
-    names it in the reason. None when neither report says otherwise.
+    learned psf.npy) or ``verify.json`` (a measured_psf.npy: the design's dot
+    lattice pitch, which its sub-pixels must match). ``summary`` is a
+    :func:`design_summary` dict; ``whose`` names it in the reason. None when
+    neither report says otherwise.
     """
     learned = Path(psf_path).with_name("learn.json")
     if learned.is_file():
@@ -574,7 +597,9 @@ def psf_grid_problem(psf_path, summary, whose):
             )
     verified = Path(psf_path).with_name("verify.json")
     if verified.is_file():
-        lattice = read_json(verified).get("lattice_pitch_um")
+        report = read_json(verified)
+        # The design's lattice (on its sensor); older reports hold only the capture's.
+        lattice = report.get("design_lattice_pitch_um", report.get("lattice_pitch_um"))
         pitch = _field(_field(summary, "sensor"), "pixel_pitch_um")
         factor = _field(_field(summary, "sensor"), "superres_factor")
         if not all(_is_number(v) and v > 0 for v in (lattice, pitch, factor)):

@@ -284,7 +284,7 @@ def _evaluate(args):
     import torch
 
     from doe import flags
-    from doe.design import psf_grid_problem
+    from doe.design import check_measured_psf, psf_grid_problem
     from doe.files import read_psf, write_json
     from psf_learn import images as imgio
     from psf_learn.evaluate import EVAL_SEED, evaluate
@@ -304,6 +304,7 @@ def _evaluate(args):
     psf = None
     if args.psf_file:
         psf = read_psf(args.psf_file)
+        check_measured_psf(args.psf_file)
         summary = (model.learn or {}).get("design")  # a model without it is not compared
         problem = psf_grid_problem(args.psf_file, summary, "the model")
         if problem:

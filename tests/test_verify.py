@@ -60,7 +60,7 @@ def run_verify(
     design = make_design_dir(
         tmp_path / "design", levels if design_levels is None else design_levels
     )
-    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, **sim_kwargs)
+    sim = simulate_capture(levels, L, **{"pitch_px": PITCH_PX, **sim_kwargs})
     write_image(tmp_path / name, sim["capture"], exposure=0.01)
     args = ["verify", str(design), str(tmp_path / name), "--out", str(tmp_path / "out"), *flags]
     if dark:
@@ -269,6 +269,32 @@ def test_mirrored_plate_fails(tmp_path, levels):
     # The plate's pattern arrives left-right flipped while the flag says as-designed.
     code, report, _ = run_verify(tmp_path, levels, dict(seed=9, orientation="mirror-x"))
     assert code == 1 and "mirrored" in report["diagnosis"]
+    # Its measured PSF is not the plate's in the design's frame: no network is tuned to it.
+    from doe.design import check_psf_grid, load_design
+    from doe.errors import InputError
+
+    assert report["measured_psf_usable"] is False
+    with pytest.raises(InputError, match="could not judge \\(mirrored\\)") as refused:
+        check_psf_grid(tmp_path / "out" / "measured_psf.npy", load_design(None))
+    assert refused.value.source == str(tmp_path / "out" / "verify.json")
+
+
+def test_plate_measured_on_a_bench_lens_hands_its_psf_to_the_design(tmp_path, levels):
+    # A bench lens of twice the focal length doubles the dot lattice on the camera;
+    # the PSF in orders is the same, and learn once refused it as another grid.
+    from doe.design import check_psf_grid, load_design
+
+    code, report, _ = run_verify(
+        tmp_path,
+        levels,
+        dict(seed=1, pitch_px=2 * PITCH_PX),
+        flags=("--lattice-pitch-um", str(2 * PITCH_UM)),
+    )
+    assert code == 0, report["diagnosis"]
+    assert report["lattice_pitch_um"] == pytest.approx(2 * PITCH_UM)
+    assert report["design_lattice_pitch_um"] == pytest.approx(PITCH_UM)
+    assert report["measured_psf_usable"] is True
+    check_psf_grid(tmp_path / "out" / "measured_psf.npy", load_design(None))  # 37.5 um grid
 
 
 @pytest.mark.parametrize(
