@@ -100,7 +100,9 @@ def read_raw_image(path):
         raise InputError(path, "is a folder, not an image file")
     if not path.is_file():
         raise InputError(path, "no such image file")
-    inp = oiio.ImageInput.open(str(path))
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)  # counts as stored, not multiplied by alpha
+    inp = oiio.ImageInput.open(str(path), config)
     if inp is None:
         raise InputError(path, f"not a readable image ({_one_line(oiio.geterror())})")
     try:
@@ -112,7 +114,13 @@ def read_raw_image(path):
             fmt, full = "float", None
         else:
             raise InputError(path, f"unsupported pixel format {spec.format}; use 8/16-bit or float")
-        pixels = inp.read_image(0, 0, 0, spec.nchannels, fmt)
+        try:
+            pixels = inp.read_image(0, 0, 0, spec.nchannels, fmt)
+        except MemoryError:
+            raise InputError(
+                path, f"{spec.width} x {spec.height} pixels do not fit in this machine's memory"
+            ) from None
+        alpha = spec.alpha_channel
         if pixels is None or inp.has_error:
             raise InputError(path, f"truncated or corrupt image ({_one_line(inp.geterror())})")
         exposure = spec.get_float_attribute("ExposureTime", 0.0) or None
@@ -124,6 +132,8 @@ def read_raw_image(path):
     pixels = np.asarray(pixels)
     if pixels.ndim == 2:
         pixels = pixels[..., None]
+    if 0 <= alpha < pixels.shape[2] and pixels.shape[2] > 1:  # grey or colour + alpha
+        pixels = np.delete(pixels, alpha, axis=2)
     notes = []
     if file_orientation != 1:
         # Viewers turn such an image; the pixels are used as stored, and

@@ -230,7 +230,7 @@ def _verify(args):
         why = (
             "too little signal to find the zero order: no order stands out of the noise; "
             "lengthen the exposure"
-            if max(result["frame_correlation"].values()) < 0.5
+            if max(result["frame_correlation"].values()) < 0.5 or result["window_in_frame"]
             else f"the {design.kernel_size}x{design.kernel_size} window around the zero order "
             f"at row {r:.0f}, col {c:.0f} runs off the frame; centre the zero order"
         )

@@ -510,7 +510,7 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
     (result, measured_psf)
         ``result`` the JSON-ready figures and diagnosis; ``measured_psf`` (K, K)
         float64, >= 0, sum 1, or None when the window runs off the frame
-        (``result["window_in_frame"]`` False).
+        (``result["window_in_frame"]`` False) or holds no light.
     """
     power, valid, sigma = _in_design_frame(grid, orientation)
     rows, cols = to_design_frame(grid.rows, orientation), to_design_frame(grid.cols, orientation)
@@ -557,6 +557,8 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
     beam = beam_power(meas, sigma, valid, model, sl)
     window = power[sl]
     measured_psf = np.clip(window, 0, None)
+    if not (measured_psf.sum() > 0 and beam["power"] > 0):  # no light in the window: no PSF
+        return result, None
     measured_psf = measured_psf / measured_psf.sum()
     w_sum, w_var = float(window.sum()), float((sigma[sl] ** 2).sum())
     rest, rest_var = beam["signal"] - w_sum, beam["signal_var"] - w_var

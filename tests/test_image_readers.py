@@ -159,6 +159,9 @@ def test_sixteen_bit_colour_pngs_keep_their_low_byte(tmp_path):
         write_png16(path, image)
         np.testing.assert_array_equal(read_raw(path), counts, err_msg=name)
         np.testing.assert_allclose(read_image(path), counts / 65535, atol=1e-6, err_msg=name)
+        # A capture too: OIIO multiplied its counts by alpha (17 read as 8), and
+        # grey + alpha was refused as a 2-channel colour image.
+        np.testing.assert_array_equal(read_raw_image(path).data, counts, err_msg=name)
 
 
 def test_float_training_images_must_lie_in_zero_one(tmp_path):

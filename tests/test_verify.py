@@ -279,6 +279,19 @@ def test_mirrored_plate_fails(tmp_path, levels):
     assert refused.value.source == str(tmp_path / "out" / "verify.json")
 
 
+def test_capture_with_no_light_in_the_window_is_unusable(tmp_path, levels, capsys):
+    # A lone bright pixel on a dark float frame once divided by a beam power of 0:
+    # a ZeroDivisionError and exit 1, which for verify means "the plate fails".
+    design = make_design_dir(tmp_path / "design", levels)
+    image = np.zeros((200, 200), np.float32)
+    image[100, 100] = 1.0
+    write_image(tmp_path / "one_dot.exr", image)
+    out = tmp_path / "out"
+    assert main(["verify", str(design), str(tmp_path / "one_dot.exr"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "one_dot.exr: too little signal" in err and not out.exists()
+
+
 def test_plate_measured_on_a_bench_lens_hands_its_psf_to_the_design(tmp_path, levels):
     # A bench lens of twice the focal length doubles the dot lattice on the camera;
     # the PSF in orders is the same, and learn once refused it as another grid.
