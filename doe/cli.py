@@ -39,8 +39,11 @@ def build_parser():
     return parser
 
 
+INTERNAL_ERROR = 3  # exit code of a bug, apart from the contract's 0, 1 and 2
+
+
 def main(argv=None):
-    """Run the command line; return the exit code (0 ok, 1 check failed, 2 bad input)."""
+    """Run the command line; return the exit code (0 ok, 1 check failed, 2 bad input, 3 bug)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     # Ctrl-C and SIGTERM unwind (SIGTERM once killed the process and left the staging
@@ -78,6 +81,22 @@ def _dispatch(args):
     except KeyboardInterrupt:
         print(f"doefab {args.command}: interrupted", file=sys.stderr)
         return 130
+    except MemoryError:
+        print(
+            f"doefab {args.command}: error: out of memory (an input too large for this machine?)",
+            file=sys.stderr,
+        )
+        return 2
+    except Exception:  # a bug: Python's exit 1 would read as "check failed" (verify: "fails")
+        import traceback
+
+        traceback.print_exc()
+        print(
+            f"doefab {args.command}: internal error (a bug in doefab, not a verdict on the "
+            f"input; please report the traceback above): exit {INTERNAL_ERROR}",
+            file=sys.stderr,
+        )
+        return INTERNAL_ERROR
 
 
 def _one_line(text):

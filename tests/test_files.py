@@ -106,6 +106,27 @@ def test_a_swallowed_interrupt_publishes_nothing_and_exits_130(tmp_path, monkeyp
     assert sorted(p.name for p in tmp_path.iterdir()) == ["psf.npy"]
 
 
+@pytest.mark.parametrize("error, code", [(ZeroDivisionError, 3), (MemoryError, 2)])
+def test_a_bug_exits_3_never_1_which_means_a_failed_check(
+    tmp_path, monkeypatch, capsys, error, code
+):
+    # An uncaught exception exits 1, which for verify means "the plate fails".
+    import doe.figures
+
+    def broken(*args, **kwargs):
+        raise error()
+
+    monkeypatch.setattr(doe.figures, "save_retrieval_figure", broken)
+    psf = tmp_path / "psf.npy"
+    np.save(psf, np.full((3, 3), 1 / 9))
+    assert (
+        main(["retrieve", str(psf), "--out", str(tmp_path / "out"), "--tile-pixels", "15"]) == code
+    )
+    err = capsys.readouterr().err
+    assert ("internal error" in err and "Traceback" in err) if code == 3 else "out of memory" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["psf.npy"]
+
+
 def test_an_out_folder_on_another_file_system_is_written(tmp_path):
     # Staged beside a mount point or a link to another file system (a container's bind
     # mount), every command failed: "Invalid cross-device link".
