@@ -164,6 +164,25 @@ def test_sixteen_bit_colour_pngs_keep_their_low_byte(tmp_path):
         np.testing.assert_array_equal(read_raw_image(path).data, counts, err_msg=name)
 
 
+def test_compressed_tiffs_are_read(tmp_path):
+    # LZW is the usual TIFF compression of cameras and ImageJ; float TIFFs (ours
+    # too) carry a floating-point predictor. Without tifffile's codecs both were
+    # refused (exit 2) by the training, evaluation and sr reader.
+    import OpenImageIO as oiio
+
+    counts = (np.arange(48).reshape(6, 8) * 5).astype(np.uint8)
+    spec = oiio.ImageSpec(8, 6, 1, "uint8")
+    spec.attribute("compression", "lzw")
+    out = oiio.ImageOutput.create(str(tmp_path / "lzw.tif"))
+    assert out.open(str(tmp_path / "lzw.tif"), spec) and out.write_image(counts[..., None])
+    out.close()
+    np.testing.assert_array_equal(read_raw(tmp_path / "lzw.tif"), counts)
+    np.testing.assert_allclose(read_image(tmp_path / "lzw.tif"), counts / 255, atol=1e-6)
+    frame = np.linspace(0, 1, 48, dtype=np.float32).reshape(6, 8)
+    write_image(tmp_path / "float.tif", frame)
+    np.testing.assert_array_equal(read_raw(tmp_path / "float.tif"), frame)
+
+
 def test_float_training_images_must_lie_in_zero_one(tmp_path):
     # Images are grey in [0, 1]; a float TIFF of [-0.5, 0.5] once went into PSNRs as is.
     import tifffile
