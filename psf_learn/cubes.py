@@ -76,7 +76,11 @@ def frame_order(path):
 
 def _read_frame_folder(folder):
     files = sorted(
-        (p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in FRAME_SUFFIXES),
+        (
+            p
+            for p in folder.iterdir()
+            if p.is_file() and p.suffix.lower() in FRAME_SUFFIXES and not p.name.startswith(".")
+        ),  # hidden files aside: macOS's "._frame_001.png" metadata
         key=frame_order,
     )
     if not files:

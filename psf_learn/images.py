@@ -155,11 +155,19 @@ def _ink_to_rgb(cmyk, path):
 
 
 def image_files(folder):
-    """Return the sorted image files (PNG, JPEG, TIFF) of a folder; InputError if none."""
+    """Return the sorted image files (PNG, JPEG, TIFF) of a folder, hidden ones aside.
+
+    InputError if there are none.
+    """
     folder = Path(folder)
     if not folder.is_dir():
         raise InputError(folder, "not a folder of images")
-    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    files = sorted(
+        p
+        for p in folder.iterdir()
+        # hidden files aside: macOS leaves a "._name.png" of metadata beside each image
+        if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")
+    )
     if not files:
         raise InputError(folder, f"no images ({', '.join(IMAGE_SUFFIXES)}) in this folder")
     return files

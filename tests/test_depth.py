@@ -449,6 +449,7 @@ def test_frame_folder_is_read_as_uint16_in_name_order(tmp_path, name):
     folder.mkdir()
     for k in range(cube.shape[-1]):
         write_frame_png16(folder / name.format(k=k), cube[..., k] / 65535.0)
+    (folder / "._shift_000.png").write_bytes(b"\x00\x05\x16\x07 macOS metadata")
     np.testing.assert_array_equal(read_cube(folder), cube.astype(np.float64))
 
 

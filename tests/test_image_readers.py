@@ -183,6 +183,16 @@ def test_compressed_tiffs_are_read(tmp_path):
     np.testing.assert_array_equal(read_raw(tmp_path / "float.tif"), frame)
 
 
+def test_hidden_files_in_an_image_folder_are_left_aside(tmp_path):
+    # One macOS "._name.png" (resource-fork metadata, no image) refused the folder.
+    from psf_learn.images import read_folder
+
+    write_image(tmp_path / "a.png", np.full((5, 6), 200, np.uint8))
+    (tmp_path / "._a.png").write_bytes(b"\x00\x05\x16\x07 macOS metadata")
+    names, images = read_folder(tmp_path)
+    assert names == ["a.png"] and images[0].shape == (5, 6)
+
+
 def test_float_training_images_must_lie_in_zero_one(tmp_path):
     # Images are grey in [0, 1]; a float TIFF of [-0.5, 0.5] once went into PSNRs as is.
     import tifffile
