@@ -12,9 +12,10 @@ The physics, in order:
    powers of all orders sum to 1).
 3. Order (m, n) lands on the camera at ``centre + scale * pitch * R(theta)
    T(m, n)``: T the camera orientation, R a small rotation.
-4. Each dot is the aperture's diffraction spot (a Gaussian matching the
-   central lobe of a square aperture of width D: sigma = 0.44 lambda f / D),
-   optionally blurred more, integrated over the camera's square pixels.
+4. Each dot is the aperture's diffraction spot, a Gaussian (the one with the
+   FWHM of a square aperture's sinc^2 lobe has sigma = 0.376 lambda f / D; the
+   default 0.3 px is 0.44 lambda f / D of the default optics, a little wider, as
+   a real lens is), optionally blurred more, integrated over the camera's pixels.
 5. Shot noise (Poisson in electrons), read noise, a dark pedestal with hot
    pixels (the same in capture and dark frame), 12-bit digitisation stored
    MSB-aligned in 16 bits, clipping at full scale (saturation).
@@ -114,6 +115,8 @@ def plate_phase(levels, n_levels, faults=PlateFaults(), mask_pixel_pitch=None, s
 
 def plate_far_field(phase):
     """Return a function (m, n) -> order power of a tiled plate with this (sub)pixel phase."""
+    if phase.ndim != 2 or phase.shape[0] != phase.shape[1]:
+        raise ValueError(f"the tile must be square (CONVENTIONS), got shape {phase.shape}")
     amp = order_amplitudes(phase)
     cells = phase.shape[0]
     power = np.abs(amp) ** 2
@@ -174,8 +177,9 @@ def simulate_capture(
     supersample : int
         Sub-pixels per mask pixel (an overlay shift needs its resolution).
     spot_sigma_px, blur_sigma_px : float
-        Diffraction spot (0.44 lambda f / D / camera pitch ~ 0.3 px for the
-        default optics) and extra blur (defocus) in pixels.
+        Diffraction spot (0.3 px ~ 0.44 lambda f / D / camera pitch for the
+        default optics; a perfect lens gives 0.376 lambda f / D) and extra blur
+        (defocus) in pixels.
     peak_fraction : float
         Exposure: the brightest pixel's mean signal as a fraction of full
         scale; above 1 the capture saturates.
@@ -202,7 +206,9 @@ def simulate_capture(
     p = pitch_px * scale
     b_u = p * np.array([np.cos(theta), np.sin(theta)])  # (row, col) per camera step down
     b_v = p * np.array([-np.sin(theta), np.cos(theta)])  # per camera step right
-    reach = int(np.ceil(np.hypot(h, w) / p)) + 2
+    # Orders out to the frame corner farthest from the zero order (it may lie outside).
+    corners = np.array([(r, c) for r in (0, h - 1) for c in (0, w - 1)], float)
+    reach = int(np.ceil(np.hypot(*(corners - centre).T).max() / p)) + 2
     du, dv = np.meshgrid(np.arange(-reach, reach + 1), np.arange(-reach, reach + 1), indexing="ij")
     rows = centre[0] + du * b_u[0] + dv * b_v[0]
     cols = centre[1] + du * b_u[1] + dv * b_v[1]
@@ -214,6 +220,8 @@ def simulate_capture(
     image = _render_dots(rows[inside], cols[inside], power, (h, w), sigma, rad)
     full_scale = {8: 255, 12: 4095, 16: 65535}[bits]
     gain = full_well_e / full_scale  # electrons per DN
+    if not image.max() > 0:
+        raise ValueError("no order lands in the frame: move centre nearer to it")
     scale_e = peak_fraction * full_well_e / image.max()
     electrons = rng.poisson(image * scale_e).astype(np.float64)
     dark_e = np.zeros((h, w))

@@ -549,6 +549,27 @@ def test_plate_far_field_conserves_power_and_matches_the_contract(levels):
     assert np.allclose(flat / flat.sum(), psf)
 
 
+def test_capture_with_the_zero_order_far_outside_the_frame_has_every_dot(levels):
+    # The orders drawn reached hypot(h, w) / pitch from the zero order, wherever it
+    # was: 300 px above and left of a 201 px frame, most of the frame stayed dark.
+    from scipy import ndimage
+
+    sim = simulate_capture(
+        levels, L, pitch_px=PITCH_PX, shape=(201, 201), centre=(-300.0, -300.0), bits=16,
+        full_well_e=1e10, read_noise_dn=0, dark_level_dn=0, seed=0,
+    )  # fmt: skip
+    # Lattice sites with a whole spot inside the frame: 18 x 18 of them.
+    sites = np.arange(-60, 60) * PITCH_PX - 300.0
+    inside = np.count_nonzero((sites > 1) & (sites < 199))
+    _, dots = ndimage.label(sim["capture"] > 0)
+    assert inside == 18 and dots >= 0.95 * inside**2
+
+
+def test_plate_far_field_refuses_a_tile_that_is_not_square():
+    with pytest.raises(ValueError, match="square"):
+        plate_far_field(np.zeros((8, 12)))
+
+
 def test_repair_pixels_uses_the_neighbour_median():
     img = np.arange(25, dtype=np.float32).reshape(5, 5)
     bad = np.zeros((5, 5), bool)
