@@ -95,6 +95,8 @@ def read_raw_image(path):
     """
     import OpenImageIO as oiio
 
+    from doe.image_pages import has_more_pages
+
     path = Path(path)
     if path.is_dir():
         raise InputError(path, "is a folder, not an image file")
@@ -125,7 +127,7 @@ def read_raw_image(path):
             raise InputError(path, f"truncated or corrupt image ({_one_line(inp.geterror())})")
         exposure = spec.get_float_attribute("ExposureTime", 0.0) or None
         file_orientation = spec.get_int_attribute("Orientation", 1)
-        if inp.seek_subimage(1, 0):  # a multi-page TIFF: which page is the capture?
+        if has_more_pages(inp):  # a multi-page TIFF: which page is the capture?
             raise InputError(path, "holds several images (pages); give one capture per file")
     finally:
         inp.close()

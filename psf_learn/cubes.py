@@ -105,6 +105,8 @@ def read_frame(path):
     """Read one single-channel frame keeping its integer type (uint8/uint16) or float32."""
     import OpenImageIO as oiio
 
+    from doe.image_pages import has_more_pages
+
     path = Path(path)
     if path.is_dir():
         raise InputError(path, "is a folder, not an image file")
@@ -125,7 +127,7 @@ def read_frame(path):
         else:
             raise InputError(path, f"unsupported pixel type {spec.format}; use 8/16-bit or float")
         pixels = inp.read_image(0, 0, 0, 1, fmt)
-        if inp.seek_subimage(1, 0):  # a multi-page TIFF: which page is this shift's frame?
+        if has_more_pages(inp):  # a multi-page TIFF: which page is this shift's frame?
             raise InputError(path, "holds several images (pages); give one frame per file")
     finally:
         inp.close()

@@ -109,6 +109,21 @@ def test_multi_page_tiff_is_refused(tmp_path, reader):
         READERS.get(reader, read_raw)(path)
 
 
+@pytest.mark.parametrize("reader", [*READERS, "raw frame"])
+def test_a_tiff_with_a_thumbnail_is_one_image(tmp_path, reader):
+    # A reduced-resolution copy (subfile type 1) is no second capture; the capture
+    # and frame readers refused it as "several images" while the training one read it.
+    import tifffile
+
+    path = tmp_path / "with_thumbnail.tif"
+    image = np.random.default_rng(2).integers(1, 4000, (24, 32)).astype(np.uint16)
+    with tifffile.TiffWriter(path) as tif:
+        tif.write(image)
+        tif.write(image[::4, ::4], subfiletype=1)
+    got = np.asarray(READERS.get(reader, read_raw)(path))
+    assert got.shape == image.shape
+
+
 def test_raw_frames_are_counts(tmp_path):
     # Grey saved as RGB keeps its counts; colour (once blended to luminance) and
     # negative values (once passed to the network) are no counts.
