@@ -396,6 +396,11 @@ def _mtf(args):
     except EdgeNotFound as e:
         raise InputError(args.image, str(e)) from None
     result["image"] = Path(args.image).name
+    # How the file was read (an Orientation tag, bits MSB-aligned): edge_orientation
+    # describes the image as stored.
+    result["notes"] = list(raw.notes)
+    for note in raw.notes:
+        print(f"doefab mtf: {args.image}: {note}", file=sys.stderr)
     # Clipping flattens the bright side of the edge spread and so overstates the MTF.
     clipped = 0 if raw.full_scale is None else int(np.count_nonzero(raw.data >= raw.full_scale))
     result["saturated_pixels"] = clipped

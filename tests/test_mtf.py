@@ -72,6 +72,16 @@ def test_mtf_cli_writes_json_and_plot(tmp_path):
     assert main(["mtf", str(tmp_path / "edge.png"), "--out", str(tmp_path / "o")]) == 2
 
 
+def test_mtf_cli_reports_how_the_file_was_read(tmp_path, capsys):
+    # 12-bit data MSB-aligned in 16 bits is shifted down: mtf once said nothing of it.
+    img = np.clip(gaussian_edge(1.2, 5, high=3000, noise=2.0), 0, 4095).astype(np.uint16) << 4
+    write_image(tmp_path / "edge.png", img)
+    assert main(["mtf", str(tmp_path / "edge.png"), "--out", str(tmp_path / "o")]) == 0
+    notes = json.loads((tmp_path / "o" / "mtf.json").read_text())["notes"]
+    assert len(notes) == 1 and "MSB-aligned" in notes[0]
+    assert notes[0] in capsys.readouterr().err
+
+
 def test_mtf_cli_flat_image_exits_2(tmp_path, capsys):
     write_image(tmp_path / "flat.tif", np.full((40, 40), 100, np.uint16))
     assert main(["mtf", str(tmp_path / "flat.tif"), "--out", str(tmp_path / "o")]) == 2
