@@ -83,10 +83,12 @@ def quality(phase, target):
 def dot_lattice_image(phase, shape, order_pitch_px, centre=None, spot_sigma_px=0.8):
     """Render the dot lattice that the tiled plate forms on a detector.
 
-    Every diffraction order (m, n) becomes a Gaussian spot at ``centre +
-    (n, m) * order_pitch_px`` (x right, y down), weighted by its power. This is
-    the picture a camera or the SPAD sees before sampling; the spot width stands
-    in for the aperture's diffraction-limited spot.
+    Every diffraction order (m, n) that lands on the detector becomes a Gaussian
+    spot at ``centre + (n, m) * order_pitch_px`` (x right, y down), weighted by its
+    power: the tile's periodic DFT power times the envelope of its square pixels,
+    sinc^2(m / N) sinc^2(n / N) (all orders together carry the whole beam). This
+    is the picture a camera or the SPAD sees before sampling; the spot width
+    stands in for the aperture's diffraction-limited spot.
 
     Parameters
     ----------
@@ -105,15 +107,19 @@ def dot_lattice_image(phase, shape, order_pitch_px, centre=None, spot_sigma_px=0
     n = phase.shape[0]
     power = np.abs(order_amplitudes(phase)) ** 2
     cy, cx = centre if centre is not None else ((h - 1) / 2, (w - 1) / 2)
-    orders = np.fft.fftfreq(n, 1 / n).astype(int)  # 0, 1, ..., -1
-    rows = cy + orders * order_pitch_px
-    cols = cx + orders * order_pitch_px
-    keep_r = (rows > -4 * spot_sigma_px) & (rows < h + 4 * spot_sigma_px)
-    keep_c = (cols > -4 * spot_sigma_px) & (cols < w + 4 * spot_sigma_px)
+    reach = 4 * spot_sigma_px
+
+    def orders_on(length, c):  # the orders whose spots reach [0, length)
+        lo = np.ceil((-reach - c) / order_pitch_px)
+        hi = np.floor((length + reach - c) / order_pitch_px)
+        return np.arange(lo, hi + 1).astype(int)
+
+    m, k = orders_on(h, cy), orders_on(w, cx)
     y = np.arange(h)[:, None]
     x = np.arange(w)[:, None]
-    # Separable: image = sum_mn P[m, n] gy_m(y) gx_n(x) = Gy^T P Gx
-    gy = np.exp(-0.5 * ((y - rows[keep_r][None, :]) / spot_sigma_px) ** 2)
-    gx = np.exp(-0.5 * ((x - cols[keep_c][None, :]) / spot_sigma_px) ** 2)
-    sub = power[np.ix_(keep_r, keep_c)]
+    # Separable: image = sum_mk P[m, k] gy_m(y) gx_k(x) = Gy P Gx^T
+    gy = np.exp(-0.5 * ((y - (cy + m * order_pitch_px)[None, :]) / spot_sigma_px) ** 2)
+    gx = np.exp(-0.5 * ((x - (cx + k * order_pitch_px)[None, :]) / spot_sigma_px) ** 2)
+    envelope = np.outer(np.sinc(m / n) ** 2, np.sinc(k / n) ** 2)
+    sub = power[np.ix_(m % n, k % n)] * envelope
     return gy @ sub @ gx.T / (2 * np.pi * spot_sigma_px**2)

@@ -126,3 +126,21 @@ def test_correlation_with_a_uniform_target_is_undefined_not_noise():
     assert np.isnan(fraunhofer.correlation(np.full((5, 5), 0.3), psf[:5, :5]))
     assert fraunhofer.correlation(psf, 2 * psf + 1) == pytest.approx(1.0, abs=1e-14)
     assert fraunhofer.correlation(psf, -psf) == pytest.approx(-1.0, abs=1e-14)
+
+
+def test_dot_lattice_image_has_every_order_with_the_pixel_envelope():
+    # Order (m, n) of a tiled plate of square pixels carries |DFT[m mod N, n mod N]|^2
+    # sinc^2(m/N) sinc^2(n/N); the image once held one period of orders, unweighted.
+    from doe.fraunhofer import dot_lattice_image
+
+    n, pitch = 8, 12.0
+    phase = np.random.default_rng(3).uniform(0, 2 * np.pi, (n, n))
+    centre = (200.3, 190.7)
+    img = dot_lattice_image(phase, (400, 400), pitch, centre=centre, spot_sigma_px=0.8)
+    dft = np.abs(np.fft.fft2(np.exp(1j * phase))) ** 2 / n**4
+    yy, xx = np.mgrid[:400, :400]
+    for m, k in ((0, 0), (3, -2), (5, -9), (-12, 14)):  # within, and beyond, one period
+        r, c = centre[0] + m * pitch, centre[1] + k * pitch
+        spot = img[np.hypot(yy - r, xx - c) < 4].sum()
+        expected = dft[m % n, k % n] * (np.sinc(m / n) * np.sinc(k / n)) ** 2
+        assert spot == pytest.approx(expected, rel=1e-4, abs=1e-12), (m, k)
