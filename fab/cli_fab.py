@@ -240,7 +240,7 @@ def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=Tru
         else:
             save_npy(stage / fm.TARGET_PSF_FILE, target)
         acceptance = tolerance.get("acceptance") if tolerance else None
-        manifest = fm.build_manifest(design, der, layout, masks, acceptance, extra)
+        manifest = fm.build_manifest(design, der, layout, masks, acceptance, extra, k)
         fm.write_manifest(stage, manifest)
         bar.update()
         bar.set_postfix_str("report")

@@ -99,8 +99,15 @@ def _run(args):
     flags.seed("--seed", args.seed)
     design = load_design(args.config)
     if args.psf:
-        read_psf(args.psf)
+        k = read_psf(args.psf).shape[0]
         check_psf_grid(args.psf, design)
+        if k != design.kernel_size:  # as learn refuses it: the design would contradict the plate
+            raise InputError(
+                args.psf,
+                f"is {k} x {k}, but the kernel of design {design.name!r} is "
+                f"{design.kernel_size} x {design.kernel_size}; pass the design it was made "
+                "for with --config",
+            )
     formats = [] if _no_mesh(args.formats) else parse_formats(args.formats)
     where = f"{args.config or 'default preset'}: [material] thickness_mm"
     check_float32_heights(design.material.thickness * 1e3, formats, where)

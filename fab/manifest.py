@@ -28,7 +28,7 @@ ORIENTATION = (
 )
 
 
-def build_manifest(design, derived, layout, masks, acceptance=None, extra=None):
+def build_manifest(design, derived, layout, masks, acceptance=None, extra=None, kernel_size=None):
     """Return the manifest dict.
 
     Parameters
@@ -43,6 +43,9 @@ def build_manifest(design, derived, layout, masks, acceptance=None, extra=None):
         Pass/fail thresholds from the tolerance analysis.
     extra : dict or None
         Further keys (e.g. "oasis", "target_psf_source").
+    kernel_size : int or None
+        K of the target PSF the plate was made for (default the design's): the
+        window verify measures and the tolerances were computed on.
     """
     n, p_nm = layout.tile_pixels, layout.pixel_pitch_nm
     step_nm = derived.level_step * 1e9
@@ -74,7 +77,7 @@ def build_manifest(design, derived, layout, masks, acceptance=None, extra=None):
         "design_name": design.name,
         "material": design.material.name,
         "substrate_thickness_mm": as_typed(design.material.thickness, 1e3),
-        "kernel_size": design.kernel_size,
+        "kernel_size": int(kernel_size or design.kernel_size),
         "focal_length_mm": as_typed(design.optics.focal_length, 1e3),
         "tile_size_um": n * p_nm / 1000,
         "lattice_pitch_um": design.optics.wavelength * design.optics.focal_length / tile_size * 1e6,

@@ -52,6 +52,15 @@ def package(tmp_path_factory):
     return root, levels
 
 
+def test_manifest_records_the_kernel_of_the_target_not_the_designs(tmp_path):
+    # A 7 x 7 target under the default design (K = 11): verify reads kernel_size from
+    # the manifest and measured an 11 x 11 window against 7 x 7 tolerances.
+    make_design_dir(tmp_path / "design", k=7)
+    assert main(["fab", str(tmp_path / "design"), "--out", str(tmp_path / "out")]) == 0
+    man = json.loads((tmp_path / "out" / "fab_manifest.json").read_text())
+    assert man["kernel_size"] == 7 == np.load(tmp_path / "out" / man["target_psf_file"]).shape[0]
+
+
 def test_package_has_the_contract_manifest_and_files(package):
     root, levels = package
     out = root / "out"

@@ -348,10 +348,14 @@ def test_bad_inputs_exit_2(tmp_path, capsys):
     measured.mkdir()
     np.save(measured / "measured_psf.npy", np.full((3, 3), 1 / 9))
     (measured / "verify.json").write_text(json.dumps({"lattice_pitch_um": 75.0}))
+    # A PSF of another size than the design's kernel: the manifest said K = 11 of a
+    # 3 x 3 plate, and verify measured the wrong window (learn refuses it too).
+    np.save(tmp_path / "small.npy", np.full((3, 3), 1 / 9))
     for psf, message in (
         ("unnormalised.npy", "must sum to 1"),
         (".", "is a folder"),
         ("measured/measured_psf.npy", "75 um dot lattice"),
+        ("small.npy", "is 3 x 3, but the kernel of design 'sun2020' is 11 x 11"),
     ):
         fresh = tmp_path / f"o_{psf.replace('/', '_')}"
         assert main(["run", "--out", str(fresh), "--psf", str(tmp_path / psf)]) == 2
