@@ -29,7 +29,11 @@ def register(sub):
         default=None,
         help="tile size N in pixels (default: the design's, 175 for sun2020)",
     )
-    p.add_argument("--seed", type=int, default=0, help="seed of the random start (default 0)")
+    p.add_argument(
+        "--seed",
+        type=int,
+        help="seed of the random start (default: the design's [learning] seed, as run uses)",
+    )
     p.add_argument("--config", help="design TOML file or preset name (default: the default preset)")
     p.add_argument("--force", action="store_true", help="overwrite existing output files")
     p.set_defaults(func=run)
@@ -69,6 +73,8 @@ def run(args):
             f"must be 1 to {MAX_TILE_PIXELS} pixels (time and memory grow as N^2), got {n}",
         )
     flags.seed("--seed", args.seed)
+    if args.seed is None:
+        args.seed = design.learning.seed
     target = read_psf(args.psf)
     check_psf_grid(args.psf, design)
     k = target.shape[0]

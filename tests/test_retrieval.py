@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 from doe import fraunhofer, retrieval, targets
 from doe.cli import main
 from doe.design import design_summary, load_design
+from doe.files import read_psf
 
 # ----------------------------------------------------------------------------- targets
 
@@ -558,6 +559,14 @@ def test_cli_levels_and_tile_default_from_the_design(tmp_path, capsys):
     assert code == 0, err
     assert json.loads((out / "retrieval.json").read_text())["levels"] == 4
     assert np.load(out / "levels.npy").max() < 4
+    # So does the seed, as doefab run passes it: run one by one, the stages gave another tile.
+    cfg.write_text("[fabrication]\nlevels = 4\n[learning]\nseed = 3\n")
+    seeded = tmp_path / "seeded"
+    code, err = _run([psf, "--out", seeded, "--tile-pixels", 21, "--config", cfg], capsys)
+    assert code == 0, err
+    assert json.loads((seeded / "retrieval.json").read_text())["seed"] == 3
+    expected = retrieval.retrieve_phase(read_psf(psf), 21, 4, seed=3).levels
+    assert np.load(seeded / "levels.npy").tobytes() == expected.tobytes()
 
 
 def test_cli_records_the_design_as_the_tile_realises_it(tmp_path, capsys):
