@@ -99,9 +99,12 @@ def accuracy(response, subset, seed):
         ours_all, ours_sub = rmse(err), rmse(err.ravel()[idx])
         best_ref = min(ref_a, ref_t)
         cols = show(ours_all, err) + show(ours_sub, err.ravel()[idx])
+        # With no-returns the fit's RMSE is undefined, and so are the ratios: "-".
+        vs_ls = f"{ours_sub / best_ref:6.3f}" if np.isfinite(ours_sub) else f"{'-':>6s}"
+        vs_argmax = f"{ours_all / argmax:10.3f}" if np.isfinite(ours_all) else f"{'-':>10s}"
         print(f"{name:>9s} {amp:6.0f} {bg:5.1f} | {cols}"
-              f"{ref_a:10.2f} {ref_t:8.2f} {argmax:8.2f} | {ours_sub / best_ref:6.3f} "
-              f"{ours_all / argmax:10.3f} {int((~fit.valid).sum()):9d}")  # fmt: skip
+              f"{ref_a:10.2f} {ref_t:8.2f} {argmax:8.2f} | {vs_ls} "
+              f"{vs_argmax} {int((~fit.valid).sum()):9d}")  # fmt: skip
     print(
         "fit/LS: fit RMSE on the subset over the better of the two reference fits "
         "(acceptance: <= 1.10); fit/argmax: acceptance <= 0.5"

@@ -194,10 +194,8 @@ def _print_table(results, args):
             if paper
             else ""
         )
-        print(
-            f"{row['label'] + ' (' + str(row.get('steps', '-')) + ')':36s}{cells}"
-            f"{ref:>26s}{gap:>18s}"
-        )
+        label = f"{row['label']} ({row['steps']})" if "steps" in row else row["label"]
+        print(f"{label:36s}{cells}{ref:>26s}{gap:>18s}")
     m = results["models"]
     for s in sets:
         for gauss in ("gaussian", "gaussian_px"):
@@ -211,7 +209,7 @@ def _print_table(results, args):
         q = m["learned_fab"]["quality"]
         print(
             f"as-fabricated plate: correlation {q['correlation']:.4f}, "
-            f"efficiency {q['efficiency']:.3f}; learned-PSF loss on Set5 "
+            f"efficiency {q['efficiency']:.3f}; Set5 PSNR as fabricated minus learned PSF "
             f"{m['learned_fab']['Set5']['psnr'] - m['learned']['Set5']['psnr']:+.2f} dB"
         )
     print(f"learned PSF (x1000):\n{np.round(np.array(m['learned']['psf']) * 1000).astype(int)}")

@@ -135,4 +135,9 @@ def _bench_plate(levels, n_levels, k, der, pitch_px):
 
 
 if __name__ == "__main__":
+    import argparse
+
+    argparse.ArgumentParser(
+        description=__doc__.splitlines()[0] + " Run: python bench/verify.py (about 35 s)."
+    ).parse_args()
     main_bench()
