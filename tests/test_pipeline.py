@@ -53,6 +53,14 @@ def run_all(tmp_path, fake, force=False):
     return 0
 
 
+def a_run_with_lab_notes_and_a_new_input(tmp_path):
+    """A finished run whose first stage holds a lab's file, then an input that redoes both."""
+    (tmp_path / "input.txt").write_text("abc")
+    assert run_all(tmp_path, FakeDoefab()) == 0
+    (tmp_path / "run" / "first" / "lab_notes.txt").write_text("mine")
+    (tmp_path / "input.txt").write_text("xyz")
+
+
 def test_rerun_skips_unchanged_and_redoes_changed_stages(tmp_path):
     (tmp_path / "input.txt").write_text("abc")
     fake = FakeDoefab()
@@ -105,10 +113,7 @@ def test_ctrl_c_while_swapping_a_stage_in_keeps_the_labs_files(tmp_path, monkeyp
 
     from doe import interrupts
 
-    (tmp_path / "input.txt").write_text("abc")
-    assert run_all(tmp_path, FakeDoefab()) == 0
-    (tmp_path / "run" / "first" / "lab_notes.txt").write_text("mine")
-    (tmp_path / "input.txt").write_text("xyz")
+    a_run_with_lab_notes_and_a_new_input(tmp_path)
     real = pipeline._remove_tree
 
     def interrupted(path):
@@ -127,10 +132,7 @@ def test_ctrl_c_while_swapping_a_stage_in_keeps_the_labs_files(tmp_path, monkeyp
 def test_run_killed_after_removing_the_old_folder_finishes_the_swap(tmp_path, monkeypatch):
     # A SIGKILL (no handler runs) after the old folder was removed, before the rename:
     # the lab's files then sit in the key-less .first.new, which resuming once removed.
-    (tmp_path / "input.txt").write_text("abc")
-    assert run_all(tmp_path, FakeDoefab()) == 0
-    (tmp_path / "run" / "first" / "lab_notes.txt").write_text("mine")
-    (tmp_path / "input.txt").write_text("xyz")
+    a_run_with_lab_notes_and_a_new_input(tmp_path)
     real = pipeline._remove_tree
 
     def killed_after(path):
@@ -153,10 +155,7 @@ def test_run_killed_after_removing_the_old_folder_finishes_the_swap(tmp_path, mo
 def test_run_killed_before_recording_a_finished_stage_redoes_it(tmp_path, monkeypatch):
     # Killed before the state names the new files: the old folder is whole, the
     # key-less .first.new holds only the stage's outputs and is redone.
-    (tmp_path / "input.txt").write_text("abc")
-    assert run_all(tmp_path, FakeDoefab()) == 0
-    (tmp_path / "run" / "first" / "lab_notes.txt").write_text("mine")
-    (tmp_path / "input.txt").write_text("xyz")
+    a_run_with_lab_notes_and_a_new_input(tmp_path)
 
     def killed(run_dir, state):
         raise SystemExit("killed")
