@@ -265,16 +265,17 @@ def test_empty_or_unwritable_out_exits_2(tmp_path, capsys, monkeypatch):
     # An empty --out (an unset $OUT) once wrote into the current folder; an
     # unwritable one ended in a FileNotFoundError traceback.
     monkeypatch.chdir(tmp_path)
-    psf = tmp_path / "psf.npy"
+    psf, psf11 = tmp_path / "psf.npy", tmp_path / "psf11.npy"  # the design's K is 11
     save_npy(psf, np.full((3, 3), 1 / 9))
+    save_npy(psf11, np.full((11, 11), 1 / 121))
     blocker = tmp_path / "a_file"
     blocker.write_text("not a folder")
-    for command in (["retrieve", str(psf), "--tile-pixels", "7"], ["run", "--psf", str(psf)]):
+    for command in (["retrieve", str(psf), "--tile-pixels", "7"], ["run", "--psf", str(psf11)]):
         for out in ("", str(blocker / "sub")):
             assert main([*command, "--out", out]) == 2
             err = capsys.readouterr().err.strip()
             assert len(err.splitlines()) == 1 and ("--out" in err if not out else out in err)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "psf.npy"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "psf.npy", "psf11.npy"]
 
 
 def test_closed_stdout_ends_quietly(tmp_path):
