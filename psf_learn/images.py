@@ -86,8 +86,12 @@ def decode(path):
 
             with tifffile.TiffFile(path) as tif:
                 pages = sum(not page.is_reduced for page in tif.pages)  # thumbnails aside
-                separated = tif.pages[0].photometric == tifffile.PHOTOMETRIC.SEPARATED
+                first = tif.pages[0]
+                separated = first.photometric == tifffile.PHOTOMETRIC.SEPARATED
+                planar = first.planarconfig == tifffile.PLANARCONFIG.SEPARATE
                 a = tif.series[0].asarray()
+            if planar and first.samplesperpixel > 1:
+                a = np.moveaxis(a, -3, -1)  # channel planes: channels last, as elsewhere
         elif _png_bit_depth(path) == 16:
             separated, pages, a = False, 1, _decode_oiio(path)
         else:
@@ -107,8 +111,6 @@ def decode(path):
         raise InputError(path, f"not a readable image ({type(e).__name__}: {e})") from None
     if pages > 1:  # a stack or an animation: which page is the image?
         raise InputError(path, f"holds {pages} images (pages or frames); give one per file")
-    if a.ndim > 2 and a.shape[-1] not in (3, 4) and a.shape[-3] in (3, 4):
-        a = np.moveaxis(a, -3, -1)  # planar TIFF: channels last, as skimage.io.imread does
     if separated:
         a = _ink_to_rgb(a, path)
     return a

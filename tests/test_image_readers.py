@@ -208,6 +208,23 @@ def test_hidden_files_in_an_image_folder_are_left_aside(tmp_path):
     assert names == ["a.png"] and images[0].shape == (5, 6)
 
 
+def test_planar_tiffs_are_told_by_their_tag_not_by_their_shape(tmp_path):
+    # Channels were taken to be planes whenever the first axis had 3 or 4 entries:
+    # a grey + alpha TIFF 3 rows high became a "3-channel colour image".
+    import tifffile
+
+    rng = np.random.default_rng(5)
+    rgb = rng.integers(0, 65536, (3, 5, 7)).astype(np.uint16)  # planes: (S, H, W)
+    tifffile.imwrite(tmp_path / "planar.tif", rgb, photometric="rgb", planarconfig="separate")
+    luminance = np.moveaxis(rgb / 65535, 0, -1) @ np.array([0.299, 0.587, 0.114])
+    np.testing.assert_allclose(read_image(tmp_path / "planar.tif"), luminance, atol=1e-6)
+    grey_alpha = rng.integers(0, 256, (3, 8, 2)).astype(np.uint8)  # interleaved, 3 rows
+    tifffile.imwrite(
+        tmp_path / "la.tif", grey_alpha, photometric="minisblack", extrasamples=["unassalpha"]
+    )
+    np.testing.assert_allclose(read_image(tmp_path / "la.tif"), grey_alpha[..., 0] / 255, atol=1e-6)
+
+
 def test_float_training_images_must_lie_in_zero_one(tmp_path):
     # Images are grey in [0, 1]; a float TIFF of [-0.5, 0.5] once went into PSNRs as is.
     import tifffile
