@@ -556,6 +556,21 @@ def check_psf_grid(psf_path, d):
         raise InputError(path, f"{text}; pass the design it was made for with --config")
 
 
+def check_psf_kernel(psf, source, d):
+    """Refuse a PSF of another size than design d's kernel (InputError naming ``source``).
+
+    Else the design's records (learn.json, the fab manifest, verify's window)
+    would contradict the PSF the plate is made for.
+    """
+    k, kd = psf.shape[0], d.kernel_size
+    if k != kd:
+        raise InputError(
+            source,
+            f"is {k} x {k}, but the kernel of design {d.name!r} is {kd} x {kd}; "
+            "pass the design it was made for with --config",
+        )
+
+
 def check_measured_psf(psf_path):
     """Refuse a measured PSF whose ``verify.json`` says verify could not judge the capture.
 

@@ -88,7 +88,7 @@ def _no_mesh(formats):
 
 def _run(args):
     from doe import flags
-    from doe.design import check_psf_grid, load_design
+    from doe.design import check_psf_grid, check_psf_kernel, load_design
     from doe.files import check_out_folder, read_psf
     from fab.cli_mesh import check_float32_heights, parse_formats
     from fab.pipeline import run_lock
@@ -99,15 +99,9 @@ def _run(args):
     flags.seed("--seed", args.seed)
     design = load_design(args.config)
     if args.psf:
-        k = read_psf(args.psf).shape[0]
+        psf = read_psf(args.psf)
         check_psf_grid(args.psf, design)
-        if k != design.kernel_size:  # as learn refuses it: the design would contradict the plate
-            raise InputError(
-                args.psf,
-                f"is {k} x {k}, but the kernel of design {design.name!r} is "
-                f"{design.kernel_size} x {design.kernel_size}; pass the design it was made "
-                "for with --config",
-            )
+        check_psf_kernel(psf, args.psf, design)  # as learn does
     formats = [] if _no_mesh(args.formats) else parse_formats(args.formats)
     where = f"{args.config or 'default preset'}: [material] thickness_mm"
     check_float32_heights(design.material.thickness * 1e3, formats, where)

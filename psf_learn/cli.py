@@ -87,7 +87,7 @@ def _learn(args):
     import torch
 
     from doe import flags
-    from doe.design import check_psf_grid, design_summary, load_design
+    from doe.design import check_psf_grid, check_psf_kernel, design_summary, load_design
     from doe.files import read_psf, save_npy, sha256_file, staged_output, write_json
     from psf_learn import images as imgio
     from psf_learn import store
@@ -174,12 +174,8 @@ def _learn(args):
     else:
         psf0, learn_psf = read_psf(spec), False
         check_psf_grid(spec, design)
-    if psf0.shape[0] != k:  # else learn.json's design contradicts the PSF learned
-        raise InputError(
-            Path(args.init) / "psf.npy" if spec == "learned" else spec,
-            f"is {psf0.shape[0]} x {psf0.shape[0]}, but the kernel of design {design.name!r} "
-            f"is {k} x {k}; pass the design it was made for with --config",
-        )
+    learned_from = Path(args.init) / "psf.npy" if args.init else None
+    check_psf_kernel(psf0, learned_from if spec == "learned" else spec, design)
     config = with_overrides(config, learn_psf=learn_psf)
 
     margin = psf0.shape[0] - 1
@@ -366,9 +362,9 @@ def _sr(args):
         bar = tqdm(frames, desc="sr", unit="input", disable=None)
         for raw_path, stem, raw in zip(args.raw, stems, bar, strict=True):
             hr = super_resolve(model, raw, photons=args.photons)
-            made = {f"{stem}_sr.npy": hr, f"{stem}_sr.png": hr if hr.ndim == 2 else hr.mean(0)}
-            save_npy(stage / f"{stem}_sr.npy", hr)
-            _write_preview(stage / f"{stem}_sr.png", made[f"{stem}_sr.png"])
+            made = (f"{stem}_sr.npy", f"{stem}_sr.png")
+            save_npy(stage / made[0], hr)
+            _write_preview(stage / made[1], hr if hr.ndim == 2 else hr.mean(axis=0))
             write_json(
                 stage / f"{stem}_sr.json",
                 {
