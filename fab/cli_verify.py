@@ -177,7 +177,7 @@ def _verify(args):
         repair_hot_pixels,
         repair_stray_spikes,
     )
-    from fab.verify import UNJUDGED_AFTER, analyse, design_order_power, resolve_thresholds
+    from fab.verify import analyse, design_order_power, is_judged, resolve_thresholds
 
     flags.positive("--pixel-pitch-um", args.pixel_pitch_um)
     flags.positive("--lattice-pitch-um", args.lattice_pitch_um)
@@ -253,7 +253,7 @@ def _verify(args):
         # (a test bench's lens gives another lattice_pitch_um, not another PSF).
         "design_lattice_pitch_um": design.lattice_pitch * 1e6,
         # A capture verify could not judge gives no PSF to train for.
-        "measured_psf_usable": not set(result["diagnosis"]) & set(UNJUDGED_AFTER),
+        "measured_psf_usable": is_judged(result["diagnosis"]),
         "inputs": {
             "design_dir": str(args.design_dir),
             "design_files": list(design.files),

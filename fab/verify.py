@@ -102,6 +102,16 @@ UNJUDGED_AFTER = (
 )  # fmt: skip
 
 
+def is_judged(diagnosis):
+    """Whether the plate's PSF and process figures are judged after this diagnosis.
+
+    Not after one that the plate is not this design as oriented, or that its
+    figures cannot be trusted (``UNJUDGED_AFTER``); its measured PSF is then no
+    PSF to train for either.
+    """
+    return not set(diagnosis) & set(UNJUDGED_AFTER)
+
+
 def resolve_thresholds(acceptance, design_efficiency, design_zero_order):
     """Return absolute thresholds from the manifest's "acceptance" or the defaults.
 
@@ -459,14 +469,8 @@ def orientations_matching(grid, levels, n_levels, kernel_size):
     the flag given; it cannot tell a camera mounted otherwise from a mirrored or
     conjugate plate, so it never decides a verdict.
     """
-    period = design_order_power(levels, n_levels)
-    found = []
-    for orientation in ORIENTATIONS:
-        power, valid, sigma = _in_design_frame(grid, orientation)
-        search = locate_zero_order(power, valid, sigma, period, kernel_size // 2)
-        if search["score"] >= OTHER_DESIGN_MAX:
-            found.append(orientation)
-    return found
+    searches = _searches_by_orientation(grid, levels, n_levels, kernel_size)
+    return [o for o, search in searches.items() if search["score"] >= OTHER_DESIGN_MAX]
 
 
 def orientations_fitting_better(grid, levels, n_levels, kernel_size, chi2, inflation):
@@ -479,13 +483,20 @@ def orientations_fitting_better(grid, levels, n_levels, kernel_size, chi2, infla
     pass for a mirrored plate, while the design seen turned fits far better
     still. Best first; a hint, never a verdict.
     """
-    period = design_order_power(levels, n_levels)
-    fits = {}
-    for orientation in ORIENTATIONS:
-        power, valid, sigma = _in_design_frame(grid, orientation)
-        fits[orientation] = locate_zero_order(power, valid, sigma, period, kernel_size // 2)["chi2"]
+    searches = _searches_by_orientation(grid, levels, n_levels, kernel_size)
+    fits = {o: search["chi2"] for o, search in searches.items()}
     better = [o for o, c in fits.items() if (chi2 - c) / inflation > DECISIVE_CHI2]
     return sorted(better, key=fits.get)
+
+
+def _searches_by_orientation(grid, levels, n_levels, kernel_size):
+    """Return {orientation: locate_zero_order of the design's far field seen so}."""
+    period = design_order_power(levels, n_levels)
+    searches = {}
+    for orientation in ORIENTATIONS:
+        power, valid, sigma = _in_design_frame(grid, orientation)
+        searches[orientation] = locate_zero_order(power, valid, sigma, period, kernel_size // 2)
+    return searches
 
 
 def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):

@@ -8,7 +8,7 @@ import html
 
 import numpy as np
 
-from fab.verify import UNJUDGED_AFTER
+from fab.verify import is_judged
 
 _PNG_META = {"Software": None}
 
@@ -99,7 +99,7 @@ def _html(report):
     sig = t["significance_sigmas"]
     # After a diagnosis that the plate is not this design as oriented (or clipped or
     # too faint), the PSF and process figures are shown but not judged.
-    judged = not set(report["diagnosis"]) & set(UNJUDGED_AFTER)
+    judged = is_judged(report["diagnosis"])
     checks = [
         (
             "correlation",
