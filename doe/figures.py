@@ -14,6 +14,20 @@ def correlation_text(value):
     return "undefined (uniform target)" if np.isnan(value) else f"{value:.6f}"
 
 
+def value_and_limit(value, limit, digits, kind="g"):
+    """Return texts of a figure and its limit that compare as the numbers do.
+
+    Each has ``digits`` digits (``kind`` "g": significant, "f": decimals), or more
+    where fewer would round a correlation of 0.99989996 onto its goal of 0.9999,
+    or show a threshold of 0.97646 as 0.9765 beside a plate's 0.97648 that passes.
+    """
+    for d in range(digits, 18):
+        shown, shown_limit = f"{value:.{d}{kind}}", f"{limit:.{d}{kind}}"
+        if np.sign(float(shown) - float(shown_limit)) == np.sign(value - limit):
+            return shown, shown_limit
+    return repr(float(value)), repr(float(limit))  # exact (NaN stays "nan")
+
+
 def save_retrieval_figure(path, target, psf, levels, n_levels, quality):
     """Write a PNG of the target, the simulated PSF, their difference and the level map.
 

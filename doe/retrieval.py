@@ -30,6 +30,7 @@ import numpy as np
 import scipy.fft
 
 from doe import bounds, fraunhofer
+from doe.figures import value_and_limit
 from doe.lbfgs import minimise
 
 DEFAULT_WEIGHT = 30.0
@@ -153,11 +154,12 @@ def missed_goals(quality):
     no correlation (NaN, or None as read back from JSON); its rmse alone decides.
     """
     missed = []
-    corr = quality["correlation"]
+    corr, rmse = quality["correlation"], quality["rmse"]
     if corr is not None and not np.isnan(corr) and not corr >= CORRELATION_GOAL:
-        missed.append(f"correlation {corr:.6f} < {CORRELATION_GOAL}")
-    if not quality["rmse"] <= RMSE_GOAL:
-        missed.append(f"rmse {quality['rmse']:.5f} > {RMSE_GOAL}")
+        shown = value_and_limit(corr, CORRELATION_GOAL, 6, "f")[0]
+        missed.append(f"correlation {shown} < {CORRELATION_GOAL}")
+    if not rmse <= RMSE_GOAL:  # NaN too
+        missed.append(f"rmse {value_and_limit(rmse, RMSE_GOAL, 5, 'f')[0]} > {RMSE_GOAL}")
     return missed
 
 

@@ -370,10 +370,10 @@ def _tolerance_blocks(tol):
             "table",
             ["threshold", "value"],
             [
-                ["correlation_min", _num(acc["correlation_min"], ".4f")],
-                ["rmse_max", f"{acc['rmse_max']:.4f}"],
-                ["efficiency_min", f"{acc['efficiency_min']:.4f}"],
-                ["zero_order_max", f"{acc['zero_order_max']:.4f}"],
+                ["correlation_min", _num(acc["correlation_min"], ".6g")],
+                ["rmse_max", f"{acc['rmse_max']:.6g}"],
+                ["efficiency_min", f"{acc['efficiency_min']:.6g}"],
+                ["zero_order_max", f"{acc['zero_order_max']:.6g}"],
             ],
         )
     )

@@ -7,7 +7,9 @@ from importlib import metadata
 from pathlib import Path
 
 from doe.design import design_summary
+from doe.figures import value_and_limit
 from doe.files import atomic_write_bytes, sha256_file, write_json
+from doe.retrieval import CORRELATION_GOAL, RMSE_GOAL
 
 PACKAGES = (
     "doefab",
@@ -25,16 +27,23 @@ PACKAGES = (
     "scikit-image",
 )
 
-# Headline numbers shown on the front page: (stage, file, key path, label)
+# Headline numbers shown on the front page: (stage, file, key path, label, goal). A
+# figure with a goal is shown with the digits that tell it from the goal.
 HEADLINES = (
-    ("learn", "learn.json", ("final_psnr_db",), "training PSNR (dB)"),
-    ("retrieve", "retrieval.json", ("quantised", "correlation"), "correlation ({quantised})"),
-    ("retrieve", "retrieval.json", ("quantised", "rmse"), "rmse ({quantised})"),
-    ("retrieve", "retrieval.json", ("quantised", "efficiency"), "efficiency ({quantised})"),
-    ("retrieve", "retrieval.json", ("goals", "met"), "correlation and rmse goals met"),
-    ("fab", "fab_manifest.json", ("level_step_nm",), "level step (nm)"),
-    ("fab", "fab_manifest.json", ("pixel_pitch_nm",), "mask pixel pitch (nm)"),
-    ("fab", "fab_manifest.json", ("tiles",), "tiles across the aperture"),
+    ("learn", "learn.json", ("final_psnr_db",), "training PSNR (dB)", None),
+    (
+        "retrieve",
+        "retrieval.json",
+        ("quantised", "correlation"),
+        "correlation ({quantised})",
+        CORRELATION_GOAL,
+    ),
+    ("retrieve", "retrieval.json", ("quantised", "rmse"), "rmse ({quantised})", RMSE_GOAL),
+    ("retrieve", "retrieval.json", ("quantised", "efficiency"), "efficiency ({quantised})", None),
+    ("retrieve", "retrieval.json", ("goals", "met"), "correlation and rmse goals met", None),
+    ("fab", "fab_manifest.json", ("level_step_nm",), "level step (nm)", None),
+    ("fab", "fab_manifest.json", ("pixel_pitch_nm",), "mask pixel pitch (nm)", None),
+    ("fab", "fab_manifest.json", ("tiles",), "tiles across the aperture", None),
 )
 
 
@@ -114,14 +123,16 @@ def write_index(run_dir, design, stages):
     rows = []
     levels = _lookup(run_dir, "retrieve", "retrieval.json", ("levels",))
     quantised = f"{levels} levels" if levels else "quantised"
-    for stage, name, path, label in HEADLINES:
+    for stage, name, path, label, goal in HEADLINES:
         value = _lookup(run_dir, stage, name, path) if stage in stages else None
         label = label.format(quantised=quantised)
         if value is not None:
             if isinstance(value, bool):
                 shown = "yes" if value else "NO: see retrieve/retrieval.json"
+            elif isinstance(value, float):
+                shown = f"{value:.6g}" if goal is None else value_and_limit(value, goal, 6)[0]
             else:
-                shown = f"{value:.6g}" if isinstance(value, float) else str(value)
+                shown = str(value)
             rows.append(f"<tr><td>{e(label)}</td><td>{e(shown)}</td></tr>")
     parts = [
         "<!DOCTYPE html><html><head><meta charset='utf-8'>",

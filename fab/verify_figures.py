@@ -8,6 +8,7 @@ import html
 
 import numpy as np
 
+from doe.figures import value_and_limit
 from fab.verify import is_judged
 
 _PNG_META = {"Software": None}
@@ -100,46 +101,41 @@ def _html(report):
     # After a diagnosis that the plate is not this design as oriented (or clipped or
     # too faint), the PSF and process figures are shown but not judged.
     judged = is_judged(report["diagnosis"])
-    checks = [
-        (
-            "correlation",
-            report["correlation"],
-            f">= {t['correlation_min']:.4g}",
-            report["correlation"] >= t["correlation_min"],
-        ),
-        ("rmse", report["rmse"], f"<= {t['rmse_max']:.4g}", report["rmse"] <= t["rmse_max"]),
+    corr, rmse, snr = report["correlation"], report["rmse"], report["window_snr"]
+    fit = report["deep_etch_error_fit"]  # None: the design leaves the error no trace
+    checks = [  # (figure, value, comparison, limit, verdict; None: not judged)
+        ("correlation", corr, ">=", t["correlation_min"], corr >= t["correlation_min"]),
+        ("rmse", rmse, "<=", t["rmse_max"], rmse <= t["rmse_max"]),
         (
             f"efficiency (± {report['efficiency_sigma']:.2g})",
             report["efficiency"],
-            f">= {t['efficiency_min']:.4g}",
+            ">=",
+            t["efficiency_min"],
             report["efficiency"] + sig * report["efficiency_sigma"] >= t["efficiency_min"],
         ),
         (
             f"zero order, fraction of the beam (± {report['zero_order_sigma']:.2g})",
             report["zero_order"],
-            f"<= {t['zero_order_max']:.4g}",
+            "<=",
+            t["zero_order_max"],
             report["zero_order"] - sig * report["zero_order_sigma"] <= t["zero_order_max"],
         ),
         (
-            "deep-etch depth error fitted to the window",
-            abs(report["deep_etch_error_fit"] or 0.0),
-            f"<= {t['deep_etch_error_max']:.4g}",
-            "deep_etch_error" not in report["diagnosis"],
+            "deep-etch depth error fitted to the window (+ too deep, - too shallow)",
+            fit,
+            "|error| <=",
+            t["deep_etch_error_max"],
+            None if fit is None else "deep_etch_error" not in report["diagnosis"],
         ),
-        (
-            "window SNR",
-            report["window_snr"],
-            f">= {t['min_window_snr']:.4g}",
-            report["window_snr"] >= t["min_window_snr"],
-        ),
-        ("saturated dots", report["saturated_dots"], "0", report["saturated_dots"] == 0),
+        ("window SNR", snr, ">=", t["min_window_snr"], snr >= t["min_window_snr"]),
+        ("saturated dots", report["saturated_dots"], "=", 0, report["saturated_dots"] == 0),
     ]
-    checks[:5] = [(n, v, lim, ok if judged else None) for n, v, lim, ok in checks[:5]]
+    checks[:5] = [(n, v, op, lim, ok if judged else None) for n, v, op, lim, ok in checks[:5]]
     verdicts = {True: "ok", False: "<b>FAIL</b>", None: "not judged"}
     rows = "\n".join(
-        f"<tr><td>{html.escape(n)}</td><td>{v:.5g}</td><td>{html.escape(lim)}</td>"
+        f"<tr><td>{html.escape(n)}</td><td>{_figure_and_limit(v, op, lim)}</td>"
         f"<td>{verdicts[ok]}</td></tr>"
-        for n, v, lim, ok in checks
+        for n, v, op, lim, ok in checks
     )
     info = [
         ("zero-order excess over the design", f"{report['zero_order_excess']:.4g}"),
@@ -225,6 +221,18 @@ whole window (the zero order alone cannot tell too deep from too shallow).</p>
 
 def _fmt(v):
     return "n/a" if v is None else f"{v:+.4f}"
+
+
+def _figure_and_limit(value, op, limit):
+    """Two table cells: the figure (signed where the limit bounds its size) and the limit."""
+    if value is None:
+        return f"n/a</td><td>{html.escape(op)} {limit:.5g}"
+    if op.startswith("|"):
+        shown, shown_limit = value_and_limit(abs(value), limit, 5)
+        shown = ("-" if value < 0 else "+") + shown
+    else:
+        shown, shown_limit = value_and_limit(value, limit, 5)
+    return f"{shown}</td><td>{html.escape(op)} {shown_limit}"
 
 
 def mtf50_text(result):

@@ -535,6 +535,29 @@ def test_missed_goals_at_and_beyond_each_bound():
     assert len(retrieval.missed_goals({**met, "rmse": float("nan")})) == 1
 
 
+def test_a_missed_goal_is_never_shown_rounded_onto_the_goal():
+    # 0.99989996 was shown as "correlation 0.999900 < 0.9999"
+    met = {"correlation": 0.9999, "rmse": 0.005, "efficiency": 0.5}
+    missed = retrieval.missed_goals({"correlation": 0.99989996, "rmse": 0.0050004})
+    assert missed == ["correlation 0.99989996 < 0.9999", "rmse 0.0050004 > 0.005"]
+    assert retrieval.missed_goals({**met, "rmse": float("nan")}) == ["rmse nan > 0.005"]
+
+
+@given(
+    st.floats(-1e3, 1e3, allow_nan=False),
+    st.floats(-1e-6, 1e-6, allow_nan=False),
+    st.integers(1, 6),
+    st.sampled_from("gf"),
+)
+def test_value_and_limit_texts_compare_as_the_numbers_do(limit, offset, digits, kind):
+    from doe.figures import value_and_limit
+
+    value = limit + offset
+    shown, shown_limit = value_and_limit(value, limit, digits, kind)
+    assert np.sign(float(shown) - float(shown_limit)) == np.sign(value - limit)
+    assert len(shown) >= len(f"{value:.{digits}{kind}}")  # never fewer digits than asked
+
+
 def test_cli_on_a_uniform_target_reports_the_correlation_as_undefined(
     tmp_path, capsys, read_strict_json
 ):

@@ -280,6 +280,21 @@ def test_index_labels_the_level_count_of_the_retrieval(tmp_path):
     assert "efficiency (4 levels)</td><td>0.7<" in index and "8 levels" not in index
 
 
+def test_index_never_shows_a_missed_goal_rounded_onto_the_goal(tmp_path):
+    # 0.99989996 was shown as 0.9999 beside "goals met: NO"
+    from doe.design import load_design
+    from fab.run_report import write_index
+
+    (tmp_path / "retrieve").mkdir()
+    quantised = {"correlation": 0.99989996, "rmse": 0.0050004, "efficiency": 0.7}
+    report = {"levels": 8, "quantised": quantised, "goals": {"met": False}}
+    (tmp_path / "retrieve" / "retrieval.json").write_text(json.dumps(report))
+    write_index(tmp_path, load_design(None), ["retrieve"])
+    index = (tmp_path / "index.html").read_text()
+    assert "correlation (8 levels)</td><td>0.99989996<" in index
+    assert "rmse (8 levels)</td><td>0.0050004<" in index
+
+
 def test_a_second_run_in_the_same_folder_is_refused(config, finished, tmp_path, capsys):
     # Two runs shared the staging folders: the second failed with "cc/.learn.new/.stage_key:
     # No such file or directory", and the first could have moved a mix of both into place.

@@ -1,6 +1,7 @@
 """Tests of hardware verification: captures made by fab.capture_sim, verified by `doefab verify`."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -640,6 +641,27 @@ def test_designed_plate_with_deep_etch_error_fails(tmp_path, designed, eps):
     assert report["implied_deep_etch_error"] == pytest.approx(eps, abs=0.02)
     if float(sim["order_power"](0, 0)) > report["design_zero_order"] + 0.02:
         assert "zero_order_excess" in report["diagnosis"]
+    # the report's table gives the fit with its sign (it showed 0.15 for a too shallow etch)
+    html = (tmp_path / "out" / "verify_report.html").read_text()
+    row = re.search(r"deep-etch depth error fitted[^<]*</td><td>([^<]*)</td>", html)
+    assert float(row[1]) == pytest.approx(eps, abs=0.02)
+
+
+def test_report_table_never_shows_a_figure_on_the_wrong_side_of_its_limit(tmp_path, designed):
+    # A plate's 0.97648 passed a correlation_min of 0.97646 printed as ">= 0.9765"
+    from fab.verify_figures import _html
+
+    code, report, _ = run_verify(tmp_path, designed, dict(seed=21))
+    assert code == 0, report["diagnosis"]
+    t = report["thresholds"]
+    for limit in (report["correlation"] - 2e-6, report["correlation"] + 2e-6):
+        t["correlation_min"] = limit
+        cells = r"<td>correlation</td><td>([^<]*)</td><td>&gt;= ([^<]*)</td>"
+        row = re.search(cells, _html(report))
+        assert (float(row[1]) >= float(row[2])) == (report["correlation"] >= limit)
+    # a design whose deepest mask is all or nothing leaves its depth error no trace
+    report["deep_etch_error_fit"] = None
+    assert re.search(r"fitted[^<]*</td><td>n/a</td><td>[^<]*</td><td>not judged<", _html(report))
 
 
 def test_designed_conjugate_plate_fails(tmp_path, designed):
