@@ -9,6 +9,7 @@ links), so the two never disagree. Output is deterministic for the same input.
 
 import html
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -429,17 +430,19 @@ def _fmt(v):
 
 
 def render_markdown(blocks):
-    """Return the blocks as Markdown."""
+    """Return the blocks as Markdown; their text is plain text, as in :func:`render_html`."""
+    t = _md_text
     lines = []
     for block in blocks:
         kind = block[0]
         if kind in ("h1", "h2", "h3"):
-            lines += ["#" * int(kind[1]) + " " + block[1], ""]
+            lines += ["#" * int(kind[1]) + " " + t(block[1]), ""]
         elif kind == "p":
-            lines += [block[1], ""]
+            lines += [t(block[1]), ""]
         elif kind in ("ul", "ol"):
             mark = "-" if kind == "ul" else None
-            lines += [f"{mark or f'{i + 1}.'} {item}" for i, item in enumerate(block[1])] + [""]
+            lines += [f"{mark or f'{i + 1}.'} {t(item)}" for i, item in enumerate(block[1])]
+            lines.append("")
         elif kind == "table":
             header, rows = block[1], block[2]
             lines.append("| " + " | ".join(_md_cell(h) for h in header) + " |")
@@ -447,12 +450,18 @@ def render_markdown(blocks):
             lines += ["| " + " | ".join(_md_cell(c) for c in row) + " |" for row in rows]
             lines.append("")
         elif kind == "fig":
-            lines += [f"![{block[2]}]({block[1]})", "", f"*{block[2]}*", ""]
+            lines += [f"![{t(block[2])}]({block[1]})", "", f"*{t(block[2])}*", ""]
     return "\n".join(lines)
 
 
+def _md_text(text):
+    # A design name such as "plate <b>2</b> &amp; co" is text, but Markdown would pass its
+    # tags on and decode its entity: escape what starts a tag or an entity, not "<=".
+    return re.sub(r"<(?=[A-Za-z/!?])", "&lt;", re.sub(r"&(?=#?\w+;)", "&amp;", str(text)))
+
+
 def _md_cell(text):
-    return str(text).replace("|", "\\|").replace("\n", " ")
+    return _md_text(text).replace("|", "\\|").replace("\n", " ")
 
 
 _CSS = (

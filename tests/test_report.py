@@ -217,3 +217,19 @@ def test_an_undefined_correlation_reads_undefined_not_nan(tmp_path):
         assert not re.search(r"\bnan\b", text, re.IGNORECASE)
     text = (tmp_path / "out" / REPORT_MD).read_text()
     assert "| correlation_min | undefined |" in text
+
+
+def test_markdown_report_gives_a_design_name_as_text(tmp_path):
+    # "plate <b>2</b>" came out as a tag in fab_report.md (the HTML report escaped it)
+    from fab.report import render_markdown
+
+    blocks = [
+        ("h1", "Fabrication report: plate <b>2</b> &amp; <script>x</script>"),
+        ("p", "rmse <= 0.005 & a<3"),
+        ("table", ["name"], [["<i>a|b</i>"]]),
+    ]
+    text = render_markdown(blocks)
+    assert "<b>" not in text and "<script>" not in text and "<i>" not in text
+    assert "&lt;b>2&lt;/b> &amp;amp; &lt;script>" in text
+    assert "rmse <= 0.005 & a<3" in text  # what starts no tag or entity stays readable
+    assert "| &lt;i>a\\|b&lt;/i> |" in text
