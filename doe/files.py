@@ -30,6 +30,12 @@ def load_npy(path):
         held = ", ".join(inside[:4]) + (" ..." if len(inside) > 4 else "") or "no .npy file"
         raise InputError(path, f"is a folder, not a .npy file (it holds {held})")
     try:
+        with open(path, "rb") as f:
+            magic = f.read(6)
+        if magic != b"\x93NUMPY":  # np.load would open an .npz or suggest allow_pickle
+            if magic.startswith(b"PK"):
+                raise InputError(path, "is an .npz archive (numpy.savez), not a .npy array")
+            raise InputError(path, "is not a .npy file (it lacks the header numpy.save writes)")
         return np.load(path, allow_pickle=False)
     except FileNotFoundError:
         raise InputError(path, "no such file") from None

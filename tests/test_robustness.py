@@ -3,6 +3,7 @@
 import io
 
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -87,3 +88,15 @@ def test_npy_reader_refuses_truncated_file(tmp_path):
         assert str(path) in str(e)
     else:
         raise AssertionError("a truncated .npy was accepted")
+
+
+def test_npy_reader_names_an_npz_archive_and_a_file_that_is_no_npy(tmp_path):
+    # An .npz was "a float array, got dtype <U3" (its key names); a text file got
+    # numpy's advice to pass allow_pickle=True.
+    np.savez(tmp_path / "psf.npz", psf=np.ones((3, 3)))
+    (tmp_path / "psf.npy").write_text("0.1 0.2 0.3\n")
+    with pytest.raises(InputError, match=r"psf\.npz: is an \.npz archive"):
+        load_npy(tmp_path / "psf.npz")
+    with pytest.raises(InputError, match=r"psf\.npy: is not a \.npy file") as e:
+        load_npy(tmp_path / "psf.npy")
+    assert "pickle" not in str(e.value)
