@@ -634,7 +634,7 @@ def _bad_inputs(tmp_path):
         "inf": (_psf_file(tmp_path, np.where(good > 0.1, np.inf, good), "inf.npy"), [], "inf"),
         "3-D": (_psf_file(tmp_path, np.full((3, 3, 3), 1 / 27), "cube.npy"), [], "square"),
         "seed": (_psf_file(tmp_path, good, "s.npy"), ["--seed", -1], "--seed"),
-        "unreadable": (garbage, [], "readable"),
+        "unreadable": (garbage, [], "is not a .npy file"),
         "missing": (tmp_path / "missing.npy", [], "no such file"),
         "levels 6": (_psf_file(tmp_path, good, "l6.npy"), ["--levels", 6], "--levels"),
         "levels 1": (_psf_file(tmp_path, good, "l1.npy"), ["--levels", 1], "--levels"),
