@@ -26,9 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import erf
 
-from doe.fraunhofer import order_amplitudes
+from doe.fraunhofer import order_amplitudes, pixel_envelope
 from fab.masks import masks_from_levels
-from fab.verify import pixel_envelope
 
 # Orientation of the camera against the design: design order offset (m, n)
 # (down, right) lands at camera lattice offset (du, dv) (down, right).

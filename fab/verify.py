@@ -27,6 +27,7 @@ from doe.fraunhofer import (
     correlation,
     level_phase,
     order_amplitudes,
+    pixel_envelope,
     rmse,
     simulate_levels,
     window_indices,
@@ -188,11 +189,6 @@ def to_design_frame(array, orientation):
 def design_order_power(levels, n_levels):
     """Return the (N, N) order powers |DFT|^2 of the design tile (FFT index order, sum 1)."""
     return np.abs(order_amplitudes(level_phase(levels, n_levels))) ** 2
-
-
-def pixel_envelope(orders, n):
-    """Return sinc^2(m / N): the power envelope of square mask pixels at order m."""
-    return np.sinc(np.asarray(orders) / n) ** 2
 
 
 def _model(period_power, m0, n0, shape):

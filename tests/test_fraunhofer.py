@@ -144,3 +144,23 @@ def test_dot_lattice_image_has_every_order_with_the_pixel_envelope():
         spot = img[np.hypot(yy - r, xx - c) < 4].sum()
         expected = dft[m % n, k % n] * (np.sinc(m / n) * np.sinc(k / n)) ** 2
         assert spot == pytest.approx(expected, rel=1e-4, abs=1e-12), (m, k)
+
+
+def test_plate_quality_is_that_of_a_finely_sampled_plate_of_square_pixels():
+    # each mask pixel drawn as 64 x 64 samples: the window orders of that FFT
+    n, k, levels, s = 9, 5, 8, 64
+    rng = np.random.default_rng(3)
+    phase = fraunhofer.level_phase(rng.integers(0, levels, (n, n)), levels)
+    target = rng.uniform(size=(k, k))
+    target /= target.sum()
+    fine = np.kron(np.exp(1j * phase), np.ones((s, s)))
+    idx = (np.arange(k) - k // 2) % (n * s)
+    window = np.abs(np.fft.fft2(fine)[np.ix_(idx, idx)] / fine.size) ** 2
+    psf = window / window.sum()
+    plate = fraunhofer.plate_quality(phase, target)
+    assert plate["efficiency"] == pytest.approx(window.sum(), rel=1e-4)
+    assert plate["correlation"] == pytest.approx(fraunhofer.correlation(psf, target), rel=1e-4)
+    assert plate["rmse"] == pytest.approx(fraunhofer.rmse(psf, target), rel=1e-4)
+    # and not the contract's point-like pixels, whose figures differ by more than that
+    assert fraunhofer.quality(phase, target)["efficiency"] > window.sum() * (1 + 1e-2)
+

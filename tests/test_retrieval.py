@@ -500,7 +500,12 @@ def test_cli_writes_the_contract_files(tmp_path, capsys):
     assert info["quantised"] == pytest.approx(again, rel=1e-12)
     goals = {"correlation_min": 0.9999, "rmse_max": 0.005, "met": True, "missed": []}
     assert info["goals"] == goals
-    assert "warning" not in err
+    assert "misses the quality goals" not in err
+    # at N = 31 the square pixels' envelope dims the window's corners by 6 %: that plate misses
+    plate = fraunhofer.plate_quality(fraunhofer.level_phase(levels, 8), target)
+    assert info["square_pixels"]["goals_met"] is False
+    assert info["square_pixels"]["rmse"] == pytest.approx(plate["rmse"], rel=1e-12)
+    assert "warning: the design meets the goals, but a plate of square pixels" in err
     assert (out / "retrieval.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # same seed -> byte-identical level map and figure
     out2 = tmp_path / "out2"
@@ -522,6 +527,27 @@ def test_cli_warns_when_the_design_misses_the_goals(tmp_path, capsys):
     ]
     assert "warning: the 2-level design misses the quality goals" in err
     assert f"rmse {q['rmse']:.5f} > 0.005" in err
+
+
+def test_cli_warns_when_square_pixels_make_the_plate_miss_the_goals(tmp_path, capsys):
+    # A flat top filling the window meets rmse 0.005 in the contract's model (0.00434),
+    # but the square pixels' sinc^2 envelope dims its outer orders: 0.0054 as fabricated.
+    psf = _psf_file(tmp_path, np.full((11, 11), 1 / 121))
+    code, err = _run([psf, "--out", tmp_path / "out"], capsys)
+    assert code == 0
+    info = json.loads((tmp_path / "out" / "retrieval.json").read_text())
+    lv = np.load(tmp_path / "out" / "levels.npy")
+    target = np.load(tmp_path / "out" / "target_psf.npy")
+    n = lv.shape[0]
+    env = np.sinc((np.arange(11) - 5) / n) ** 2
+    window = fraunhofer.window_power(fraunhofer.level_phase(lv, 8), 11) * np.outer(env, env)
+    expected = fraunhofer.rmse(window, target)
+    assert info["goals"]["met"] and info["quantised"]["rmse"] <= 0.005
+    plate = info["square_pixels"]
+    assert plate["rmse"] == pytest.approx(expected, rel=1e-12) and expected > 0.005
+    assert plate["efficiency"] == pytest.approx(window.sum(), rel=1e-12)
+    assert plate["goals_met"] is False and plate["missed"] == [f"rmse {expected:.5f} > 0.005"]
+    assert "a plate of square pixels" in err and f"rmse {expected:.5f} > 0.005" in err
 
 
 def test_missed_goals_at_and_beyond_each_bound():
