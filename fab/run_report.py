@@ -41,6 +41,13 @@ HEADLINES = (
     ("retrieve", "retrieval.json", ("quantised", "rmse"), "rmse ({quantised})", RMSE_GOAL),
     ("retrieve", "retrieval.json", ("quantised", "efficiency"), "efficiency ({quantised})", None),
     ("retrieve", "retrieval.json", ("goals", "met"), "correlation and rmse goals met", None),
+    (
+        "retrieve",
+        "retrieval.json",
+        ("square_pixels", "goals_met"),
+        "goals met as a plate of square pixels (their sinc^2 envelope)",
+        None,
+    ),
     ("fab", "fab_manifest.json", ("level_step_nm",), "level step (nm)", None),
     ("fab", "fab_manifest.json", ("pixel_pitch_nm",), "mask pixel pitch (nm)", None),
     ("fab", "fab_manifest.json", ("tiles",), "tiles across the aperture", None),

@@ -287,12 +287,14 @@ def test_index_never_shows_a_missed_goal_rounded_onto_the_goal(tmp_path):
 
     (tmp_path / "retrieve").mkdir()
     quantised = {"correlation": 0.99989996, "rmse": 0.0050004, "efficiency": 0.7}
-    report = {"levels": 8, "quantised": quantised, "goals": {"met": False}}
+    plate = {"goals_met": False}
+    report = {"levels": 8, "quantised": quantised, "goals": {"met": False}, "square_pixels": plate}
     (tmp_path / "retrieve" / "retrieval.json").write_text(json.dumps(report))
     write_index(tmp_path, load_design(None), ["retrieve"])
     index = (tmp_path / "index.html").read_text()
     assert "correlation (8 levels)</td><td>0.99989996<" in index
     assert "rmse (8 levels)</td><td>0.0050004<" in index
+    assert "as a plate of square pixels (their sinc^2 envelope)</td><td>NO: see retrieve/" in index
 
 
 def test_a_second_run_in_the_same_folder_is_refused(config, finished, tmp_path, capsys):
