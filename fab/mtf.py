@@ -5,9 +5,9 @@ windowed about a first line fit), fit a straight line, project every pixel's
 distance from the line onto the edge normal and bin it ``oversample`` times
 finer than a pixel (the edge spread function), differentiate (central
 difference, whose own response sin(2 pi f d) / (2 pi f d) is divided out),
-Hamming-window the line spread function about its centre, Fourier transform and
-normalise at zero frequency. Frequencies are in cycles per pixel along the
-edge normal.
+Hamming-window the line spread function about its centre (over at most twice the
+reach the edge needs), Fourier transform and normalise at zero frequency.
+Frequencies are in cycles per pixel along the edge normal.
 """
 
 import numpy as np
@@ -108,7 +108,14 @@ def slanted_edge_mtf(image, oversample=4):
     peak = int(
         np.round(np.sum(x * np.clip(lsf, 0, None)) / max(np.clip(lsf, 0, None).sum(), 1e-30))
     )
-    lsf = np.roll(lsf, n_bins // 2 - peak) * np.hamming(n_bins)
+    # The window spans the whole region up to twice the reach it needs: beyond that the
+    # line spread holds only noise, which roughened the MTF of a wide region until
+    # a noise dip crossed 0.5 early (MTF50 9 % low at 480 px).
+    span = min(n_bins, 2 * int(np.ceil(oversample * max(8.0, 2 * REACH_PER_RISE * rise))) + 1)
+    window = np.zeros(n_bins)
+    start = n_bins // 2 - span // 2
+    window[start : start + span] = np.hamming(span)
+    lsf = np.roll(lsf, n_bins // 2 - peak) * window
     spectrum = np.abs(np.fft.rfft(lsf))
     if spectrum[0] <= 0:
         raise EdgeNotFound("the edge has no contrast")
