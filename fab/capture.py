@@ -142,7 +142,8 @@ def read_raw_image(path):
         # --orientation describes the stored image.
         notes.append(
             f"the file's Orientation tag is {file_orientation} (a viewer shows the image "
-            "turned or flipped): read as stored, which --orientation must describe"
+            "turned or flipped): read as stored, as verify's --orientation and mtf's "
+            "edge angle describe it"
         )
     if pixels.shape[2] > 1:
         colour = pixels[..., : min(3, pixels.shape[2])]

@@ -382,11 +382,9 @@ def _notes(result, capture, design):
 
 
 def _mtf(args):
-    import numpy as np
-
     from doe.files import staged_output, write_json
     from fab.capture import read_raw_image
-    from fab.mtf import REACH_PER_RISE, EdgeNotFound, slanted_edge_mtf
+    from fab.mtf import REACH_PER_RISE, EdgeNotFound, clipped_pixels, slanted_edge_mtf
 
     if not 1 <= args.oversample <= 16:
         raise InputError("--oversample", f"must be 1..16, got {args.oversample}")
@@ -401,21 +399,26 @@ def _mtf(args):
     result["notes"] = list(raw.notes)
     for note in raw.notes:
         print(f"doefab mtf: {args.image}: {note}", file=sys.stderr)
-    # Clipping flattens the bright side of the edge spread and so overstates the MTF.
-    clipped = 0 if raw.full_scale is None else int(np.count_nonzero(raw.data >= raw.full_scale))
-    result["saturated_pixels"] = clipped
-    if clipped:
-        print(
-            f"doefab mtf: warning: {args.image}: {clipped} pixel(s) at the full-scale code "
-            f"{raw.full_scale:g}; a clipped edge overstates the MTF: shorten the exposure",
-            file=sys.stderr,
-        )
+    # Clipping flattens a side of the edge spread and so overstates the MTF.
+    dark, bright = clipped_pixels(raw.data, raw.full_scale)
+    result["saturated_pixels"], result["clipped_dark_pixels"] = bright, dark
+    for count, where, remedy in (
+        (bright, f"at the image's maximum {raw.data.max():g}", "shorten the exposure"),
+        (dark, f"at the image's minimum {raw.data.min():g}", "keep the camera's black level"),
+    ):
+        if count:
+            print(
+                f"doefab mtf: warning: {args.image}: {count} pixel(s) {where}, taken as "
+                f"clipped; a clipped edge overstates the MTF: {remedy}",
+                file=sys.stderr,
+            )
     if result["region_too_small"]:
         print(
             f"doefab mtf: warning: {args.image}: the region reaches "
             f"{result['edge_reach_px']:.1f} px either side of the edge, under "
             f"{REACH_PER_RISE:g} times its 10-90 % rise ({result['edge_rise_px']:.2f} px): "
-            "the cut edge profile overstates the MTF; give a larger region",
+            "the cut edge profile overstates the MTF; give a larger region, or centre "
+            "the edge in it",
             file=sys.stderr,
         )
     with staged_output(args.out, args.force, names=MTF_FILES) as stage:

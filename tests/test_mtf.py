@@ -172,6 +172,39 @@ def test_edge_without_sub_pixel_phases_is_refused_with_its_angle(angle):
         slanted_edge_mtf(gaussian_edge(1.0, angle, shape=(120, 240)))
 
 
+@pytest.mark.parametrize(
+    "name, scale, offset, dark, bright",
+    [
+        ("black.png", 1.0, -100.0, True, False),  # offset subtracted: dark side cut at 0
+        ("white.tif", 1 / 200, 0.0, False, True),  # float, clipped at 1.0
+        ("noisy.tif", 1 / 300, 0.0, False, False),  # float, unclipped
+        ("noisy.png", 1.0, 0.0, False, False),
+    ],
+)
+def test_an_edge_clipped_on_either_side_is_flagged(
+    tmp_path, capsys, name, scale, offset, dark, bright
+):
+    # A dark side cut at code 0, or a float file clipped at 1.0, read MTF50 45 % high
+    # and silently: only the full-scale code counted.
+    edge = (gaussian_edge(1.0, 5, noise=2.0, seed=3) + offset) * scale
+    if name.endswith(".png"):
+        edge = np.clip(np.round(edge), 0, 255).astype(np.uint8)
+        at_dark, at_bright = edge == 0, edge == 255
+    else:
+        edge = np.minimum(edge, 1.0).astype(np.float32)
+        at_dark, at_bright = np.zeros(edge.shape, bool), edge == 1.0
+    write_image(tmp_path / name, edge)
+    assert main(["mtf", str(tmp_path / name), "--out", str(tmp_path / "out")]) == 0
+    result = json.loads((tmp_path / "out" / "mtf.json").read_text())
+    assert result["clipped_dark_pixels"] == (np.count_nonzero(at_dark) if dark else 0)
+    assert result["saturated_pixels"] == (np.count_nonzero(at_bright) if bright else 0)
+    assert (result["clipped_dark_pixels"] > 1000) == dark
+    assert (result["saturated_pixels"] > 1000) == bright
+    err = capsys.readouterr().err
+    assert ("keep the camera's black level" in err) == dark
+    assert ("shorten the exposure" in err) == bright
+
+
 def test_clipped_edge_is_flagged(tmp_path, capsys):
     # Clipping flattens the bright side of the edge and overstates the MTF; the
     # command says so and records the clipped pixels.
