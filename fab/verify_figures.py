@@ -133,8 +133,9 @@ def _html(report):
     checks[:5] = [(n, v, op, lim, ok if judged else None) for n, v, op, lim, ok in checks[:5]]
     verdicts = {True: "ok", False: "<b>FAIL</b>", None: "not judged"}
     rows = "\n".join(
-        f"<tr><td>{html.escape(n)}</td><td>{_figure_and_limit(v, op, lim)}</td>"
-        f"<td>{verdicts[ok]}</td></tr>"
+        "<tr>"
+        + "".join(f"<td>{html.escape(c)}</td>" for c in (n, *_figure_and_limit(v, op, lim)))
+        + f"<td>{verdicts[ok]}</td></tr>"
         for n, v, op, lim, ok in checks
     )
     info = [
@@ -224,15 +225,15 @@ def _fmt(v):
 
 
 def _figure_and_limit(value, op, limit):
-    """Two table cells: the figure (signed where the limit bounds its size) and the limit."""
+    """Return the texts of a figure (signed where the limit bounds its size) and its limit."""
     if value is None:
-        return f"n/a</td><td>{html.escape(op)} {limit:.5g}"
+        return "n/a", f"{op} {limit:.5g}"
     if op.startswith("|"):
         shown, shown_limit = value_and_limit(abs(value), limit, 5)
         shown = ("-" if value < 0 else "+") + shown
     else:
         shown, shown_limit = value_and_limit(value, limit, 5)
-    return f"{shown}</td><td>{html.escape(op)} {shown_limit}"
+    return shown, f"{op} {shown_limit}"
 
 
 def mtf50_text(result):
