@@ -3,7 +3,8 @@
 Steps: find the edge in each row (centroid of the row's derivative, Hamming
 windowed about a first line fit), fit a straight line, project every pixel's
 distance from the line onto the edge normal and bin it ``oversample`` times
-finer than a pixel (the edge spread function), differentiate (central
+finer than a pixel, each bin read at its samples' mean distance and resampled
+onto the even grid (the edge spread function), differentiate (central
 difference, whose own response sin(2 pi f d) / (2 pi f d) is divided out),
 Hamming-window the line spread function about its centre (over at most twice the
 reach the edge needs), Fourier transform and normalise at zero frequency.
@@ -124,7 +125,11 @@ def slanted_edge_mtf(image, oversample=4):
             "the pixel axis (not near 45 deg) and include more rows"
         )
     x = np.arange(n_bins)
-    esf = np.interp(x, x[filled], sums[filled] / counts[filled])
+    # Each bin's value is placed at its samples' mean position: an edge whose slope is
+    # a simple fraction (1/10, 1/4) puts its samples at a few fixed places in each bin,
+    # and read at the bins' centres they jittered the profile (MTF50 3 % off).
+    where = np.bincount(bins - lo, weights=dist[keep] * oversample - lo - 0.5, minlength=n_bins)
+    esf = np.interp(x, where[filled] / counts[filled], sums[filled] / counts[filled])
     rise = _rise_px(esf * polarity, oversample)
     lsf = np.zeros(n_bins)
     lsf[1:-1] = 0.5 * (esf[2:] - esf[:-2]) * polarity

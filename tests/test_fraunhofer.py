@@ -163,4 +163,3 @@ def test_plate_quality_is_that_of_a_finely_sampled_plate_of_square_pixels():
     assert plate["rmse"] == pytest.approx(fraunhofer.rmse(psf, target), rel=1e-4)
     # and not the contract's point-like pixels, whose figures differ by more than that
     assert fraunhofer.quality(phase, target)["efficiency"] > window.sum() * (1 + 1e-2)
-
