@@ -40,6 +40,8 @@ def write_verify_report(stage, report, image, grid, lattice, measured_psf, desig
     orientation : str
     """
     plt = _pyplot()
+    from matplotlib.colors import PowerNorm
+
     k = measured_psf.shape[0]
     fig, axes = plt.subplots(2, 2, figsize=(10, 9))
     r0, c0 = report["zero_order_px"]
@@ -49,15 +51,16 @@ def write_verify_report(stage, report, image, grid, lattice, measured_psf, desig
     left, right = int(max(0, c0 - half)), int(min(w, c0 + half + 1))
     crop = image[top:bottom, left:right]
     ax = axes[0, 0]
-    shown = np.sqrt(np.clip(crop, 0, None))
-    ax.imshow(
+    shown = np.clip(crop, 0, None)
+    im = ax.imshow(
         shown,
         cmap="gray",
-        vmin=0,
-        vmax=max(float(np.percentile(shown, 99.8)), 1e-9),
+        # a square-root scale shows the faint orders beside the bright zero order
+        norm=PowerNorm(0.5, vmin=0, vmax=max(float(np.percentile(shown, 99.8)), 1e-9)),
         interpolation="nearest",
         extent=(left - 0.5, right - 0.5, bottom - 0.5, top - 0.5),
     )
+    fig.colorbar(im, ax=ax, fraction=0.046, label="DN")
     inside = (
         (grid.rows >= top)
         & (grid.rows < bottom)
