@@ -9,23 +9,31 @@ def minimise(fun, x0, max_eval, ftol_rel=1e-10):
     """Minimise ``fun(x) -> (value, grad)`` with nlopt L-BFGS; return (best x, best value).
 
     nlopt wants the gradient written in place and drops its best point on some
-    exceptions (a round-off stop, an error raised in ``fun``), so the best point
-    is tracked here.
+    exceptions (a round-off stop, a failed line search), so the best point is
+    tracked here. An error raised in ``fun`` (or Ctrl-C) stops the search and is
+    raised again: nlopt would otherwise end as if it had converged.
     """
     import nlopt
 
-    best = {"x": x0.copy(), "f": np.inf}
-    interrupted = []
+    x0 = np.asarray(x0, dtype=np.float64)
+    if not np.all(np.isfinite(x0)):
+        raise ValueError("the start point holds a NaN or an infinity")
+    if int(max_eval) < 1:  # nlopt reads 0 as "no limit"
+        raise ValueError(f"max_eval must be at least 1, got {max_eval}")
+    best = {"x": x0.ravel().copy(), "f": np.inf}
+    raised = []
 
     def f(x, grad):
+        if raised:  # nlopt may call once more after force_stop
+            return float("inf")
         try:
-            value, g = fun(x)
-        except KeyboardInterrupt as e:  # Ctrl-C, SIGTERM: nlopt would end as if converged
-            interrupted.append(e)
+            value, g = fun(x.reshape(x0.shape))
+            if grad.size:
+                grad[:] = np.ravel(g)
+        except BaseException as e:  # kept, and raised again once nlopt has stopped
+            raised.append(e)
             opt.force_stop()
             return float("inf")
-        if grad.size:
-            grad[:] = g.ravel()
         if value < best["f"]:
             best["f"], best["x"] = value, x.copy()
         return value
@@ -35,12 +43,11 @@ def minimise(fun, x0, max_eval, ftol_rel=1e-10):
     opt.set_maxeval(int(max_eval))
     opt.set_ftol_rel(ftol_rel)
     # nlopt >= 2.11 raises a generic failure (e.g. a line search that finds no
-    # descent) as its own nlopt.runtime_error, a subclass of nlopt.exception, not
-    # as Python's RuntimeError
+    # descent) as its own nlopt.runtime_error, a subclass of nlopt.exception; older
+    # versions as Python's RuntimeError. Errors of fun never reach nlopt (see f).
     stops = (
         nlopt.RoundoffLimited,
         nlopt.ForcedStop,
-        ValueError,
         RuntimeError,
         getattr(nlopt, "exception", RuntimeError),
     )
@@ -48,9 +55,9 @@ def minimise(fun, x0, max_eval, ftol_rel=1e-10):
         opt.optimize(x0.ravel().copy())
     except stops:
         pass  # keep our own best point: nlopt drops it on these exceptions
-    if interrupted:
-        raise interrupted[0]
+    if raised:
+        raise raised[0]
     # A signal at the edge of f, outside its try, reaches nlopt, which ends with
     # ForcedStop as if converged; the command line has still recorded it.
     interrupts.check()
-    return best["x"], best["f"]
+    return best["x"].reshape(x0.shape), best["f"]

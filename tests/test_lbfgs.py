@@ -42,3 +42,43 @@ def test_an_interrupt_in_the_objective_stops_the_minimisation():
     with pytest.raises(KeyboardInterrupt):
         minimise(fun, np.zeros(4), max_eval=100)
     assert len(calls) <= 6
+
+
+@pytest.mark.parametrize("error", [ValueError, RuntimeError, MemoryError])
+def test_an_error_in_the_objective_is_raised_not_returned_as_a_result(error):
+    # nlopt turned an error inside the objective into a stop, and ValueError and
+    # RuntimeError were taken for nlopt's own stops: a bug (or a GPU out of memory)
+    # came back as the start point, as if converged
+    calls = []
+
+    def fun(x):
+        calls.append(1)
+        if len(calls) == 3:
+            raise error("in the objective")
+        return float(((x - 3.0) ** 2).sum()), 2.0 * (x - 3.0)
+
+    with pytest.raises(error, match="in the objective"):
+        minimise(fun, np.zeros(3), 100)
+    assert len(calls) == 3
+
+
+def test_a_gradient_of_the_wrong_size_is_raised():
+    with pytest.raises(ValueError):
+        minimise(lambda x: (float((x**2).sum()), np.zeros(x.size + 1)), np.ones(3), 10)
+
+
+@pytest.mark.parametrize("x0, max_eval", [(np.array([0.0, np.nan]), 10), (np.zeros(2), 0)])
+def test_a_start_point_with_nan_or_no_evaluations_is_refused(x0, max_eval):
+    # nlopt reads max_eval 0 as no limit; a NaN start came back as (x0, inf)
+    with pytest.raises(ValueError):
+        minimise(lambda x: (float((x**2).sum()), 2.0 * x), x0, max_eval)
+
+
+@pytest.mark.parametrize("improves", [True, False])
+def test_the_best_point_has_the_start_points_shape(improves):
+    def fun(x):
+        assert x.shape == (2, 2)
+        return (float(((x - 1.0) ** 2).sum()), 2.0 * (x - 1.0)) if improves else (1.0, 0 * x)
+
+    x, _ = minimise(fun, np.zeros((2, 2)), 20)
+    assert x.shape == (2, 2)
