@@ -581,7 +581,11 @@ def test_value_and_limit_texts_compare_as_the_numbers_do(limit, offset, digits, 
     value = limit + offset
     shown, shown_limit = value_and_limit(value, limit, digits, kind)
     assert np.sign(float(shown) - float(shown_limit)) == np.sign(value - limit)
-    assert len(shown) >= len(f"{value:.{digits}{kind}}")  # never fewer digits than asked
+    # never fewer digits than asked: never further from the value than its text with
+    # ``digits`` digits (a text's length is no measure: "1e+01" for 11.4999995,
+    # "1e-300" beside a limit of 0)
+    asked = float(f"{value:.{digits}{kind}}")
+    assert abs(float(shown) - value) <= abs(asked - value)
 
 
 def test_cli_on_a_uniform_target_reports_the_correlation_as_undefined(
