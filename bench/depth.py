@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import least_squares
 
+from doe import flags
 from psf_learn.depth import GateModel, fit_profiles, gate_response, scan_times
 from psf_learn.depth_sim import random_scene, simulate_cube
 
@@ -163,7 +164,9 @@ def _children_cpu():
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--subset", type=int, default=300, help="pixels for the reference fit")
+    parser.add_argument(
+        "--subset", type=flags.count, default=300, help="pixels for the reference fit"
+    )
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     response = gate_response(GateModel())

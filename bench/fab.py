@@ -23,6 +23,8 @@ import numpy as np
 _HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 
+from doe import flags  # noqa: E402
+
 
 def make_design(path, n=175, n_levels=8, k=11, seed=0):
     from doe.fraunhofer import simulate_levels
@@ -66,7 +68,7 @@ def time_library(levels, flat, repeat, path):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--repeat", type=flags.count, default=3)
     ap.add_argument("--no-flat", action="store_true", help="skip the flat write")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:

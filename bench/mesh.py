@@ -21,6 +21,7 @@ import numpy as np
 # bench/ holds scripts named like packages (bench/fab.py): keep them off the import path
 sys.path = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 
+from doe import flags  # noqa: E402
 from doe.design import derive, load_design  # noqa: E402
 from fab import mesh, mesh_io  # noqa: E402
 
@@ -59,7 +60,7 @@ def timed(fn, repeats):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--repeats", type=flags.count, default=3)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-step", action="store_true")
     ap.add_argument("--verify-step", action="store_true")
@@ -76,7 +77,7 @@ def main():
     print(
         f"design {design.name}: N={n}, L={n_levels}, pitch {der.mask_pixel_pitch * 1e9:.0f} nm, "
         f"step {der.level_step * 1e9:.2f} nm, thickness {design.material.thickness * 1e3} mm; "
-        f"random tile seed {a.seed}; medians of {a.repeats}"
+        f"random tile seed {a.seed}; medians of {a.repeats} (STEP rows: one run)"
     )
 
     rows = []

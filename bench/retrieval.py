@@ -42,7 +42,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from doe import fraunhofer, retrieval, targets
+from doe import flags, fraunhofer, retrieval, targets
 
 
 def acceptance(name, q, seconds):
@@ -133,11 +133,13 @@ METHODS = {
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--tile-pixels", type=int, default=175)
-    ap.add_argument("--levels", type=int, default=8)
+    ap.add_argument("--tile-pixels", type=flags.count, default=175)
+    ap.add_argument("--levels", type=flags.count, default=8)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--targets", nargs="*", default=list(targets.TARGETS))
-    ap.add_argument("--methods", nargs="*", default=list(METHODS))
+    ap.add_argument(
+        "--targets", nargs="*", choices=list(targets.TARGETS), default=list(targets.TARGETS)
+    )
+    ap.add_argument("--methods", nargs="*", choices=list(METHODS), default=list(METHODS))
     ap.add_argument(
         "--robustness",
         choices=("yes", "no", "only"),
@@ -157,6 +159,8 @@ def main(argv=None):
         help="only run doefab on doe.targets.shape_set: 19 shapes of other kinds",
     )
     args = ap.parse_args(argv)
+    if args.tile_pixels < 11:
+        ap.error(f"--tile-pixels must be at least the targets' 11 orders, got {args.tile_pixels}")
     if args.shapes or args.drawn is not None:
         title, chosen = (
             ("shape set", targets.shape_set(11))

@@ -61,15 +61,28 @@ def main(argv=None):
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--reuse", action="store_true", help="evaluate existing models, no training")
     p.add_argument("--no-fab", action="store_true", help="skip the as-fabricated evaluation")
+    p.add_argument("--force", action="store_true", help="retrain over models already in --out")
     p.add_argument("learn_args", nargs=argparse.REMAINDER, help="extra `doefab learn` flags")
     args = p.parse_args(argv)
     if args.learn_args[:1] == ["--"]:
         args.learn_args = args.learn_args[1:]
     out = Path(args.out)
+    trained = [key for key, _, _ in MODELS if (out / key).exists()]
+    if trained and not (args.reuse or args.force):
+        p.error(
+            f"{out} holds trained models ({', '.join(trained)}): --reuse evaluates them, "
+            "--force retrains over them"
+        )
+    from doe.errors import InputError
+
+    try:  # every image folder is read before hours of training, not after
+        data = _read_sets(args)
+    except InputError as e:
+        p.error(str(e))
     out.mkdir(parents=True, exist_ok=True)
     if not args.reuse:
         _train_all(args, out)
-    results = _evaluate_all(args, out)
+    results = _evaluate_all(args, out, data)
     (out / "table2.json").write_text(json.dumps(results, indent=2, sort_keys=True) + "\n")
     _print_table(results, args)
     return 0
@@ -133,19 +146,28 @@ def _as_fabricated_psf(learned_psf):
     return psf, {"efficiency": efficiency, **ret.quality_quantised}
 
 
-def _evaluate_all(args, out):
+def _read_sets(args):
+    """Return {set name: (names, images)} of Set5, Set14 and the extra folders."""
+    from doe.errors import InputError
+    from psf_learn.images import read_folder
+
+    for folder in (args.train, *args.extra):
+        if not Path(folder).is_dir():
+            raise InputError(folder, "no such folder")
+    sets = {"Set5": DATA / "set5", "Set14": DATA / "set14"}
+    sets.update({Path(e).name: Path(e) for e in args.extra})
+    return {name: read_folder(folder) for name, folder in sets.items()}
+
+
+def _evaluate_all(args, out, data):
     import torch
 
     from psf_learn.cli import idle_cores
     from psf_learn.evaluate import evaluate
-    from psf_learn.images import read_folder
     from psf_learn.sr import load_model
 
     torch.set_num_threads(idle_cores())
-    sets = {"Set5": DATA / "set5", "Set14": DATA / "set14"}
-    sets.update({Path(e).name: Path(e) for e in args.extra})
-    data = {name: read_folder(folder) for name, folder in sets.items()}
-    results = {"sets": list(sets), "models": {}}
+    results = {"sets": list(data), "models": {}}
     for key, _, label in MODELS:
         model = load_model(out / key)
         learn = json.loads((out / key / "learn.json").read_text())
@@ -179,6 +201,8 @@ def _evaluate_all(args, out):
 def _print_table(results, args):
     sets = results["sets"]
     budget = f"{args.steps} steps" if args.steps else f"{args.minutes:g} min"
+    if args.reuse:  # the models' own budgets, not this command's
+        budget = "as trained, steps in brackets"
     print(
         f"\nTable 2 (PSNR dB / SSIM, 4x SR, budget {budget} per model, "
         f"{results['models']['learned']['steps']} steps for the learned model)"

@@ -24,6 +24,7 @@ import numpy as np
 _HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 
+from doe import flags  # noqa: E402
 from doe.retrieval import gerchberg_saxton, round_levels  # noqa: E402
 
 
@@ -46,7 +47,7 @@ def median_time(fn, repeat):
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--repeat", type=flags.count, default=3)
     args = parser.parse_args(argv)
 
     from doe.design import derive, design_summary, load_design

@@ -48,3 +48,16 @@ def at_most(flag, value, limit, why):
     if value is not None and value > limit:
         raise InputError(flag, f"must be at most {limit:g} ({why}), got {value:g}")
     return value
+
+
+def count(text):
+    """argparse ``type`` of a count of at least 1 (bench scripts' repeats and sizes)."""
+    import argparse
+
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
