@@ -26,7 +26,13 @@ def _rotated(y, x, angle):
 
 
 def _normalise(psf):
+    """Return ``psf`` clipped at 0 and summing to 1; refuse an even K or a PSF with no light."""
     psf = np.clip(np.asarray(psf, dtype=np.float64), 0.0, None)
+    k = psf.shape[0]
+    if psf.shape != (k, k) or k % 2 == 0:
+        raise ValueError(f"a target is K x K with K odd (the axis at its centre), got {psf.shape}")
+    if not (np.all(np.isfinite(psf)) and psf.sum() > 0):  # e.g. a Gaussian of sigma 0
+        raise ValueError("the target has no light, or NaN: check its parameters")
     return psf / psf.sum()
 
 
@@ -74,7 +80,9 @@ def anisotropic(k=11):
 
 
 def sparse_dots(k=11):
-    """Return a few isolated dots of unequal weight on a dark background."""
+    """Return a few isolated dots of unequal weight on a dark background (K >= 9)."""
+    if k < 9:  # the dots reach 4 sub-pixels off the axis
+        raise ValueError(f"sparse_dots needs K >= 9, got {k}")
     psf = np.zeros((k, k))
     c = k // 2
     spots = [((0, 0), 1.0), ((-3, 2), 0.7), ((2, -4), 0.5), ((4, 3), 0.8), ((-2, -2), 0.6)]
@@ -116,6 +124,10 @@ def random_dots(k=11, seed=0, count=None):
 
 def square(k=11, side=5):
     """Return a uniform side x side square (side odd) centred on the axis, zero outside."""
+    if side % 2 == 0 or not 0 < side <= k:
+        raise ValueError(
+            f"a square centred on the axis has an odd side of 1 to K = {k}, got {side}"
+        )
     psf = np.zeros((k, k))
     lo = k // 2 - side // 2
     psf[lo : lo + side, lo : lo + side] = 1.0
@@ -123,7 +135,10 @@ def square(k=11, side=5):
 
 
 def ring(k=11, radius=3.0, width=0.6):
-    """Return a Gaussian-profiled ring of ``radius`` sub-pixels and 1/e^2 half-width ``width``."""
+    """Return a Gaussian-profiled ring of ``radius`` sub-pixels; ``width`` is the profile's sigma.
+
+    (Its 1/e^2 half-width is twice ``width``.)
+    """
     y, x = _grid(k)
     r = np.sqrt(y**2 + x**2)
     return _normalise(np.exp(-0.5 * ((r - radius) / width) ** 2))

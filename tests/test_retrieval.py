@@ -19,6 +19,10 @@ from doe.files import read_psf
 @pytest.mark.parametrize("name", list(targets.TARGETS))
 @pytest.mark.parametrize("k", [5, 11])
 def test_targets_satisfy_the_psf_contract(name, k):
+    if name == "sparse_dots" and k < 9:  # its dots wrapped round the edges
+        with pytest.raises(ValueError, match="K >= 9"):
+            targets.make_target(name, k)
+        return
     t = targets.make_target(name, k)
     assert t.shape == (k, k) and t.dtype == np.float64
     assert np.all(t >= 0) and t.sum() == pytest.approx(1.0, abs=1e-12)
@@ -29,6 +33,20 @@ def test_paper_gaussian_is_centred_with_the_paper_sigma():
     assert t.argmax() == 60
     # ratio of neighbour to centre of a sampled Gaussian is exp(-1 / (2 sigma^2))
     assert t[5, 6] / t[5, 5] == pytest.approx(np.exp(-0.5 / targets.PAPER_SIGMA**2), rel=1e-12)
+
+
+@pytest.mark.parametrize(
+    "make, problem",
+    [
+        (lambda: targets.gaussian(10), "K odd"),  # no centre pixel for the axis
+        (lambda: targets.gaussian(11, sigma=0), "no light"),  # was all NaN
+        (lambda: targets.random_dots(11, count=0), "no light"),
+        (lambda: targets.square(11, 4), "odd side"),  # was half a pixel off the axis
+    ],
+)
+def test_a_target_that_breaks_the_contract_is_refused(make, problem):
+    with pytest.raises(ValueError, match=problem):
+        make()
 
 
 def test_unknown_target_is_refused():
