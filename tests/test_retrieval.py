@@ -262,7 +262,7 @@ def test_lean_single_window_value_matches_the_batched_one(mode, cap):
 def test_fidelity_within_one_exactly_when_both_goals_are_met():
     # the acceptance asks for each figure on its own: rmse <= 0.005 and corr >= 0.9999
     rng = np.random.default_rng(15)
-    target = targets.sparse_dots(7)
+    target = targets.random_dots(7, seed=0, count=5)  # a few dots on a dark ground
     goal = retrieval._Goal.of(target)
     seen = set()
     for scale in np.geomspace(1e-4, 3e-2, 60):
