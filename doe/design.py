@@ -188,7 +188,9 @@ def load_design(path=None):
         # TOML is UTF-8 whatever the locale; "-sig" drops the BOM some Windows editors write.
         raw = tomllib.loads(path.read_text(encoding="utf-8-sig"))
     except FileNotFoundError:
-        raise InputError(path, "no such design file (or preset name)") from None
+        raise InputError(
+            path, f"no such design file, nor a preset (presets: {', '.join(preset_names())})"
+        ) from None
     except UnicodeDecodeError as e:
         raise InputError(
             path,
@@ -229,8 +231,10 @@ def parse_design(raw, source="design"):
             raise InputError(source, f"unknown section or key {key!r}")
     for section, fields in _SCHEMA.items():
         table = raw.get(section)
-        if not isinstance(table, dict):
+        if table is None:
             raise InputError(source, f"missing table [{section}]")
+        if not isinstance(table, dict):  # [[optics]] or optics = 5
+            raise InputError(source, f"[{section}] must be a table of keys, got {table!r}")
         unknown = set(table) - set(fields)
         if unknown:
             raise InputError(
@@ -341,11 +345,21 @@ def lattice_problem(der, kernel_size, grid):
     )
 
 
+# The tile's size is wavelength x focal length / sub-pixel pitch: a unit slip in
+# any of these (um typed as mm) shows up first as a tile of the wrong size.
+_TILE_SET_BY = (
+    "the tile is wavelength x focal length / sub-pixel pitch: check [optics] "
+    "wavelength_nm and focal_length_mm and [sensor] pixel_pitch_um"
+)
+
+
 def _check_consistency(d, source):
     sensor, fab = d.sensor, d.fabrication
     if sensor.active_area > sensor.pixel_pitch:
         raise InputError(
-            f"{source}: [sensor] active_area_um", "the active area is larger than the pixel pitch"
+            f"{source}: [sensor] active_area_um",
+            f"the active area ({sensor.active_area * 1e6:g} um) is larger than the pixel pitch "
+            f"({sensor.pixel_pitch * 1e6:g} um, [sensor] pixel_pitch_um)",
         )
     reach = max(abs(v) for v in sensor.active_offset) + sensor.active_area / 2
     if reach > sensor.pixel_pitch / 2 * (1 + 1e-9):
@@ -372,7 +386,7 @@ def _check_consistency(d, source):
         raise InputError(
             f"{source}: [fabrication] aperture_mm",
             f"the phase tile ({der.tile_size * 1e3:.6g} mm) is larger than the "
-            f"aperture ({fab.aperture * 1e3:.6g} mm)",
+            f"aperture ({fab.aperture * 1e3:.6g} mm); {_TILE_SET_BY}",
         )
     from layouts.marks import check_marks_fit
 
@@ -383,10 +397,17 @@ def _check_consistency(d, source):
     if d.kernel_size > der.tile_pixels:
         raise InputError(
             f"{source}: [psf] kernel_size",
-            f"K = {d.kernel_size} exceeds the tile's N = {der.tile_pixels} pixels",
+            f"K = {d.kernel_size} exceeds the tile's N = {der.tile_pixels} pixels (a "
+            f"{der.tile_size_nominal * 1e6:.6g} um tile in pixels of "
+            f"{fab.feature_size * 1e6:.6g} um: check [fabrication] feature_size_um; "
+            f"{_TILE_SET_BY})",
         )
     if der.mask_pixel_pitch <= 0:
-        raise InputError(f"{source}: [fabrication] grid_nm", "the grid is coarser than a pixel")
+        raise InputError(
+            f"{source}: [fabrication] grid_nm",
+            f"the {fab.grid * 1e9:g} nm grid is coarser than a mask pixel of "
+            f"{fab.feature_size * 1e6:.6g} um ([fabrication] feature_size_um)",
+        )
     problem = lattice_problem(der, d.kernel_size, fab.grid)
     if problem:
         raise InputError(f"{source}: [fabrication] grid_nm", problem)

@@ -27,7 +27,7 @@ class Sellmeier:
         if not lo <= wavelength <= hi:
             raise InputError(
                 f"material {self.name}",
-                f"wavelength {wavelength * 1e9:.1f} nm is outside the Sellmeier range "
+                f"wavelength {wavelength * 1e9:g} nm is outside the Sellmeier range "
                 f"{lo * 1e9:.0f}-{hi * 1e9:.0f} nm",
             )
         lam2 = (wavelength * 1e6) ** 2

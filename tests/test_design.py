@@ -149,6 +149,42 @@ def test_more_masks_than_the_marks_beside_the_aperture_fit_is_refused():
     assert derive(parse_design(raw, "ok.toml")).masks == 6
 
 
+@pytest.mark.parametrize(
+    ("section", "key", "value", "message"),
+    [
+        # nm typed for um: blamed K = 11 alone, not the pixel size that left N = 1
+        ("fabrication", "feature_size_um", 5000.0, r"N = 1 pixels .*feature_size_um"),
+        ("optics", "focal_length_mm", 0.05, r"exceeds .*focal_length_mm"),
+        ("fabrication", "grid_nm", 100000, "coarser than a mask pixel of 5 um"),
+        (
+            "sensor",
+            "active_area_um",
+            200.0,
+            r"\(200 um\) .* pitch \(150 um, \[sensor\] pixel_pitch",
+        ),
+        ("optics", "wavelength_nm", 0.655, "wavelength 0.655 nm is outside"),  # read 0.7 nm
+        ("sensor", "pixel_pitch_um", 0.15, "the active area"),
+        ("optics", "focal_length_mm", 900.0, r"larger than the aperture.*pixel_pitch_um"),
+    ],
+)
+def test_a_unit_slip_is_named_with_the_keys_it_could_be(section, key, value, message):
+    with pytest.raises(InputError, match=message):
+        parse_design(with_value(section, key, value), "bad.toml")
+
+
+@pytest.mark.parametrize("value", [5, [{"wavelength_nm": 655.0}]])
+def test_a_section_that_is_no_table_is_named_so(value):
+    raw = raw_default()
+    raw["optics"] = value  # optics = 5, or [[optics]]: read "missing table [optics]"
+    with pytest.raises(InputError, match=r"\[optics\] must be a table of keys"):
+        parse_design(raw, "bad.toml")
+
+
+def test_an_unknown_preset_lists_the_presets(capsys):
+    assert main(["config", "show", "--config", "sun2021"]) == 2
+    assert "presets: sun2020" in capsys.readouterr().err
+
+
 def test_missing_table_is_refused():
     raw = raw_default()
     del raw["optics"]
