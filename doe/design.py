@@ -80,7 +80,10 @@ class Derived:
     GDS grid; the dot lattice that the tiled plate puts on the sensor then has
     pitch lambda f / tile_size, slightly off the sub-pixel pitch, and
     ``lattice_drift_at_edge`` is how far the outermost dot has wandered, along the
-    sensor's longer side, when the zero order sits at the sensor centre.
+    sensor's longer side, when the zero order sits at the sensor centre. Both are
+    paraxial (order m at m lambda f / tile_size) and count the grid snap only: a
+    lens that maps angle as f tan(theta) puts order 128 of the default design 22 um
+    further out (an f sin(theta) Fourier lens does not).
     """
 
     subpixel_pitch: float
