@@ -1,15 +1,18 @@
-"""Benchmark ``doefab fab`` and ``doefab mesh`` at the finest mask pitch.
+"""Benchmark ``doefab fab`` and ``doefab mesh`` on the largest tile doefab accepts.
 
 A random 8-level N x N map is the worst case for the rectangle count and the
-mesh; N = 3494 is the tile of a 0.25 um pitch design (f = 50 mm, the default
-preset otherwise), the largest below the 4096-pixel limit. Prints the wall time
-and the peak resident memory of each command (a subprocess; Linux ru_maxrss), and
-what each says (``mesh`` refuses a tile whose mesh would exceed 8 GiB).
+mesh; N = 4096 is the largest tile a design may have (``MAX_TILE_PIXELS``; about
+a 0.213 um pitch at f = 50 mm, the default preset otherwise; 0.25 um gives
+N = 3493). Prints the wall time and the peak resident memory of each command (a
+subprocess, its rusage as the parent reaps it: a command killed by the kernel
+still reports its peak), and what each says (``mesh`` refuses a tile whose mesh
+would exceed 8 GiB).
 
-Run: ``python bench/fab_fine.py [--n 3494]`` (about 6 minutes and 3 GB at 3494)
+Run: ``python bench/fab_fine.py [--n 4096]`` (about 8 minutes and 4.5 GB at 4096)
 """
 
 import argparse
+import os
 import subprocess
 import sys
 import tempfile
@@ -18,40 +21,40 @@ from pathlib import Path
 
 import numpy as np
 
-# Runs one command and reports its own peak resident memory (Linux: ru_maxrss in KiB).
-_CHILD = (
-    "import resource, sys\n"
-    "from doe.cli import main\n"
-    "code = main(sys.argv[1:])\n"
-    "print('MAXRSS_KIB', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr)\n"
-    "sys.exit(code)\n"
-)
+sys.path[0] = str(Path(__file__).resolve().parents[1])  # bench/fab.py would shadow fab
+
+from doe.design import MAX_TILE_PIXELS  # noqa: E402
 
 
 def run(argv):
     """Run a doefab command; return (exit code, seconds, peak RSS in GB, its last message)."""
-    t0 = time.perf_counter()
-    p = subprocess.run(
-        [sys.executable, "-c", _CHILD, *argv], capture_output=True, text=True, check=False
-    )
-    seconds = time.perf_counter() - t0
-    err = p.stderr.strip().splitlines()
-    peak_gb = int(err.pop().split()[1]) * 1024 / 1e9 if err and "MAXRSS_KIB" in err[-1] else 0.0
-    said = (err if p.returncode else p.stdout.strip().splitlines()) or [""]
-    return p.returncode, seconds, peak_gb, said[-1]
+    with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
+        t0 = time.perf_counter()
+        p = subprocess.Popen([sys.executable, "-m", "doe", *argv], stdout=out, stderr=err)
+        _, status, usage = os.wait4(p.pid, 0)  # Linux: ru_maxrss in KiB
+        seconds = time.perf_counter() - t0
+        p.returncode = os.waitstatus_to_exitcode(status)
+        out.seek(0)
+        err.seek(0)
+        said = (err.read() if p.returncode else out.read()).strip().splitlines() or [""]
+    return p.returncode, seconds, usage.ru_maxrss * 1024 / 1e9, said[-1]
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--n", type=int, default=3494, help="tile pixels N (default 3494)")
+    ap.add_argument(
+        "--n", type=int, default=MAX_TILE_PIXELS, help=f"tile pixels N (default {MAX_TILE_PIXELS})"
+    )
     args = ap.parse_args()
+    if not 1 <= args.n <= MAX_TILE_PIXELS:
+        ap.error(f"--n must lie between 1 and {MAX_TILE_PIXELS}, got {args.n}")
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         design = tmp / "design"
         design.mkdir()
         levels = np.random.default_rng(0).integers(0, 8, (args.n, args.n)).astype(np.uint8)
         np.save(design / "levels.npy", levels)
-        print(f"random 8-level map, N = {args.n} (the default design's tile, at its pitch)")
+        print(f"random 8-level map, N = {args.n}")
         print(f"{'command':8s} {'exit':>4s} {'seconds':>8s} {'peak GB':>8s}")
         for name, argv in (
             ("fab", ["fab", str(design), "--out", str(tmp / "fab")]),
