@@ -1,4 +1,4 @@
-"""Upper bounds on the efficiency of a phase-only tile that forms a target PSF exactly.
+"""Bounds on the efficiency of a phase-only tile that forms a target PSF, estimated from below.
 
 Let the window orders u carry w_u = c sqrt(t_u) e^{i theta_u} on the lit orders of
 the target t (sum 1) and nothing on its dark ones: exactly the target's shape,
@@ -29,7 +29,7 @@ from doe import fraunhofer
 from doe.lbfgs import minimise
 
 
-def best_flat_field(target, n_pixels, n_levels=None, rng=None, restarts=3, max_eval=200):
+def best_flat_field(target, n_pixels, n_levels=None, rng=None, restarts=16, max_eval=200):
     """Return (bound, g) maximising the exact-shape efficiency bound over the lit orders' phases.
 
     Parameters
@@ -102,8 +102,13 @@ def with_background(target, rmse):
     return padded / padded.sum()
 
 
-def efficiency_bound(target, n_pixels, n_levels=None, rng=None, restarts=3, max_eval=200):
-    """Return the exact-shape efficiency bound of a continuous (None) or L-level tile."""
+def efficiency_bound(target, n_pixels, n_levels=None, rng=None, restarts=16, max_eval=200):
+    """Return the exact-shape efficiency bound of a continuous (None) or L-level tile.
+
+    The best of ``restarts`` random starts: the maximum has many local peaks on
+    flat-topped targets (an 8-level square 5 x 5 read 0.899 from 3 starts, 0.903
+    from 16, 0.915 from 32), where sparse dots agree from 3 starts to 32.
+    """
     return best_flat_field(target, n_pixels, n_levels, rng, restarts, max_eval)[0]
 
 
