@@ -24,8 +24,9 @@ likely raise it).
 
 Run::
 
-    python bench/efficiency_bound.py            # N = 175, L = 8, ~20 min on 2 cores
+    python bench/efficiency_bound.py            # N = 175, L = 8: ~4 min a target, ~2 h
     python bench/efficiency_bound.py --bounds-only
+    python bench/efficiency_bound.py --targets sparse_dots dots_3
 """
 
 import argparse
