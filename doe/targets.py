@@ -52,9 +52,13 @@ def gaussian(k=11, sigma=1.0, sigma_x=None, angle=0.0, centre=(0.0, 0.0)):
     centre : (float, float)
         (y, x) offset of the peak from the optical axis, sub-pixels.
     """
+    sx = sigma if sigma_x is None else sigma_x
+    if not (sigma > 0 and sx > 0):
+        raise ValueError(
+            f"a Gaussian target needs sigmas > 0 (no light otherwise), got {sigma}, {sx}"
+        )
     y, x = _grid(k)
     y, x = y - centre[0], x - centre[1]
-    sx = sigma if sigma_x is None else sigma_x
     u, v = _rotated(y, x, angle)
     return _normalise(np.exp(-0.5 * ((u / sx) ** 2 + (v / sigma) ** 2)))
 
