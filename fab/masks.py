@@ -51,11 +51,6 @@ class Mask:
     bitmap: np.ndarray
 
     @property
-    def etch_depth_nm(self):
-        """Etch depth in nanometres (boundary unit)."""
-        return self.etch_depth * 1e9
-
-    @property
     def fill_fraction(self):
         """Fraction of the tile that this mask etches."""
         return float(np.mean(self.bitmap))

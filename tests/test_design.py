@@ -319,3 +319,10 @@ def test_summary_gives_back_the_typed_values_in_their_units():
     ):
         for key in keys:
             assert summary[section][key] == float(raw[section][key]), (section, key)
+
+
+def test_tiled_size_is_the_whole_tiles_across_the_aperture():
+    der = derive(load_design())
+    assert der.tiled_size == pytest.approx(der.tiles * der.tile_size, rel=1e-12)
+    assert der.tiled_size <= load_design().fabrication.aperture
+    assert der.tiled_size + der.tile_size > load_design().fabrication.aperture

@@ -15,7 +15,15 @@ import pytest
 from doe import interrupts
 from doe.cli import main
 from doe.errors import InputError
-from doe.files import read_json, read_levels, read_psf, save_npy, staged_output, write_json
+from doe.files import (
+    check_psf,
+    read_json,
+    read_levels,
+    read_psf,
+    save_npy,
+    staged_output,
+    write_json,
+)
 
 
 def test_staged_output_leaves_nothing_on_failure(tmp_path):
@@ -290,3 +298,30 @@ def test_closed_stdout_ends_quietly(tmp_path):
     proc.stdout.close()
     err = proc.stderr.read()
     assert proc.wait() == 141 and err == b""
+
+
+def _psf(k):
+    psf = np.random.default_rng(0).random((k, k))
+    return psf / psf.sum()
+
+
+def test_a_psf_of_even_size_is_refused():
+    # K odd: element [K//2, K//2] is the optical axis; an even K has none.
+    with pytest.raises(InputError, match="odd"):
+        check_psf(_psf(10), "even.npy")
+
+
+def test_a_psf_with_any_negative_value_is_refused():
+    # "all values >= 0": a tiny negative is still a negative intensity.
+    psf = _psf(5)
+    psf[0, 0] = -1e-12
+    with pytest.raises(InputError, match="negative"):
+        check_psf(psf, "neg.npy")
+
+
+def test_a_psf_summing_visibly_off_1_is_refused_not_rescaled():
+    # "sum == 1": float32 rounding (~1e-7) is renormalised; a 1e-4 excess is a PSF
+    # that was not normalised and must not be rescaled silently.
+    with pytest.raises(InputError, match="sum to 1"):
+        check_psf(_psf(5) * (1 + 1e-4), "off.npy")
+    assert check_psf((_psf(5) * (1 + 1e-7)), "ok.npy").sum() == pytest.approx(1, abs=1e-15)

@@ -4,6 +4,7 @@ grid, byte-identical files, marks outside the aperture, layer images read back w
 import tempfile
 from pathlib import Path
 
+import gdstk
 import klayout.db as kdb
 import numpy as np
 import pytest
@@ -441,3 +442,17 @@ def test_a_mask_that_etches_nothing_keeps_its_layer(tmp_path):
     assert [mk.bitmap.any() for mk in masks] == [False, True, False]
     for mk in masks:
         assert layout.find_layer(mk.gds_layer, 0) is not None, f"{mk.name} layer missing"
+
+
+@pytest.mark.parametrize("tiles", [(1, 40), (40, 1), (2, 80)])
+def test_marks_never_etch_inside_a_non_square_tiled_array(tiles):
+    # Without an aperture the marks go outside the tiled array: along its longer side too.
+    levels = np.random.default_rng(0).integers(0, 8, (12, 12)).astype(np.uint8)
+    masks = masks_from_levels(levels, 8, STEP)
+    lib, info = build_library(masks, 4990, tiles, "t")
+    (top,) = [c for c in lib.cells if c.name == info.top_cell]
+    x0, y0 = info.array_origin_nm
+    array = gdstk.rectangle((x0 / 1000, y0 / 1000), (-x0 / 1000, -y0 / 1000))
+    etched = [p for p in top.polygons if p.layer != mk_marks.OUTLINE_LAYER]
+    assert etched, "marks and labels are drawn"
+    assert sum(p.area() for p in gdstk.boolean(etched, [array], "and")) == 0

@@ -1,5 +1,7 @@
 """Masks: level-to-etch mapping, binary-weighted Sellmeier depths, rectangles of a bitmap."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -142,3 +144,27 @@ def test_min_feature_counts_periodic_runs():
     b[1:4, 1:4] = True
     b[2, 2] = False  # a 1-pixel hole
     assert min_feature_pixels(b) == 1
+
+
+def test_min_feature_sees_a_feature_narrow_along_y():
+    # A one-row stripe across the tile is 1 pixel wide (along y) however long it is
+    # (along x); the manifest's min_feature_um must say so.
+    b = np.zeros((6, 6), bool)
+    b[2, :] = True
+    assert min_feature_pixels(b) == 1
+    assert min_feature_pixels(b.T) == 1
+
+
+def test_levels_from_masks_is_uint8_up_to_256_levels():
+    # levels.npy is uint8 (CONVENTIONS.md); level 255 of a 256-level tile must survive
+    levels = np.arange(256, dtype=np.uint8).reshape(16, 16)
+    back = levels_from_masks(masks_from_levels(levels, 256, STEP), 256, STEP)
+    assert back.dtype == np.uint8
+    assert np.array_equal(back, levels)
+
+
+def test_levels_from_masks_refuses_masks_that_etch_deeper_than_l_minus_1_steps():
+    masks = masks_from_levels(np.zeros((2, 2), np.uint8), 8, STEP)  # every pixel 7 steps deep
+    too_deep = [masks[0], masks[1], dataclasses.replace(masks[2], etch_depth=2 * STEP)]
+    with pytest.raises(ValueError, match="deeper"):
+        levels_from_masks(too_deep, 8, STEP)  # 4 + 2 + 2 = 8 steps: level -1

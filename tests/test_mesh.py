@@ -3,6 +3,7 @@
 import io
 import json
 import zipfile
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -20,7 +21,7 @@ from fab.mesh import (
     tile_mesh,
     triangle_upper_bound,
 )
-from fab.mesh_io import glb_bytes, ply_bytes, stl_bytes, threemf_bytes
+from fab.mesh_io import glb_bytes, ply_bytes, preview_png_bytes, stl_bytes, threemf_bytes
 
 L, STEP, PITCH, THICK = 8, 179.4e-9, 4990e-9, 0.5e-3
 
@@ -443,3 +444,56 @@ def test_every_pixel_top_lies_over_its_pixel_at_its_level():
     hit = np.zeros(levels.shape, int)
     np.add.at(hit, (row, col), 1)
     assert np.all(hit == 2), "two top triangles per pixel"
+
+
+MESH_L, MESH_STEP, MESH_PITCH, MESH_THICK = 8, 179.4e-9, 4990e-9, 0.5e-3
+
+
+def test_stl_facet_normals_are_outward_and_follow_the_vertex_order():
+    # Readers that trust the stored normal (many CAM/slicer tools) must see the same
+    # outward side as those that use the counter-clockwise vertex order.
+    levels = np.random.default_rng(3).integers(0, MESH_L, (6, 6)).astype(np.uint8)
+    v, f = tile_mesh(Relief(levels, MESH_L, MESH_STEP, MESH_PITCH, MESH_THICK))
+    rec = np.frombuffer(
+        stl_bytes(v, f)[84:], dtype=[("n", "<f4", (3,)), ("v", "<f4", (3, 3)), ("a", "<u2")]
+    )
+    p = rec["v"].astype(float)
+    rhr = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    rhr /= np.linalg.norm(rhr, axis=1, keepdims=True)
+    assert np.allclose(rec["n"], rhr, atol=1e-3)
+    # outward: the unetched top faces (level L-1, z = thickness) up, the back face down
+    top = np.isclose(p[:, :, 2], MESH_THICK * 1e3, rtol=0, atol=1e-9).all(axis=1)
+    back = np.isclose(p[:, :, 2], 0).all(axis=1)
+    assert top.any() and back.any()
+    assert np.allclose(rec["n"][top], [0, 0, 1]) and np.allclose(rec["n"][back], [0, 0, -1])
+
+
+def test_preview_shows_row_0_at_the_largest_y(monkeypatch):
+    # CONVENTIONS.md: pixel (row 0, col 0) covers x in [0, p], y in [(N-1) p, N p].
+    # The preview's axes are x, y in mm: the raised pixel must be drawn there.
+    import matplotlib.figure
+
+    figures = []
+    save = matplotlib.figure.Figure.savefig
+
+    def keep(fig, *args, **kwargs):
+        figures.append(fig)
+        return save(fig, *args, **kwargs)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", keep)
+    n = 8
+    levels = np.zeros((n, n), np.uint8)
+    levels[0, 0] = MESH_L - 1
+    preview_png_bytes(Relief(levels, MESH_L, MESH_STEP, MESH_PITCH, MESH_THICK))
+    (ax,) = [a for a in figures[0].axes if a.images]
+    image = ax.images[0]
+    p_mm = MESH_PITCH * 1e3
+
+    def shown_at(x_mm, y_mm):
+        x, y = ax.transData.transform((x_mm, y_mm))
+        return float(image.get_cursor_data(SimpleNamespace(x=x, y=y)))
+
+    top_left = shown_at(0.5 * p_mm, (n - 0.5) * p_mm)
+    bottom_left = shown_at(0.5 * p_mm, 0.5 * p_mm)
+    assert top_left == 0.0  # level L-1: the unetched surface, 0 um below it
+    assert bottom_left < -1.0  # level 0: (L-1) steps (1.26 um) deep

@@ -1,0 +1,128 @@
+"""verify's frames: orientation undo, reflected plates, the window at the frame edge, significance.
+
+Each test states an analytic expectation; none depends on a simulated camera.
+"""
+
+import numpy as np
+import pytest
+
+from doe.fraunhofer import pixel_envelope, simulate_levels
+from fab.capture_sim import ORIENTATION_MAPS
+from fab.lattice import OrderGrid
+from fab.verify import (
+    _PLATE_LEVELS,
+    _TRANSFORMS,
+    ORIENTATIONS,
+    analyse,
+    design_order_power,
+    diagnose,
+    resolve_thresholds,
+    to_design_frame,
+)
+
+N, K, L = 35, 11, 8
+
+
+@pytest.mark.parametrize("orientation", ORIENTATIONS)
+def test_to_design_frame_undoes_every_camera_orientation(orientation):
+    # Design order (m, n) lands at camera offset ORIENTATION_MAPS[o](m, n) (the
+    # simulator's statement of the convention, independent of to_design_frame).
+    # Undoing it must give the design grid back, element for element, for every
+    # orientation (mirror-x and rot270 are not exercised by the end-to-end tests).
+    a, b = 3, 5  # a non-square design grid, zero order at [a, b]
+    design = np.arange((2 * a + 1) * (2 * b + 1), dtype=float).reshape(2 * a + 1, 2 * b + 1)
+    fwd = ORIENTATION_MAPS[orientation]
+    offsets = [fwd(m, n) for m in range(-a, a + 1) for n in range(-b, b + 1)]
+    su = max(abs(du) for du, _ in offsets)
+    sv = max(abs(dv) for _, dv in offsets)
+    camera = np.full((2 * su + 1, 2 * sv + 1), np.nan)
+    for m in range(-a, a + 1):
+        for n in range(-b, b + 1):
+            du, dv = fwd(m, n)
+            camera[su + du, sv + dv] = design[a + m, b + n]
+    assert np.array_equal(to_design_frame(camera, orientation), design)
+
+
+@pytest.mark.parametrize("name", sorted(_TRANSFORMS))
+def test_each_reflected_plate_tile_makes_its_transformed_far_field(name):
+    # _PLATE_LEVELS[t] is "the tile that gives" the order pattern _TRANSFORMS[t]:
+    # the plate verify measures a reflected capture against must be that plate.
+    levels = np.random.default_rng(11).integers(0, L, (N, N)).astype(np.uint8)
+    plate = _PLATE_LEVELS[name](levels, L)
+    want = _TRANSFORMS[name](design_order_power(levels, L))
+    np.testing.assert_allclose(design_order_power(plate, L), want, rtol=0, atol=1e-15)
+
+
+def _grid(levels, shape, zero):
+    """A noiseless order grid: every order measured, its power the plate's far field."""
+    period = design_order_power(levels, L)
+    m = np.arange(shape[0]) - zero[0]
+    n = np.arange(shape[1]) - zero[1]
+    power = period[np.ix_(m % N, n % N)] * np.outer(pixel_envelope(m, N), pixel_envelope(n, N))
+    power = power * 1e6  # DN
+    sigma = np.full(shape, 1e-6)
+    u, v = np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij")
+    return OrderGrid(
+        u=np.arange(shape[0]), v=np.arange(shape[1]), power=power,
+        valid=np.ones(shape, bool), rows=u * 10.0, cols=v * 10.0,
+        saturated=np.zeros(shape, bool), noise_px=1e-6, aperture_pixels=20, sigma=sigma,
+        aperture_radius_px=2.0, pitch_px=10.0,
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("axis", [0, 1])
+def test_window_that_touches_the_frame_edge_is_measured_and_one_past_it_is_not(axis):
+    levels = np.random.default_rng(7).integers(0, L, (N, N)).astype(np.uint8)
+    half = K // 2
+    zero = [10, 12]
+    _, efficiency = simulate_levels(levels, L, K)
+    thresholds = resolve_thresholds(None, efficiency, design_order_power(levels, L)[0, 0])
+    # last window row (or column) is the frame's last one: in frame, a K x K PSF
+    shape = [21, 25]
+    shape[axis] = zero[axis] + half + 1
+    result, psf = analyse(_grid(levels, shape, zero), levels, L, K, "as-designed", thresholds)
+    assert result["window_in_frame"] and psf.shape == (K, K)
+    assert [result["zero_order_px"][0] / 10, result["zero_order_px"][1] / 10] == zero
+    # every order outside the K x K window carries light and counts as such
+    assert result["outside_window_orders"] == shape[0] * shape[1] - K * K
+    # one row (column) fewer: the window runs off the frame, no PSF
+    shape[axis] -= 1
+    result, psf = analyse(_grid(levels, shape, zero), levels, L, K, "as-designed", thresholds)
+    assert result["window_in_frame"] is False and psf is None
+
+
+def _good_result(**changes):
+    """A verify result of a plate that is the design, with every figure well inside its limit."""
+    result = {
+        "saturated_dots": 0,
+        "window_snr": 1e3,
+        "frame_correlation": {"design": 0.99, "rot180": 0.3, "mirror-x": 0.3, "mirror-y": 0.3},
+        "zero_order_search": {
+            "delta_chi2": {"rot180": -1e3, "mirror-x": -1e3, "mirror-y": -1e3},
+            "runner_up_margin": 1e3,
+            "transform_psf_correlation": {"rot180": 0.2, "mirror-x": 0.2, "mirror-y": 0.2},
+        },
+        "correlation": 0.999,
+        "correlation_with_fitted_etch": 0.999,
+        "rmse": 0.01,
+        "efficiency": 0.80,
+        "efficiency_sigma": 0.01,
+        "zero_order": 0.01,
+        "zero_order_sigma": 0.001,
+        "deep_etch_error_fit": 0.0,
+        "deep_etch_error_fit_significance": 0.0,
+    }
+    result.update(changes)
+    return result
+
+
+def test_noisy_figures_fail_only_when_they_miss_by_the_significance():
+    # "A check on a noisy figure (zero order, efficiency) fails only when it misses
+    # its threshold by SIGNIFICANCE (2) sigma."
+    t = resolve_thresholds(None, design_efficiency=0.80, design_zero_order=0.01)
+    e_min, z_max = t["efficiency_min"], t["zero_order_max"]
+    assert diagnose(_good_result(), t) == ["ok"]
+    assert diagnose(_good_result(efficiency=e_min - 0.01), t) == ["ok"]  # 1 sigma short
+    assert diagnose(_good_result(efficiency=e_min - 0.03), t) == ["low_efficiency"]  # 3 sigma
+    assert diagnose(_good_result(zero_order=z_max + 0.001), t) == ["ok"]
+    assert diagnose(_good_result(zero_order=z_max + 0.003), t) == ["zero_order_excess"]
