@@ -6,6 +6,7 @@ anything that is not a finite number in range, naming the flag (exit code 2).
 ``None`` (a flag not given) passes through.
 """
 
+import argparse
 import math
 
 from doe.errors import InputError
@@ -52,8 +53,6 @@ def at_most(flag, value, limit, why):
 
 def count(text):
     """argparse ``type`` of a count of at least 1 (bench scripts' repeats and sizes)."""
-    import argparse
-
     try:
         value = int(text)
     except ValueError:
