@@ -1,5 +1,6 @@
 """``doefab fab``: a complete, deterministic package; bad input refused (exit 2), nothing left."""
 
+import hashlib
 import importlib.util
 import json
 
@@ -10,6 +11,7 @@ from doe.cli import main
 from doe.design import derive, design_summary, load_design
 from doe.fraunhofer import simulate_levels
 from fab.layer_images import read_image
+from fab.manifest import file_records
 from fab.masks import masks_from_levels
 from layouts.gds import PlateLayout
 from layouts.readback import check_written_gds
@@ -349,3 +351,35 @@ def test_a_gds_cut_short_by_a_full_disk_is_exit_2(tmp_path, capsys, monkeypatch)
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and f"{out / 'mask.gds'}: KLayout cannot read" in err
     assert not out.exists()
+
+
+def test_file_records_are_sha256_and_byte_counts_of_the_files(tmp_path):
+    # a lab checks the package with `sha256sum`; the record must be the SHA-256 and size
+    (tmp_path / "sub").mkdir()
+    blobs = {"b.bin": bytes(range(256)) * 3, "sub/a.txt": b"hello\n", "empty": b""}
+    for name, data in blobs.items():
+        (tmp_path / name).write_bytes(data)
+    recs = file_records(tmp_path, list(blobs))
+    assert [r["path"] for r in recs] == sorted(blobs)
+    for r in recs:
+        data = blobs[r["path"]]
+        assert r["sha256"] == hashlib.sha256(data).hexdigest()
+        assert r["bytes"] == len(data)
+
+
+def test_manifest_lattice_pitch_is_lambda_f_over_tile_size(tmp_path):
+    # verify finds the lattice at lattice_pitch_um: lambda f / (N p), N pixels of pitch p
+    n = 35
+    design_dir = tmp_path / "design"
+    design_dir.mkdir()
+    np.save(
+        design_dir / "levels.npy", np.random.default_rng(0).integers(0, 8, (n, n)).astype(np.uint8)
+    )
+    assert main(["fab", str(design_dir), "--out", str(tmp_path / "out")]) == 0
+    man = json.loads((tmp_path / "out" / "fab_manifest.json").read_text())
+    design = load_design()
+    tile_m = man["tile_pixels"] * man["pixel_pitch_nm"] * 1e-9
+    assert man["tile_pixels"] == n
+    assert man["tile_size_um"] * 1e-6 == pytest.approx(tile_m, rel=1e-12)
+    expected_um = design.optics.wavelength * design.optics.focal_length / tile_m * 1e6
+    assert abs(man["lattice_pitch_um"] - expected_um) < 1e-9 * expected_um

@@ -1,8 +1,10 @@
 """Contract readers and the staged (all-or-nothing) output folder."""
 
+import hashlib
 import os
 import shutil
 import signal
+import stat
 import subprocess
 import sys
 import tempfile
@@ -16,11 +18,13 @@ from doe import interrupts
 from doe.cli import main
 from doe.errors import InputError
 from doe.files import (
+    atomic_write_bytes,
     check_psf,
     read_json,
     read_levels,
     read_psf,
     save_npy,
+    sha256_file,
     staged_output,
     write_json,
 )
@@ -325,3 +329,46 @@ def test_a_psf_summing_visibly_off_1_is_refused_not_rescaled():
     with pytest.raises(InputError, match="sum to 1"):
         check_psf(_psf(5) * (1 + 1e-4), "off.npy")
     assert check_psf((_psf(5) * (1 + 1e-7)), "ok.npy").sum() == pytest.approx(1, abs=1e-15)
+
+
+def test_sha256_file_hashes_all_of_a_file_larger_than_one_read_block(tmp_path):
+    # GDS files run to many MiB; sha256_file reads in 1 MiB blocks
+    data = np.random.default_rng(0).bytes(3 * (1 << 20) + 12345)
+    path = tmp_path / "big.gds"
+    path.write_bytes(data)
+    assert sha256_file(path) == hashlib.sha256(data).hexdigest()
+    # a change in the last byte changes the hash
+    path.write_bytes(data[:-1] + bytes([data[-1] ^ 1]))
+    assert sha256_file(path) != hashlib.sha256(data).hexdigest()
+
+
+def test_write_json_sorts_keys_at_every_level(tmp_path):
+    # "indented, key-sorted JSON (deterministic bytes)": the same content in any
+    # insertion order gives the same bytes
+    a, b = tmp_path / "a.json", tmp_path / "b.json"
+    write_json(a, {"zeta": 1, "alpha": {"y": 2, "b": 3}})
+    write_json(b, {"alpha": {"b": 3, "y": 2}, "zeta": 1})
+    assert a.read_bytes() == b.read_bytes()
+    text = a.read_text()
+    assert text.index('"alpha"') < text.index('"zeta"')
+    assert text.index('"b"') < text.index('"y"')
+
+
+def test_atomic_writes_get_the_usual_file_mode(tmp_path):
+    # mkstemp makes 0600; a package file must be readable as any other file (0666 & ~umask)
+    umask = os.umask(0)
+    os.umask(umask)
+    atomic_write_bytes(tmp_path / "x.bin", b"abc")
+    write_json(tmp_path / "y.json", {"a": 1})
+    for name in ("x.bin", "y.json"):
+        mode = stat.S_IMODE((tmp_path / name).stat().st_mode)
+        assert mode == 0o666 & ~umask
+
+
+def test_check_psf_tolerance_boundary_is_one_ppm(tmp_path):
+    # within 1e-6 of 1 is renormalised exactly; beyond it the PSF is refused, never rescaled
+    psf = np.full((5, 5), 1 / 25)
+    out = check_psf(psf * (1 + 5e-7), "near.npy")
+    assert abs(out.sum() - 1) < 1e-15
+    with pytest.raises(InputError, match="sum to 1"):
+        check_psf(psf * (1 + 3e-6), "off.npy")

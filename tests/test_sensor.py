@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 import torch
+from scipy import ndimage
 from scipy.signal import convolve2d
 
 from doe.design import load_design
@@ -239,3 +240,28 @@ def test_point_sample_fast_path_equals_blur_then_sample(padding, cell):
     slow = spad_sample(convolve_psf(img, psf, padding), w)
     assert fast.shape == slow.shape
     torch.testing.assert_close(fast, slow, atol=1e-12, rtol=0)
+
+
+def test_photons_argument_overrides_the_design():
+    # psf-learn --photons is passed as sensor_from_design(design, photons=...):
+    # it must set the shot-noise level, not be replaced by the design's default
+    design = load_design()
+    assert design.learning.photons_per_pixel != 123.0
+    sensor = sensor_from_design(design, photons=123.0, dark_counts=4.0)
+    assert sensor.photons == 123.0
+    assert sensor.dark_counts == 4.0
+
+
+def test_reflect_padding_mirrors_the_scene_without_repeating_the_edge():
+    # "reflect" mirrors the scene about its border pixel (torch reflect = scipy "mirror"):
+    # with a kernel that moves light 3 columns right and 2 rows up, every output pixel
+    # is the input at (r + 2, c - 3), reflected at the borders.
+    k = 9
+    psf = np.zeros((k, k))
+    psf[k // 2 - 2, k // 2 + 3] = 1.0
+    img = np.random.default_rng(0).uniform(size=(13, 17))
+    out = convolve_psf(torch.from_numpy(img)[None, None], torch.from_numpy(psf))[0, 0].numpy()
+    np.testing.assert_allclose(out, ndimage.convolve(img, psf, mode="mirror"), atol=1e-12)
+    # explicitly, at the left border: column c - 3 < 0 mirrors to 3 - c
+    np.testing.assert_allclose(out[2:11, 0], img[4:13, 3], atol=1e-12)
+    np.testing.assert_allclose(out[2:11, 1], img[4:13, 2], atol=1e-12)
