@@ -18,6 +18,18 @@ def _refuse(token):
 
 
 @pytest.fixture
+def saved_figures(monkeypatch):
+    """Return the list that every matplotlib figure saved during the test is appended to."""
+    from matplotlib.figure import Figure
+
+    saved, save = [], Figure.savefig
+    monkeypatch.setattr(
+        Figure, "savefig", lambda fig, *a, **k: saved.append(fig) or save(fig, *a, **k)
+    )
+    return saved
+
+
+@pytest.fixture
 def read_strict_json():
     """Return a reader of a JSON file that refuses NaN and Infinity, as strict readers do."""
     return lambda path: json.loads(path.read_text(), parse_constant=_refuse)

@@ -187,8 +187,6 @@ def test_read_psf_normalises_within_tolerance_only(tmp_path):
 def test_a_psf_is_checked_and_normalised_in_float64_and_c_order(tmp_path):
     # float16 summed 1.0004 to exactly 1: retrieve passed it and wrote a target that
     # fab then refused; a Fortran-ordered copy gave another design for the same values.
-    from doe.files import check_psf
-
     psf = np.random.default_rng(0).random((11, 11))
     psf /= psf.sum()
     with pytest.raises(InputError, match=r"must be float64 \(or float32\), got float16"):
@@ -323,12 +321,17 @@ def test_a_psf_with_any_negative_value_is_refused():
         check_psf(psf, "neg.npy")
 
 
-def test_a_psf_summing_visibly_off_1_is_refused_not_rescaled():
-    # "sum == 1": float32 rounding (~1e-7) is renormalised; a 1e-4 excess is a PSF
-    # that was not normalised and must not be rescaled silently.
+def test_a_psf_sum_within_one_ppm_is_renormalised_and_beyond_it_refused():
+    # "sum == 1": float32 rounding (~1e-7) is renormalised; a PSF off by more than
+    # 1e-6 was not normalised and must not be rescaled silently.
     with pytest.raises(InputError, match="sum to 1"):
         check_psf(_psf(5) * (1 + 1e-4), "off.npy")
     assert check_psf((_psf(5) * (1 + 1e-7)), "ok.npy").sum() == pytest.approx(1, abs=1e-15)
+    psf = np.full((5, 5), 1 / 25)
+    out = check_psf(psf * (1 + 5e-7), "near.npy")
+    assert abs(out.sum() - 1) < 1e-15
+    with pytest.raises(InputError, match="sum to 1"):
+        check_psf(psf * (1 + 3e-6), "off.npy")
 
 
 def test_sha256_file_hashes_all_of_a_file_larger_than_one_read_block(tmp_path):
@@ -363,12 +366,3 @@ def test_atomic_writes_get_the_usual_file_mode(tmp_path):
     for name in ("x.bin", "y.json"):
         mode = stat.S_IMODE((tmp_path / name).stat().st_mode)
         assert mode == 0o666 & ~umask
-
-
-def test_check_psf_tolerance_boundary_is_one_ppm(tmp_path):
-    # within 1e-6 of 1 is renormalised exactly; beyond it the PSF is refused, never rescaled
-    psf = np.full((5, 5), 1 / 25)
-    out = check_psf(psf * (1 + 5e-7), "near.npy")
-    assert abs(out.sum() - 1) < 1e-15
-    with pytest.raises(InputError, match="sum to 1"):
-        check_psf(psf * (1 + 3e-6), "off.npy")

@@ -468,24 +468,14 @@ def test_stl_facet_normals_are_outward_and_follow_the_vertex_order():
     assert np.allclose(rec["n"][top], [0, 0, 1]) and np.allclose(rec["n"][back], [0, 0, -1])
 
 
-def test_preview_shows_row_0_at_the_largest_y(monkeypatch):
+def test_preview_shows_row_0_at_the_largest_y(saved_figures):
     # CONVENTIONS.md: pixel (row 0, col 0) covers x in [0, p], y in [(N-1) p, N p].
     # The preview's axes are x, y in mm: the raised pixel must be drawn there.
-    import matplotlib.figure
-
-    figures = []
-    save = matplotlib.figure.Figure.savefig
-
-    def keep(fig, *args, **kwargs):
-        figures.append(fig)
-        return save(fig, *args, **kwargs)
-
-    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", keep)
     n = 8
     levels = np.zeros((n, n), np.uint8)
     levels[0, 0] = MESH_L - 1
     preview_png_bytes(Relief(levels, MESH_L, MESH_STEP, MESH_PITCH, MESH_THICK))
-    (ax,) = [a for a in figures[0].axes if a.images]
+    (ax,) = [a for a in saved_figures[0].axes if a.images]
     image = ax.images[0]
     p_mm = MESH_PITCH * 1e3
 

@@ -121,17 +121,10 @@ def test_good_plate_passes_and_registers_the_lattice(tmp_path, levels, kwargs, n
     assert (tmp_path / "out" / "verify.png").exists()
 
 
-def test_every_panel_of_verify_png_has_a_colour_bar(tmp_path, levels, monkeypatch):
+def test_every_panel_of_verify_png_has_a_colour_bar(tmp_path, levels, saved_figures):
     # the capture panel had none: its square-root grey scale read as nothing in DN
-    from matplotlib.figure import Figure
-
-    saved = []
-    save = Figure.savefig
-    monkeypatch.setattr(
-        Figure, "savefig", lambda fig, *a, **k: saved.append(fig) or save(fig, *a, **k)
-    )
     assert run_verify(tmp_path, levels, dict(seed=1))[0] == 0
-    (fig,) = [f for f in saved if f.axes[0].get_title().startswith("capture")]
+    (fig,) = [f for f in saved_figures if f.axes[0].get_title().startswith("capture")]
     images = [im for ax in fig.axes for im in ax.get_images()]
     assert len(images) == 4 and all(im.colorbar is not None for im in images)
     capture = fig.axes[0].get_images()[0]
