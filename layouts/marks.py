@@ -14,12 +14,13 @@ etched.
 
 All geometry is built in integer nanometres and returned as gdstk polygons in
 micrometres (the library's user unit), so every vertex lies on the 1 nm grid.
+gdstk is imported where polygons are made: design validation (``check_marks_fit``)
+runs on machines that only learn PSFs, without the GDS writer.
 """
 
 import unicodedata
 from dataclasses import dataclass
 
-import gdstk
 import numpy as np
 
 # One named place for the mark geometry (nm).
@@ -60,6 +61,8 @@ def _um(v):
 
 def _rect(x0, y0, x1, y1, layer):
     """An axis-aligned rectangle from integer-nm corners."""
+    import gdstk
+
     return gdstk.rectangle((_um(x0), _um(y0)), (_um(x1), _um(y1)), layer=layer, datatype=0)
 
 
@@ -76,6 +79,8 @@ def _frame(cx, cy, inner, outer, layer):
 
 def _cross(cx, cy, layer):
     """A plus sign as one 12-vertex polygon."""
+    import gdstk
+
     a, w = CROSS_ARM_NM // 2, CROSS_WIDTH_NM // 2
     pts = [(a, w), (w, w), (w, a), (-w, a), (-w, w), (-a, w),
            (-a, -w), (-w, -w), (-w, -a), (w, -a), (w, -w), (a, -w)]  # fmt: skip
@@ -172,6 +177,8 @@ def _label(text, row, rows, a, h, layer):
     plate, so that no label meets a mark whatever the aperture and mask count; the
     text shrinks to fit its row and the plate's width. Vertices are snapped to 1 nm.
     """
+    import gdstk
+
     block_top = a + MARK_RING_NM - _BLOCK_REACH
     top, bottom = -(a + OUTLINE_WIDTH_NM + LABEL_GAP_NM), -(block_top - LABEL_GAP_NM)
     pitch = (top - bottom) / rows

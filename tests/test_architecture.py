@@ -5,6 +5,8 @@ import pathlib
 import subprocess
 import sys
 
+import numpy as np
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
@@ -35,3 +37,28 @@ def test_cli_help_does_not_load_torch():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_learning_needs_no_layout_or_mesh_libraries(tmp_path):
+    """A GPU node that only learns PSFs may lack gdstk, klayout, trimesh, nlopt, OpenImageIO.
+
+    Loading the design (whose validation checks that the alignment marks fit) and a
+    training step must not import them.
+    """
+    import imageio.v3 as iio
+
+    (tmp_path / "img").mkdir()
+
+    rng = np.random.default_rng(0)
+    iio.imwrite(tmp_path / "img" / "a.png", rng.integers(0, 256, (96, 96), dtype=np.uint8))
+    missing = ("gdstk", "klayout", "trimesh", "nlopt", "OpenImageIO", "build123d", "manifold3d")
+    code = (
+        "import sys\n"
+        f"for m in {missing!r}: sys.modules[m] = None  # import m now raises ImportError\n"
+        "from doe.cli import main\n"
+        f"sys.exit(main(['learn', '--out', {str(tmp_path / 'model')!r}, '--images', "
+        f"{str(tmp_path / 'img')!r}, '--steps', '1', '--batch', '2']))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    assert (tmp_path / "model" / "psf.npy").exists()
