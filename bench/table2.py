@@ -19,9 +19,15 @@ with 2 threads on the idle 2-core machine).
     python bench/table2.py --minutes 6
     python bench/table2.py --minutes 15 --extra held_back_images/
     python bench/table2.py --minutes 6 -- --photons 10000   # extra `doefab learn` flags
+    python bench/table2.py --data DIR --models low_ff learned --no-fab   # a GPU node
+
+``--data`` names the folder with ``set5/``, ``set14/`` and ``sun_hays80/`` where
+``../shared/data`` is not beside the checkout. The as-fabricated row needs nlopt;
+without it the script stops before training unless ``--no-fab`` is given.
 """
 
 import argparse
+import importlib.util
 import itertools
 import json
 import os
@@ -54,10 +60,20 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--minutes", type=float, default=15.0, help="training budget per model")
     p.add_argument("--steps", type=int, help="fixed step budget per model instead of minutes")
-    p.add_argument("--train", default=str(DATA / "sun_hays80"), help="training images")
+    p.add_argument(
+        "--data", default=str(DATA), help="folder holding set5/, set14/ (and sun_hays80/)"
+    )
+    p.add_argument("--train", help="training images (default: DATA/sun_hays80)")
     p.add_argument("--extra", nargs="*", default=[], help="more evaluation folders")
     p.add_argument("--out", default=str(ROOT / "bench" / "out" / "table2"), help="work folder")
     p.add_argument("--parallel", type=int, default=1, help="models trained at once")
+    p.add_argument(
+        "--models",
+        nargs="+",
+        choices=[key for key, _, _ in MODELS],
+        default=[key for key, _, _ in MODELS],
+        help="which models to train and evaluate (default: all)",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--reuse", action="store_true", help="evaluate existing models, no training")
     p.add_argument("--no-fab", action="store_true", help="skip the as-fabricated evaluation")
@@ -66,8 +82,12 @@ def main(argv=None):
     args = p.parse_args(argv)
     if args.learn_args[:1] == ["--"]:
         args.learn_args = args.learn_args[1:]
+    args.train = args.train or str(Path(args.data) / "sun_hays80")
+    if not args.no_fab and importlib.util.find_spec("nlopt") is None:
+        # found before the training, not after it (a GPU node may lack nlopt)
+        p.error("the as-fabricated row retrieves a plate with nlopt: install it, or --no-fab")
     out = Path(args.out)
-    trained = [key for key, _, _ in MODELS if (out / key).exists()]
+    trained = [key for key in args.models if (out / key).exists()]
     if trained and not (args.reuse or args.force):
         p.error(
             f"{out} holds trained models ({', '.join(trained)}): --reuse evaluates them, "
@@ -90,7 +110,7 @@ def main(argv=None):
 
 def _train_all(args, out):
     budget = ["--steps", str(args.steps)] if args.steps else ["--minutes", str(args.minutes)]
-    queue = list(MODELS)
+    queue = [model for model in MODELS if model[0] in args.models]
     running = []
     while queue or running:
         while queue and len(running) < args.parallel:
@@ -130,13 +150,10 @@ def _train_all(args, out):
 
 
 def _as_fabricated_psf(learned_psf):
-    """PSF of the 8-level plate retrieved for the learned PSF, or None without doe.retrieval."""
-    try:
-        from doe.retrieval import retrieve_phase
-    except ImportError:
-        return None, None
+    """PSF of the 8-level plate retrieved for the learned PSF, and the plate's figures."""
     from doe.design import derive, load_design
     from doe.fraunhofer import simulate_levels
+    from doe.retrieval import retrieve_phase
 
     design = load_design()
     n = derive(design).tile_pixels
@@ -151,11 +168,11 @@ def _read_sets(args):
     from doe.errors import InputError
     from psf_learn.images import read_folder
 
-    for folder in (args.train, *args.extra):
+    sets = {"Set5": Path(args.data) / "set5", "Set14": Path(args.data) / "set14"}
+    sets.update({Path(e).name: Path(e) for e in args.extra})
+    for folder in (args.train, *sets.values()):
         if not Path(folder).is_dir():
             raise InputError(folder, "no such folder")
-    sets = {"Set5": DATA / "set5", "Set14": DATA / "set14"}
-    sets.update({Path(e).name: Path(e) for e in args.extra})
     return {name: read_folder(folder) for name, folder in sets.items()}
 
 
@@ -169,6 +186,8 @@ def _evaluate_all(args, out, data):
     torch.set_num_threads(idle_cores())
     results = {"sets": list(data), "models": {}}
     for key, _, label in MODELS:
+        if key not in args.models:
+            continue
         model = load_model(out / key)
         learn = json.loads((out / key / "learn.json").read_text())
         row = {
@@ -181,20 +200,19 @@ def _evaluate_all(args, out, data):
             row[name] = evaluate(model, names, images)
         results["models"][key] = row
         print(f"evaluated {key}", file=sys.stderr)
-    if not args.no_fab:
+    if not args.no_fab and "learned" in args.models:
         learned = load_model(out / "learned")
         t0 = time.perf_counter()
         psf, quality = _as_fabricated_psf(learned.psf)
-        if psf is not None:
-            row = {
-                "label": "learned, as fabricated (8 levels)",
-                "quality": quality,
-                "retrieval_seconds": time.perf_counter() - t0,
-                "psf": psf.tolist(),
-            }
-            for name, (names, images) in data.items():
-                row[name] = evaluate(learned, names, images, psf=psf)
-            results["models"]["learned_fab"] = row
+        row = {
+            "label": "learned, as fabricated (8 levels)",
+            "quality": quality,
+            "retrieval_seconds": time.perf_counter() - t0,
+            "psf": psf.tolist(),
+        }
+        for name, (names, images) in data.items():
+            row[name] = evaluate(learned, names, images, psf=psf)
+        results["models"]["learned_fab"] = row
     return results
 
 
@@ -203,10 +221,9 @@ def _print_table(results, args):
     budget = f"{args.steps} steps" if args.steps else f"{args.minutes:g} min"
     if args.reuse:  # the models' own budgets, not this command's
         budget = "as trained, steps in brackets"
-    print(
-        f"\nTable 2 (PSNR dB / SSIM, 4x SR, budget {budget} per model, "
-        f"{results['models']['learned']['steps']} steps for the learned model)"
-    )
+    m = results["models"]
+    steps = f", {m['learned']['steps']} steps for the learned model" if "learned" in m else ""
+    print(f"\nTable 2 (PSNR dB / SSIM, 4x SR, budget {budget} per model{steps})")
     head = f"{'model':36s}" + "".join(f"{s:>16s}" for s in sets)
     print(head + f"{'paper Set5/Set14/B100':>26s}{'gap Set5/Set14':>18s}")
     for key, row in results["models"].items():
@@ -220,15 +237,20 @@ def _print_table(results, args):
         )
         label = f"{row['label']} ({row['steps']})" if "steps" in row else row["label"]
         print(f"{label:36s}{cells}{ref:>26s}{gap:>18s}")
-    m = results["models"]
     for s in sets:
-        for gauss in ("gaussian", "gaussian_px"):
-            order = [m[k][s]["psnr"] for k in ("learned", gauss, "full_ff", "low_ff")]
+        for gauss in [g for g in ("gaussian", "gaussian_px") if g in m] or [None]:
+            keys = [k for k in ("learned", gauss, "full_ff", "low_ff") if k in m]
+            if len(keys) < 2:
+                continue
+            order = [m[k][s]["psnr"] for k in keys]
             holds = all(a > b for a, b in itertools.pairwise(order))
-            print(
-                f"{s}: learned > {m[gauss]['label']} > full FF > low FF: "
-                f"{'yes' if holds else 'NO'}; learned - low FF = {order[0] - order[3]:+.2f} dB"
+            gap = (
+                f"; learned - low FF = {m['learned'][s]['psnr'] - m['low_ff'][s]['psnr']:+.2f} dB"
+                if {"learned", "low_ff"} <= m.keys()
+                else ""
             )
+            names = " > ".join(m[k]["label"] for k in keys)
+            print(f"{s}: {names}: {'yes' if holds else 'NO'}{gap}")
     if "learned_fab" in m:
         q = m["learned_fab"]["quality"]
         print(
@@ -236,7 +258,9 @@ def _print_table(results, args):
             f"efficiency {q['efficiency']:.3f}; Set5 PSNR as fabricated minus learned PSF "
             f"{m['learned_fab']['Set5']['psnr'] - m['learned']['Set5']['psnr']:+.2f} dB"
         )
-    print(f"learned PSF (x1000):\n{np.round(np.array(m['learned']['psf']) * 1000).astype(int)}")
+    if "learned" in m:
+        psf = np.round(np.array(m["learned"]["psf"]) * 1000).astype(int)
+        print(f"learned PSF (x1000):\n{psf}")
 
 
 if __name__ == "__main__":
