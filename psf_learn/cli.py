@@ -31,7 +31,9 @@ def register(sub):
     budget.add_argument(
         "--minutes", type=float, help="wall-clock budget (default: the design's [learning] minutes)"
     )
-    budget.add_argument("--steps", type=int, help="number of steps (deterministic, resumable)")
+    budget.add_argument(
+        "--steps", type=int, help="number of steps (resumable; deterministic on the CPU)"
+    )
     p.add_argument("--seed", type=int, help="random seed (default: the design's)")
     p.add_argument("--config", help="design TOML file or preset name")
     p.add_argument("--init", metavar="MODEL_DIR", help="start from a trained model (fine-tune)")
@@ -93,7 +95,15 @@ def _learn(args):
     from psf_learn import store
     from psf_learn.psf import baseline_psf, gaussian_psf
     from psf_learn.sensor import sensor_from_design
-    from psf_learn.train import TrainConfig, augment_scales, default_patch, train, with_overrides
+    from psf_learn.train import (
+        TrainConfig,
+        augment_scales,
+        default_patch,
+        device_name,
+        pick_device,
+        train,
+        with_overrides,
+    )
 
     for flag in ("steps", "minutes", "batch", "patch", "features", "stages", "threads"):
         flags.positive(f"--{flag}", getattr(args, flag))
@@ -204,6 +214,14 @@ def _learn(args):
     checkpoint = out / "checkpoint.pt"
     if args.restart:  # every rank of a torchrun job gets here before any reads it
         checkpoint.unlink(missing_ok=True)
+    device = pick_device()
+    if args.steps and device.type == "cuda":
+        print(
+            f"note: training on {device_name(device)}: two runs of this command will differ "
+            "(GPU gradients sum in a varying order; on an H100, PSFs 4e-4 apart after 150 "
+            "steps); only CPU runs repeat bit for bit",
+            file=sys.stderr,
+        )
     result = train(config, images, sensor, psf0, init_state=init_state, checkpoint=checkpoint)
     if torch.distributed.is_available() and torch.distributed.is_initialized():
         rank = torch.distributed.get_rank()
@@ -231,6 +249,7 @@ def _learn(args):
         "final_loss": result.loss,
         "final_psnr_db": result.psnr,
         "seed": config.seed,
+        "device": device_name(device),
         "versions": {
             "torch": torch.__version__,
             "numpy": np.__version__,

@@ -6,7 +6,9 @@ photon noise of every sample get their own numpy generator, and the network is
 initialised from ``torch.manual_seed(seed)``. A checkpoint therefore needs no
 global RNG state: it stores the weights, the PSF, the Adam state, the step and
 the elapsed time, and a resumed run repeats exactly what an uninterrupted one
-would have done (bit for bit on the same machine, for a ``steps`` budget). The
+would have done (bit for bit on the same machine's CPU, for a ``steps`` budget;
+CUDA's convolution and bicubic-upsampling gradients sum in a varying order, so
+runs on a GPU agree only to rounding that training amplifies). The
 same keys make a DistributedDataParallel run over R processes (each taking
 batch / R samples of the global batch) follow the single-process run.
 
@@ -151,6 +153,13 @@ def pick_device():
     if torch.cuda.is_available():
         return torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
     return torch.device("cpu")
+
+
+def device_name(device):
+    """Return ``cpu`` or e.g. ``cuda:0 (NVIDIA H100 80GB HBM3)``, for the record of a run."""
+    if device.type == "cuda":
+        return f"{device} ({torch.cuda.get_device_name(device)})"
+    return str(device)
 
 
 def _digest(arrays):

@@ -305,6 +305,11 @@ def test_learn_writes_the_contract_files(trained):
     assert info["steps"] == 3 and info["seed"] == 0 and info["config"]["psf"] == "learned"
     assert info["design"]["sensor"]["superres_factor"] == 4  # the grid psf.npy is sampled on
     assert {"final_loss", "final_psnr_db", "seconds", "versions"} <= set(info)
+    # where it trained: GPU runs do not repeat bit for bit, CPU runs do
+    if torch.cuda.is_available():
+        assert info["device"].startswith("cuda:0 (")
+    else:
+        assert info["device"] == "cpu"
     torch.load(out / "model.pt", weights_only=True)
 
 
