@@ -56,10 +56,12 @@ def plan(args, run_dir, design):
         psf = Path(args.psf)
     else:
         # A step budget keeps the run reproducible; --minutes trades that for a time budget.
+        # Reproducible means on the CPU: CUDA's gradients sum in a varying order, and two
+        # runs on an H100 learned PSFs 4e-4 apart, hence two plates.
         budget = (
             ["--minutes", str(args.minutes)]
             if args.minutes is not None
-            else ["--steps", str(design.learning.steps)]
+            else ["--steps", str(design.learning.steps), "--device", "cpu"]
         )
         # One thread: the thread count changes torch's summation order, hence the bits.
         learn = ("learn", *budget, "--threads", "1", "--seed", seed)

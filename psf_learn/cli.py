@@ -62,6 +62,13 @@ def register(sub):
         "machine's cores nor its load; else the idle cores, from the load average: 1 on a busy "
         "machine, where one thread runs far faster than two fighting for cores)",
     )
+    p.add_argument(
+        "--device",
+        choices=("auto", "cpu", "cuda"),
+        default="auto",
+        help="where to train (default auto: the GPU if torch sees one); "
+        "only CPU runs repeat bit for bit",
+    )
     p.add_argument("--restart", action="store_true", help="ignore an existing checkpoint")
     p.add_argument("--force", action="store_true", help="overwrite existing outputs")
     p.set_defaults(func=_learn)
@@ -117,6 +124,8 @@ def _learn(args):
     for flag, value in (("--photons", args.photons), ("--dark-counts", args.dark_counts)):
         flags.at_most(flag, flags.non_negative(flag, value), flags.PHOTONS_MAX, "counts per pixel")
     flags.seed("--seed", args.seed)
+    if args.device == "cuda" and not torch.cuda.is_available():
+        raise InputError("--device cuda", "torch sees no CUDA device on this machine")
     # The thread count changes a run's last bits: a --steps run (deterministic,
     # resumable) takes a fixed one, not one read from the load of the moment.
     torch.set_num_threads(args.threads or (1 if args.steps else idle_cores()))
@@ -214,15 +223,17 @@ def _learn(args):
     checkpoint = out / "checkpoint.pt"
     if args.restart:  # every rank of a torchrun job gets here before any reads it
         checkpoint.unlink(missing_ok=True)
-    device = pick_device()
+    device = torch.device("cpu") if args.device == "cpu" else pick_device()
     if args.steps and device.type == "cuda":
         print(
             f"note: training on {device_name(device)}: two runs of this command will differ "
             "(GPU gradients sum in a varying order; on an H100, PSFs 4e-4 apart after 150 "
-            "steps); only CPU runs repeat bit for bit",
+            "steps); --device cpu repeats bit for bit",
             file=sys.stderr,
         )
-    result = train(config, images, sensor, psf0, init_state=init_state, checkpoint=checkpoint)
+    result = train(
+        config, images, sensor, psf0, init_state=init_state, checkpoint=checkpoint, device=device
+    )
     if torch.distributed.is_available() and torch.distributed.is_initialized():
         rank = torch.distributed.get_rank()
         torch.distributed.barrier()

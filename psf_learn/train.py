@@ -138,10 +138,10 @@ class TrainResult:
     history: list
 
 
-def _dist_setup():
+def _dist_setup(device):
     world = int(os.environ.get("WORLD_SIZE", "1"))
     if world > 1 and not torch.distributed.is_initialized():
-        backend = "nccl" if torch.cuda.is_available() else "gloo"
+        backend = "nccl" if device.type == "cuda" else "gloo"
         torch.distributed.init_process_group(backend)
     if torch.distributed.is_available() and torch.distributed.is_initialized():
         return torch.distributed.get_rank(), torch.distributed.get_world_size()
@@ -181,8 +181,11 @@ def train(
     checkpoint=None,
     stop_at_step=None,
     progress=None,
+    device=None,
 ):
     """Train a coded camera; return a :class:`TrainResult` (same on every rank).
+
+    The returned camera is on the CPU, whatever device trained it.
 
     Parameters
     ----------
@@ -201,15 +204,18 @@ def train(
         Stop (and checkpoint) after this step, as if interrupted.
     progress : bool, optional
         Show a tqdm bar (default: when stderr is a terminal).
+    device : torch.device or str, optional
+        Where to train (default :func:`pick_device`: this process's GPU if there is one).
+        Only CPU runs repeat bit for bit.
     """
     from tqdm import tqdm
 
     from psf_learn import store
 
-    rank, world = _dist_setup()
+    device = pick_device() if device is None else torch.device(device)
+    rank, world = _dist_setup(device)
     if config.batch % world:
         raise ValueError(f"batch {config.batch} is not divisible by {world} processes")
-    device = pick_device()
     torch.manual_seed(config.seed)
     camera = CodedCamera(psf_init, sensor, config)
     if init_state is not None:
@@ -337,7 +343,7 @@ def train(
     save()
     recent = history[-50:] or [[float("nan"), float("nan")]]
     return TrainResult(
-        camera,
+        camera.cpu(),
         step,
         elapsed,
         float(np.mean([h[0] for h in recent])),

@@ -24,6 +24,18 @@ from psf_learn.train import TrainConfig, default_patch, make_batch, train
 K = 11
 POINT = tuple(map(tuple, np.eye(4)[[2]].T @ np.eye(4)[[2]]))
 TINY = TrainConfig(steps=6, minutes=0.0, batch=4, patch=16, features=6, stages=1, lr=3e-3)
+HAS_CUDA = torch.cuda.is_available()
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _on_the_cpu():
+    """Train on the CPU in these tests, GPU or not: only CPU runs repeat bit for bit.
+
+    The tests of the CUDA path (``gpu``) put the GPU back; they run where there is one.
+    """
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(torch.cuda, "is_available", lambda: False)
+        yield
 
 
 def _images(n=3, size=48, seed=0):
@@ -176,7 +188,8 @@ def _ddp_worker(rank, world, port, out, config=TINY):
         LOCAL_RANK=str(rank),
     )
     torch.set_num_threads(1)
-    result = train(config, _images(), SensorModel(POINT, 200.0), gaussian_psf(K))
+    # a new process, which sees the GPU if there is one: gloo and the CPU, as in one process
+    result = train(config, _images(), SensorModel(POINT, 200.0), gaussian_psf(K), device="cpu")
     torch.save(_params(result.camera), out / f"rank{rank}.pt")
     torch.save(torch.tensor(result.history), out / f"history{rank}.pt")
     # Both ranks leave together: a rank tearing gloo down while the other still
@@ -305,11 +318,7 @@ def test_learn_writes_the_contract_files(trained):
     assert info["steps"] == 3 and info["seed"] == 0 and info["config"]["psf"] == "learned"
     assert info["design"]["sensor"]["superres_factor"] == 4  # the grid psf.npy is sampled on
     assert {"final_loss", "final_psnr_db", "seconds", "versions"} <= set(info)
-    # where it trained: GPU runs do not repeat bit for bit, CPU runs do
-    if torch.cuda.is_available():
-        assert info["device"].startswith("cuda:0 (")
-    else:
-        assert info["device"] == "cpu"
+    assert info["device"] == "cpu"  # where it trained: only CPU runs repeat bit for bit
     torch.load(out / "model.pt", weights_only=True)
 
 
@@ -627,6 +636,29 @@ def test_a_steps_run_takes_one_thread_whatever_the_load(trained, tmp_path, monke
         assert torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(before)
+
+
+def test_device_cuda_without_a_gpu_is_refused(tmp_path, capsys):
+    out = tmp_path / "model"
+    assert main(["learn", "--out", str(out), "--device", "cuda", *SMALL]) == 2
+    err = capsys.readouterr().err
+    assert "--device cuda: torch sees no CUDA device" in err and not out.exists()
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not HAS_CUDA, reason="needs a CUDA device")
+def test_training_on_cuda_returns_a_cpu_camera_and_says_where(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    result = train(TINY, _images(), SensorModel(POINT, 200.0), gaussian_psf(K))
+    assert {p.device.type for p in result.camera.parameters()} == {"cpu"}
+    images = _image_folder(tmp_path / "images")
+    for device, name in (("auto", "cuda:0 ("), ("cuda", "cuda:0 ("), ("cpu", "cpu")):
+        out = tmp_path / device
+        args = ["learn", "--out", str(out), "--images", str(images), "--device", device]
+        assert main([*args, *SMALL]) == 0
+        assert json.loads((out / "learn.json").read_text())["device"].startswith(name)
+        note = "--device cpu repeats bit for bit" in capsys.readouterr().err
+        assert note == (device != "cpu")
 
 
 def test_a_foreign_checkpoint_is_refused_in_one_line(tmp_path, capsys):

@@ -381,3 +381,19 @@ def test_bad_inputs_exit_2(tmp_path, capsys):
     thick.write_text("[material]\nthickness_mm = 50\n")
     assert main(["run", "--config", str(thick), "--out", str(tmp_path / "o3")]) == 2
     assert "thickness_mm" in capsys.readouterr().err and not (tmp_path / "o3").exists()
+
+
+def test_a_step_budget_learns_on_the_cpu(config, tmp_path):
+    # Two CUDA trainings of the same steps differ (on an H100, PSFs 4e-4 apart), and so
+    # would the plates of two runs: a step budget keeps the learn stage off the GPU.
+    from doe.cli import build_parser
+    from doe.design import load_design
+    from fab.cli_run import plan
+
+    design = load_design(str(config))
+    for extra, device in (([], "cpu"), (["--minutes", "1"], None)):
+        args = build_parser().parse_args(["run", "--out", str(tmp_path), *extra])
+        learn = plan(args, tmp_path, design)[0]
+        assert learn.name == "learn"
+        argv = list(learn.argv)
+        assert (argv[argv.index("--device") + 1] if "--device" in argv else None) == device
