@@ -1,6 +1,7 @@
 """``doefab learn``, ``doefab evaluate`` and ``doefab sr`` (torch is imported inside handlers)."""
 
 import json
+import os
 import platform
 import sys
 import tempfile
@@ -224,7 +225,7 @@ def _learn(args):
     if args.restart:  # every rank of a torchrun job gets here before any reads it
         checkpoint.unlink(missing_ok=True)
     device = torch.device("cpu") if args.device == "cpu" else pick_device()
-    if args.steps and device.type == "cuda":
+    if args.steps and device.type == "cuda" and os.environ.get("RANK", "0") == "0":
         print(
             f"note: training on {device_name(device)}: two runs of this command will differ "
             "(GPU gradients sum in a varying order; on an H100, PSFs 4e-4 apart after 150 "
@@ -285,8 +286,6 @@ def _learn(args):
 
 def idle_cores():
     """Return the CPU threads to use: OMP_NUM_THREADS if set, else the cores not busy now."""
-    import os
-
     if os.environ.get("OMP_NUM_THREADS", "").isdigit():
         return max(1, int(os.environ["OMP_NUM_THREADS"]))
     cores = os.cpu_count() or 1
