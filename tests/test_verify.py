@@ -1,5 +1,6 @@
 """Tests of hardware verification: captures made by fab.capture_sim, verified by `doefab verify`."""
 
+import dataclasses
 import json
 import re
 
@@ -7,17 +8,23 @@ import numpy as np
 import pytest
 
 from doe.cli import main
+from doe.errors import InputError
 from doe.files import read_psf, save_npy, write_json
 from doe.fraunhofer import simulate_levels
 from fab.capture import (
+    EXPOSURE_RTOL,
+    PLATEAU_PIXELS,
     RawImage,
+    check_dark,
     condition_capture,
+    hot_pixels_from_dark,
+    read_capture,
     read_raw_image,
     repair_pixels,
     write_image,
 )
 from fab.capture_sim import PlateFaults, plate_far_field, plate_phase, simulate_capture
-from fab.lattice import measure_orders, register_lattice
+from fab.lattice import Lattice, measure_orders, register_lattice
 from fab.verify import (
     analyse,
     design_order_power,
@@ -584,6 +591,7 @@ def test_plate_far_field_refuses_a_tile_that_is_not_square():
 
 def test_repair_pixels_uses_the_neighbour_median():
     img = np.arange(25, dtype=np.float32).reshape(5, 5)
+    img[1, 1] = 500.0  # a bright neighbour (a dot's peak): a mean of the neighbours follows it
     bad = np.zeros((5, 5), bool)
     bad[2, 2] = True
     img2 = img.copy()
@@ -910,3 +918,129 @@ def test_pixel_noise_is_at_least_the_rounding_noise_of_the_codes():
     assert pixel_noise(np.full(100, 7.0)) > 0  # float data: never a zero sigma
     noisy = np.random.default_rng(0).normal(0.0, 3.0, 10_000)
     assert pixel_noise(noisy, quantum=1.0) == pytest.approx(3.0, rel=0.05)
+
+
+def test_registered_origin_is_the_lattice_point_nearest_the_image_centre(levels):
+    # catches rounding the centre's lattice coordinates down: the origin up to a pitch off
+    shape = (300, 300)
+    zero = (np.array(shape) - 1) / 2 - 0.7 * PITCH_PX  # the centre lies 0.7 pitch down-right
+    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, shape=shape, centre=tuple(zero), seed=34)
+    lattice, _ = register_lattice(sim["capture"] >> 4, PITCH_PX)
+    # the order one step down and right lies 0.3 pitch from the centre on each axis
+    assert np.allclose(lattice.origin, zero + PITCH_PX, atol=0.3)
+
+
+@pytest.fixture(scope="module")
+def empty_orders(levels):
+    """A dark frame (integer codes, pedestal between two codes) and the lattice it would hold."""
+    sim = simulate_capture(
+        levels, L, pitch_px=PITCH_PX, centre=(300.0, 300.0), seed=41, bits=16,
+        read_noise_dn=1.0, dark_level_dn=60.3,
+    )  # fmt: skip
+    return sim["dark"].astype(np.float32), Lattice(np.array([300.0, 300.0]), PITCH_PX * np.eye(2))
+
+
+def test_empty_orders_scatter_as_their_reported_sigma(empty_orders):
+    # catches a sigma without the error of the annulus background (about 30 % too small)
+    image, lattice = empty_orders
+    grid = measure_orders(image, lattice, quantum=1.0)
+    z = grid.power[grid.valid] / grid.sigma[grid.valid]
+    assert z.size > 2000  # the std of 2000 unit normals is 1 within 0.016
+    assert np.std(z) == pytest.approx(1.0, abs=0.1)
+
+
+def test_empty_orders_of_integer_codes_measure_no_power(empty_orders):
+    # catches a median background: on integer codes it is off by up to half a DN per
+    # pixel, which summed over thousands of faint orders biases the beam power
+    image, lattice = empty_orders
+    power = measure_orders(image, lattice, quantum=1.0).power
+    power = power[np.isfinite(power)]
+    assert abs(power.mean()) < 4 * power.std() / np.sqrt(power.size)
+
+
+def test_saturated_pixel_outside_the_aperture_flags_no_order(empty_orders):
+    # catches flagging every order whose patch (aperture and annulus) holds a clipped pixel
+    image, lattice = empty_orders
+    saturated = np.zeros(image.shape, bool)
+    saturated[300, 305] = True  # 5 px from order (0, 0): in its annulus, off its aperture
+    r, c = np.rint(lattice.positions(2, 3)).astype(int)
+    saturated[r, c] = True  # on order (2, 3)
+    grid = measure_orders(image, lattice, saturated, quantum=1.0)
+    assert grid.aperture_radius_px < 5
+    (iu,), (iv,) = np.nonzero(grid.u == 2), np.nonzero(grid.v == 3)
+    assert np.array_equal(np.argwhere(grid.saturated), [[iu[0], iv[0]]])
+
+
+def test_aperture_holds_99_percent_of_a_blurred_dot_plus_a_pixel(levels):
+    # catches an aperture sized for 90 % of the light, which loses 1.5 % of blurred dots
+    spot, blur, pitch = 0.3, 1.5, 2 * PITCH_PX
+    sim = simulate_capture(
+        levels, L, pitch_px=pitch, seed=35, bits=16, spot_sigma_px=spot, blur_sigma_px=blur
+    )
+    image = sim["capture"].astype(np.float32) - sim["dark"]
+    lattice, _ = register_lattice(image, pitch)
+    grid = measure_orders(image, lattice, quantum=1.0)
+    # A Gaussian dot of sigma per axis (the pixels add 1/12 px^2) holds 1 - exp(-r^2 / 2 sigma^2)
+    # of its light within r; the radius is searched in 0.25 px steps on a pixel grid.
+    sigma = np.sqrt(spot**2 + blur**2 + 1 / 12)
+    r99 = sigma * np.sqrt(2 * np.log(100))
+    assert grid.aperture_radius_px == pytest.approx(r99 + 1, abs=0.5)
+
+
+def test_16bit_file_with_only_three_low_bits_zero_is_read_as_stored(tmp_path):
+    # catches taking it for 12-bit MSB-aligned data (four low bits zero): a negative shift crashed
+    codes = np.random.default_rng(5).integers(0, 1 << 13, (20, 20)).astype(np.uint16) << 3
+    codes[0, 0] = 8  # bit 3 set
+    write_image(tmp_path / "cap.tif", codes)
+    raw = read_raw_image(tmp_path / "cap.tif")
+    assert raw.encoding == "uint16" and raw.quantum == 1.0
+    assert np.array_equal(raw.data, codes)
+
+
+def test_16bit_file_that_reaches_4095_is_12bit_data_clipped_there(tmp_path):
+    # catches "< 4095": a 12-bit capture with a clipped pixel read as 16-bit data, not saturated
+    codes = np.random.default_rng(6).integers(50, 200, (40, 40)).astype(np.uint16)
+    codes[20, 20] = 4095
+    write_image(tmp_path / "cap.tif", codes)
+    raw = read_raw_image(tmp_path / "cap.tif")
+    assert raw.full_scale == 4095
+    assert np.argwhere(condition_capture(raw).saturated).tolist() == [[20, 20]]
+
+
+def test_dark_frame_exposure_must_match_the_capture_within_the_tolerance():
+    # catches a tolerance ten times too loose: a dark 3 % longer was subtracted
+    raw = RawImage(np.zeros((4, 4), np.uint16), 65535.0, 0.01, encoding="uint16")
+    check_dark(raw, dataclasses.replace(raw, exposure=0.01 * (1 + EXPOSURE_RTOL / 2)), "d.tif")
+    with pytest.raises(InputError, match=r"d\.tif: dark exposure"):
+        check_dark(
+            raw, dataclasses.replace(raw, exposure=0.01 * (1 + 1.5 * EXPOSURE_RTOL)), "d.tif"
+        )
+
+
+def test_dark_frame_stored_otherwise_than_the_capture_is_refused(tmp_path):
+    # catches subtracting a 16-bit LSB dark (DN) from a 12-bit MSB-aligned capture as is
+    rng = np.random.default_rng(8)
+    write_image(tmp_path / "cap.tif", rng.integers(50, 4000, (30, 30)).astype(np.uint16) << 4)
+    write_image(tmp_path / "dark.tif", rng.integers(55, 66, (30, 30)).astype(np.uint16))
+    with pytest.raises(InputError, match=r"dark\.tif: dark frame is stored as uint16 but"):
+        read_capture(tmp_path / "cap.tif", tmp_path / "dark.tif")
+
+
+def test_hot_pixel_ten_sigmas_above_a_2dn_dark_is_flagged():
+    # catches a noise floor of 5 DN: a 2 DN dark then flagged only pixels 50 DN above it
+    dark = np.rint(np.random.default_rng(9).normal(60.0, 2.0, (90, 90))).astype(np.float32)
+    dark[45, 45] += 40.0  # 20 sigma
+    dark[10, 10] += 12.0  # 6 sigma: noise, not hot
+    assert np.argwhere(hot_pixels_from_dark(dark)).tolist() == [[45, 45]]
+
+
+def test_plateau_of_exactly_the_plateau_pixels_marks_a_float_capture_clipped():
+    # catches "> PLATEAU_PIXELS": a plateau of exactly that many pixels was not taken as clipped
+    image = np.random.default_rng(10).normal(10.0, 1.0, (50, 50)).astype(np.float32)
+    rows, cols = np.arange(PLATEAU_PIXELS) * 7 + 5, np.arange(PLATEAU_PIXELS) * 9 + 3
+    image[rows, cols] = 1000.0
+    raw = RawImage(image, None, None, encoding="float", quantum=0.0)
+    assert np.argwhere(condition_capture(raw).saturated).tolist() == np.c_[rows, cols].tolist()
+    fewer = image.copy()
+    fewer[rows[0], cols[0]] = 999.0  # one pixel fewer at the maximum: a peak, not a plateau
+    assert not condition_capture(dataclasses.replace(raw, data=fewer)).saturated.any()
