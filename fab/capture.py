@@ -1,7 +1,8 @@
 """Camera captures of a plate's dot lattice: the one module that opens image files.
 
 Reading goes through OpenImageIO: 8- and 16-bit TIFF/PNG (16-bit data from a
-12-bit sensor may be MSB-aligned, i.e. all four low bits zero) and float
+12-bit sensor may be MSB-aligned, i.e. all four low bits zero; from a 13- to
+15-bit one, 1 to 3 low bits zero) and float
 TIFF/EXR. Integer data is read as integers (OIIO would convert to float unless
 asked), so the saturation code of the file is known exactly. The conditioning
 steps (dark subtraction, hot-pixel repair, noise estimate) are plain functions
@@ -34,7 +35,8 @@ class RawImage:
         uint8/uint16 as stored (MSB-aligned 12-bit data already shifted down),
         or float32 for float files.
     full_scale : float or None
-        Largest code the sensor can report (255, 4095, 65535); None for float files.
+        Largest code the sensor can report (255, 4095, 65532 for 14 bits MSB-aligned,
+        65535); None for float files.
     exposure : float or None
         Exposure time in seconds from the file's metadata, when present.
     notes : tuple of str
@@ -43,7 +45,8 @@ class RawImage:
         "uint8", "uint16", "uint16-msb12" or "float": how the codes are stored.
     quantum : float
         Step between two codes in the units of ``data`` (1 for integer data, 4 for
-        10-bit data MSB-aligned, as its codes read in 12-bit DN); 0 for float data.
+        10-bit data MSB-aligned, as its codes read in 12-bit DN, 4 for 14-bit data
+        MSB-aligned, whose codes are kept as stored); 0 for float data.
     """
 
     data: np.ndarray
@@ -178,6 +181,17 @@ def read_raw_image(path):
     elif fmt == "uint16" and data.max() <= 4095:
         full = 4095.0  # 12-bit data stored LSB-aligned: it saturates at 4095, not 65535
         notes.append("16-bit file with values <= 4095: taken as 12-bit data (saturates at 4095)")
+    elif fmt == "uint16" and not np.any(data & 1):
+        # 13- to 15-bit sensors written MSB-aligned leave 1 to 3 low bits zero and clip
+        # at their own top code (65532 for 14 bits): at 65535, one or two clipped pixels
+        # (fewer than a plateau) went unflagged. Codes are kept as stored.
+        zeros = _trailing_zero_bits(data)
+        quantum = float(1 << zeros)
+        full = 65536.0 - quantum
+        notes.append(
+            f"{16 - zeros}-bit data MSB-aligned in 16 bits (low {zeros} bits all zero): "
+            f"full scale {full:g}"
+        )
     return RawImage(np.ascontiguousarray(data), full, exposure, tuple(notes), encoding, quantum)
 
 

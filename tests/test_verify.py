@@ -993,8 +993,20 @@ def test_16bit_file_with_only_three_low_bits_zero_is_read_as_stored(tmp_path):
     codes[0, 0] = 8  # bit 3 set
     write_image(tmp_path / "cap.tif", codes)
     raw = read_raw_image(tmp_path / "cap.tif")
-    assert raw.encoding == "uint16" and raw.quantum == 1.0
+    assert raw.encoding == "uint16" and raw.quantum == 8.0  # 13-bit codes, 8 apart
     assert np.array_equal(raw.data, codes)
+
+
+@pytest.mark.parametrize("bits", [13, 14, 15])
+def test_one_clipped_pixel_of_a_msb_aligned_13_to_15_bit_capture_is_saturated(tmp_path, bits):
+    # at 65535 the sensor's top code (65532 for 14 bits) went unflagged, below a plateau
+    shift = 16 - bits
+    codes = np.random.default_rng(bits).integers(50, 3000, (40, 40)).astype(np.uint16) << shift
+    codes[7, 9] = ((1 << bits) - 1) << shift
+    write_image(tmp_path / "cap.tif", codes)
+    raw = read_raw_image(tmp_path / "cap.tif")
+    assert raw.full_scale == 65536 - 2**shift and raw.quantum == 2**shift
+    assert np.argwhere(condition_capture(raw).saturated).tolist() == [[7, 9]]
 
 
 def test_16bit_file_that_reaches_4095_is_12bit_data_clipped_there(tmp_path):
