@@ -153,7 +153,8 @@ def test_a_region_too_small_for_the_blur_is_flagged(size, small, tmp_path, capsy
     assert ("overstates the MTF; give a larger region" in capsys.readouterr().err) is small
 
 
-@pytest.mark.parametrize("contrast, found", [(0.0, False), (4.0, False), (30.0, True)])
+# 8: above MIN_EDGE_SNR (5) times the noise; catches the two sides' noises summed, not averaged
+@pytest.mark.parametrize("contrast, found", [(0.0, False), (4.0, False), (8.0, True), (30.0, True)])
 def test_edge_must_stand_out_of_the_noise(contrast, found):
     # Pixel noise 1: a pure-noise image once passed as an edge with MTF50 NaN.
     img = gaussian_edge(1.0, 5, low=100.0, high=100.0 + contrast, noise=1.0, seed=3)
@@ -230,3 +231,29 @@ def test_an_edge_at_a_simple_fraction_slope_reads_its_mtf50(slope, sigma):
     r = slanted_edge_mtf(gaussian_edge(sigma, np.degrees(np.arctan(slope))))
     mtf50 = np.sqrt(np.log(2) / (2 * np.pi**2)) / sigma
     assert r["mtf50_cycles_per_pixel"] == pytest.approx(mtf50, rel=0.012)
+
+
+def test_a_falling_edge_reads_the_mtf_of_the_rising_one():
+    # catches a line spread left negative for a bright-to-dark edge: noiseless, it read
+    # "no contrast"; the edge mirrored left to right has the same MTF
+    sigma = 1.0
+    r = slanted_edge_mtf(gaussian_edge(sigma, 5)[:, ::-1])
+    f, m = np.array(r["frequencies_cycles_per_pixel"]), np.array(r["mtf"])
+    sel = f <= 0.5
+    assert np.max(np.abs(m[sel] - analytic_mtf(f[sel], sigma))) < 0.02
+    assert r["mtf50_cycles_per_pixel"] == pytest.approx(
+        np.sqrt(np.log(2) / (2 * np.pi**2)) / sigma, rel=0.03
+    )
+
+
+def test_rows_where_the_edge_is_hidden_are_left_out_of_the_line_fit():
+    # catches fitting every row: the noise centroids of rows above the chart's corner
+    # (here 40 rows of flat bright field) pulled the line off the edge
+    img = gaussian_edge(1.0, 5, noise=1.0, seed=2)
+    img[:40] = 220.0 + np.random.default_rng(5).normal(0, 1.0, (40, img.shape[1]))
+    r = slanted_edge_mtf(img)
+    assert r["rows_used"] == img.shape[0] - 40
+    assert r["edge_angle_deg"] == pytest.approx(5.0, abs=0.1)
+    assert r["mtf50_cycles_per_pixel"] == pytest.approx(
+        np.sqrt(np.log(2) / (2 * np.pi**2)), rel=0.03
+    )

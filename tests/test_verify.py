@@ -254,6 +254,8 @@ def test_ambiguous_zero_order_is_reported_not_passed(tmp_path, half_order_levels
     assert "zero_order_ambiguous" in report["diagnosis"]
     assert report["window_snr"] > 30  # not merely low signal
     assert any("ambiguous" in note for note in report["notes"])
+    # catches handing on its PSF: measured at the wrong zero order, it may be the reflection's
+    assert report["measured_psf_usable"] is False
 
 
 def test_other_design_fails(tmp_path, levels):

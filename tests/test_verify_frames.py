@@ -3,6 +3,8 @@
 Each test states an analytic expectation; none depends on a simulated camera.
 """
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -126,3 +128,74 @@ def test_noisy_figures_fail_only_when_they_miss_by_the_significance():
     assert diagnose(_good_result(efficiency=e_min - 0.03), t) == ["low_efficiency"]  # 3 sigma
     assert diagnose(_good_result(zero_order=z_max + 0.001), t) == ["ok"]
     assert diagnose(_good_result(zero_order=z_max + 0.003), t) == ["zero_order_excess"]
+    # 1.5 sigma past the limit still passes: the 1-sigma cases above sit on a rounding edge
+    assert diagnose(_good_result(efficiency=e_min - 0.015, zero_order=z_max + 0.0015), t) == ["ok"]
+
+
+def test_default_thresholds_are_relative_to_the_design_and_fail_a_psf_below_095():
+    # catches a default correlation_min under the documented 0.95 and absolute limits
+    t = resolve_thresholds(None, design_efficiency=0.6, design_zero_order=0.05)
+    assert t["efficiency_min"] == pytest.approx(0.85 * 0.6)
+    assert t["zero_order_max"] == pytest.approx(0.05 + 0.01)
+    assert diagnose(_good_result(correlation=0.93), t) == ["psf_mismatch"]
+
+
+def test_a_deep_etch_fit_under_three_sigma_does_not_fail_the_plate():
+    # catches a chi-square bar of 4 (2 sigma): a one-parameter fit to noise alone drops
+    # the chi-square by over 4 in 4.6 % of captures, by over 9 (3 sigma) in 0.27 %
+    t = resolve_thresholds(None, design_efficiency=0.80, design_zero_order=0.01)
+    fit = {"deep_etch_error_fit": -0.15}
+    assert diagnose(_good_result(**fit, deep_etch_error_fit_significance=6.0), t) == ["ok"]
+    failing = _good_result(**fit, deep_etch_error_fit_significance=12.0)
+    assert diagnose(failing, t) == ["deep_etch_error"]
+
+
+def test_a_window_under_30_times_its_noise_is_low_signal():
+    # catches a lower signal-to-noise bar than the documented MIN_WINDOW_SNR of 30
+    t = resolve_thresholds(None, design_efficiency=0.80, design_zero_order=0.01)
+    assert diagnose(_good_result(window_snr=20.0), t) == ["low_signal"]
+
+
+@pytest.mark.parametrize(
+    "fault, change", [("saturated", {"saturated_dots": 3}), ("low_signal", {"window_snr": 5.0})]
+)
+def test_a_clipped_or_noisy_capture_is_not_called_another_design(fault, change):
+    # catches "other_design" added after these: the window of a clipped or noisy capture
+    # correlates poorly with any design, and the lab would remake a good plate
+    t = resolve_thresholds(None, design_efficiency=0.80, design_zero_order=0.01)
+    poor = _good_result(correlation=0.6, correlation_with_fitted_etch=0.6, **change)
+    assert diagnose(poor, t) == [fault]
+
+
+# Each reflected plate, made independently of fab.verify: conjugate = etch and glass swapped.
+REFLECTED_PLATES = {
+    "mirror-x": (lambda lv: lv[:, ::-1], "mirrored"),
+    "mirror-y": (lambda lv: lv[::-1, :], "mirrored"),
+    "conjugate": (lambda lv: (L - 1 - lv).astype(np.uint8), "conjugate_plate"),
+}
+
+
+@pytest.mark.parametrize("fault", sorted(REFLECTED_PLATES))
+def test_every_reflected_plate_is_named_for_its_fault(fault):
+    # catches naming a plate flipped top to bottom (mirror-y) a conjugate plate
+    levels = np.random.default_rng(7).integers(0, L, (N, N)).astype(np.uint8)
+    make, code = REFLECTED_PLATES[fault]
+    plate = np.ascontiguousarray(make(levels))
+    _, efficiency = simulate_levels(levels, L, K)
+    t = resolve_thresholds(None, efficiency, design_order_power(levels, L)[0, 0])
+    result, _ = analyse(_grid(plate, (21, 25), (10, 12)), levels, L, K, "as-designed", t)
+    assert result["diagnosis"] == [code]
+
+
+def test_a_clipped_dot_outside_the_window_marks_the_capture_saturated():
+    # catches counting clipped dots in the K x K window only: one outside it takes light
+    # from the beam power, and the efficiency reads high
+    levels = np.random.default_rng(7).integers(0, L, (N, N)).astype(np.uint8)
+    _, efficiency = simulate_levels(levels, L, K)
+    t = resolve_thresholds(None, efficiency, design_order_power(levels, L)[0, 0])
+    grid = _grid(levels, (21, 25), (10, 12))
+    saturated = np.zeros(grid.power.shape, bool)
+    saturated[1, 2] = True  # order (-9, -10), outside the window
+    grid = dataclasses.replace(grid, saturated=saturated)
+    result, _ = analyse(grid, levels, L, K, "as-designed", t)
+    assert result["saturated_in_window"] == 0 and result["diagnosis"] == ["saturated"]
