@@ -266,6 +266,48 @@ def test_evaluation_is_deterministic_and_noisy():
     assert evaluate(_flat_model(0.0), ["x"], img)["psnr"] > a["psnr"]
 
 
+class _Fixed(torch.nn.Module):
+    """A "network" that ignores the frame and returns a fixed (H, W) estimate."""
+
+    def __init__(self, estimate):
+        super().__init__()
+        self.estimate = torch.as_tensor(estimate, dtype=torch.float32)[None, None]
+
+    def forward(self, frame):
+        return self.estimate
+
+
+def _fixed_model(estimate):
+    return SRModel(_Fixed(estimate), delta_psf(K), SensorModel(POINT, 0.0), None)
+
+
+def test_psnr_and_ssim_of_a_known_error_inside_the_border_crop():
+    # catches 20 log10 of the MSE, a border cropped on one side only (or transposed, or
+    # none by default), SSIM of the wrong pair or with a data range of 255
+    image = np.full((24, 32), 0.5)
+    estimate = np.full((24, 32), 0.6)
+    estimate[:4], estimate[-4:], estimate[:, :4], estimate[:, -4:] = 0.0, 1.0, 0.0, 1.0
+    psnr, ssim, _ = evaluate_image(_fixed_model(estimate), image)
+    assert psnr == pytest.approx(20.0, abs=1e-4)  # MSE 0.1^2 -> 10 log10(1 / 0.01)
+    # constant images: SSIM is the luminance term alone, C1 = (0.01 * data range)^2
+    c1 = 0.01**2
+    assert ssim == pytest.approx((2 * 0.5 * 0.6 + c1) / (0.5**2 + 0.6**2 + c1), rel=1e-5)
+
+
+def test_the_estimate_is_clipped_to_the_unit_range_before_scoring():
+    # catches a dropped clamp: 1.05 counts as 1.0 against 0.95, an MSE of 0.05^2
+    psnr, _, est = evaluate_image(_fixed_model(np.full((24, 32), 1.05)), np.full((24, 32), 0.95))
+    assert est.max() == 1.0
+    assert psnr == pytest.approx(10 * np.log10(1 / 0.05**2), abs=1e-4)
+
+
+def test_each_image_gets_its_own_noise():
+    # catches one noise seed reused for every image: equal images would then score equally
+    img = dead_leaves(32, np.random.default_rng(0), n_disks=100)
+    per = evaluate(_flat_model(100.0), ["a", "b"], [img, img])["images"]
+    assert per["a"]["psnr"] != per["b"]["psnr"]
+
+
 def test_super_resolve_shapes_and_photon_scaling():
     model = _flat_model(100.0)
     frames = np.random.default_rng(0).poisson(50, size=(2, 3, 6, 5)).astype(float)

@@ -45,6 +45,46 @@ def test_a_target_that_breaks_the_contract_is_refused(make, problem):
         make()
 
 
+def test_a_gaussian_with_a_non_positive_sigma_x_is_refused():
+    # catches sigma_x left unchecked: a negative one would be squared into a valid PSF
+    for sx in (0.0, -1.0):
+        with pytest.raises(ValueError, match="sigmas > 0"):
+            targets.gaussian(11, 1.0, sigma_x=sx)
+
+
+def test_gaussian_axes_rotation_and_centre_follow_the_sensor_orientation():
+    # catches sigma_x applied along y, a clockwise rotation and a centre of the wrong sign;
+    # neighbour ratios of a sampled Gaussian are exp(-d^2 / (2 sigma^2)) along each axis
+    t = targets.gaussian(11, sigma=0.7, sigma_x=2.2)
+    assert t[5, 7] / t[5, 5] == pytest.approx(np.exp(-0.5 * (2 / 2.2) ** 2), rel=1e-12)
+    assert t[7, 5] / t[5, 5] == pytest.approx(np.exp(-0.5 * (2 / 0.7) ** 2), rel=1e-12)
+    # turned 45 degrees counter-clockwise on the sensor (rows grow downwards): the long
+    # axis runs to the upper right, where (row 3, column 7) lies sqrt(8) along it
+    t = targets.gaussian(11, sigma=0.5, sigma_x=3.0, angle=np.pi / 4)
+    assert t[3, 7] / t[5, 5] == pytest.approx(np.exp(-0.5 * 8 / 3.0**2), rel=1e-12)
+    assert t[7, 7] / t[5, 5] == pytest.approx(np.exp(-0.5 * 8 / 0.5**2), rel=1e-12)
+    # centre (y, x) = (1, -2): one row down, two columns left of the axis
+    t = targets.gaussian(11, 1.0, centre=(1.0, -2.0))
+    assert np.unravel_index(t.argmax(), t.shape) == (6, 3)
+
+
+def test_square_and_two_lobes_sit_where_their_parameters_say():
+    # catches a square shifted by one and lobes placed separation / 2 along each axis
+    lit = np.argwhere(targets.square(11, 5) > 0)
+    assert lit.min(axis=0).tolist() == [3, 3] and lit.max(axis=0).tolist() == [7, 7]
+    # separation 4 sqrt(2) on the diagonal: lobes at (-2, -2) and (+2, +2) from the axis
+    t = targets.two_lobes(11, separation=4 * np.sqrt(2), sigma=0.8, ratio=0.6)
+    peaks = np.argsort(t.ravel())[-2:]
+    assert sorted(np.unravel_index(i, t.shape) for i in peaks) == [(3, 3), (7, 7)]
+    assert t[7, 7] / t[3, 3] == pytest.approx(0.6, rel=1e-9)
+
+
+def test_random_dots_draw_every_count_from_3_to_9():
+    # catches a drawn count range that stops at 8 (the docstring's 3-9 dots)
+    counts = {int((targets.random_dots(11, seed=s) > 0).sum()) for s in range(60)}
+    assert counts == set(range(3, 10))
+
+
 def test_unknown_target_is_refused():
     with pytest.raises(ValueError, match="unknown target"):
         targets.make_target("nope")
@@ -338,6 +378,18 @@ def test_quantised_gs_lands_on_the_levels():
     np.testing.assert_allclose(steps, np.round(steps), atol=1e-12)
 
 
+def test_quantised_gs_projects_onto_the_nearest_level():
+    # catches a projection that rounds down: one quantised iteration lies within half a
+    # step of the plain iteration from the same start (the same first order-plane step)
+    target = targets.compact_blob(5)
+    start = np.random.default_rng(16).uniform(-np.pi, np.pi, (17, 17))
+    plain, _ = retrieval.gerchberg_saxton(target, 17, 1, phase=start)
+    quantised, _ = retrieval.gerchberg_saxton(target, 17, 1, phase=start, n_levels=4)
+    err = np.angle(np.exp(1j * (quantised - plain)))
+    assert np.abs(err).max() <= np.pi / 4 + 1e-9
+    assert np.abs(err).max() > np.pi / 8  # the rounding is not a no-op
+
+
 @settings(max_examples=30, deadline=None)
 @given(st.integers(0, 2**32 - 1), st.sampled_from([2, 4, 8, 16]))
 def test_rounding_levels_is_idempotent(seed, n_levels):
@@ -406,6 +458,12 @@ def test_retrieval_is_deterministic_for_a_seed():
     assert one.levels.tobytes() == two.levels.tobytes()
     assert one.phase.tobytes() == two.phase.tobytes()
     assert one.levels.tobytes() != other.levels.tobytes()
+
+
+def test_retrieved_continuous_phase_lies_in_one_turn():
+    # catches the raw L-BFGS phase returned unwrapped (docs/retrieve.md: rad in [0, 2 pi))
+    res = retrieval.retrieve_phase(targets.compact_blob(5), 17, 8, seed=0)
+    assert res.phase.min() >= 0 and res.phase.max() < 2 * np.pi
 
 
 def test_several_finishes_keep_the_most_efficient_design_within_the_cap():
