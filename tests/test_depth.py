@@ -15,6 +15,7 @@ from psf_learn.depth import (
     FWHM_PER_SIGMA,
     SPEED_OF_LIGHT,
     GateModel,
+    Response,
     check_scan,
     expected_counts,
     fit_profiles,
@@ -69,6 +70,26 @@ def test_rc_gate_follows_rise_and_fall_constants():
     for t_ps in (230, 260, 320):
         assert h(-t_ps * PS) == pytest.approx(np.exp(-(t_ps - 200) / 60), abs=2e-3)
     assert h(20 * PS) < 1e-6  # a gate opening after the light sees none of it
+
+
+def test_a_point_gate_reproduces_the_pulse_and_its_fwhm():
+    # Catches the pulse sigma taken as FWHM / sqrt(2 ln 2) instead of FWHM / 2.355.
+    model = GateModel(width=1 * PS, rise=0.0, fall=0.0, band_sigma=0.0, pulse_fwhm=300 * PS)
+    assert gate_response(model).fwhm == pytest.approx(300 * PS, abs=2 * PS)
+
+
+def test_an_unblurred_rectangular_gate_has_its_width_as_fwhm():
+    # Catches a FWHM taken as the count of samples above half (one step too long).
+    for width in (137 * PS, 200 * PS):
+        model = GateModel(width=width, rise=0.0, fall=0.0, band_sigma=0.0, pulse_fwhm=1e-14)
+        assert gate_response(model).fwhm == pytest.approx(width, abs=0.5 * PS)
+
+
+def test_response_interpolates_linearly_between_its_samples():
+    # Catches the table index rounded instead of floored (a backward extrapolation).
+    r = Response(start=10.0, step=2.0, values=np.array([0.0, 1.0, 4.0, 9.0]))
+    x = np.array([11.0, 13.2, 14.5, 16.0, 7.0, 30.0])
+    np.testing.assert_allclose(r(x), [0.5, 1.0 + 0.6 * 3, 4.0 + 0.25 * 5, 9.0, 0.0, 0.0])
 
 
 def test_emg_pulse_delays_the_centroid_by_tau():
@@ -243,6 +264,71 @@ def test_all_zero_pixels_are_no_return(response):
     assert not fit.valid.any() and np.isnan(fit.timing).all()
 
 
+@pytest.mark.parametrize("side", [-1, 1])
+def test_a_profile_peaking_just_outside_the_scan_is_still_timed(response, side):
+    # Catches a mu range without its half-FWHM margin beyond the scan (docs/depth.md).
+    times = scan_times(T, SHIFT)
+    end = times[-1] if side > 0 else times[0]
+    mu = end - response.peak_time + side * 60 * PS  # peak 60 ps past an end: FWHM/2 is 156
+    fit = fit_profiles(expected_counts(response, times, 1000.0, mu, 2.0)[None], SHIFT, response)
+    assert fit.valid.all()
+    np.testing.assert_allclose(fit.timing, mu, atol=0.1 * PS)
+
+
+def test_the_grid_search_alone_starts_close_to_the_truth(response):
+    # Catches a wrong sign of the parabola refinement or of the intercept b = mean - A mean(h),
+    # and a grid block that drops its left neighbour (arrivals every 5 ps span all blocks).
+    mu = np.linspace(500, 1900, 281) * PS
+    times = scan_times(T, SHIFT)
+    cube = expected_counts(response, times, np.full(mu.size, 300.0), mu, np.full(mu.size, 10.0))
+    fit = fit_profiles(cube, SHIFT, response, max_iter=0)  # no likelihood iterations
+    assert fit.valid.all()
+    # The grid spacing is ~12.5 ps; the vertex of the parabola lands well within a step.
+    np.testing.assert_allclose(fit.timing, mu, atol=1 * PS)
+    np.testing.assert_allclose(fit.amplitude, 300.0, rtol=0.01)
+    np.testing.assert_allclose(fit.background, 10.0, atol=0.1)
+
+
+def test_fit_quality_of_a_return_is_its_model_deviance_per_dof(response):
+    # Catches the returns' deviance divided by T - 1 instead of T - 3 (three fitted parameters).
+    a, mu, b = scene((4, 4), 80.0, 4.0, response, seed=22)
+    cube = simulate_cube(a, mu, b, T, SHIFT, response, np.random.default_rng(23))
+    fit = fit_profiles(cube, SHIFT, response)
+    assert fit.valid.all()
+    m = expected_counts(response, scan_times(T, SHIFT), fit.amplitude, fit.timing, fit.background)
+    y = cube.astype(float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dev = 2 * np.sum(np.where(y > 0, y * np.log(y / m), 0.0) - (y - m), axis=-1)
+    np.testing.assert_allclose(fit.fit_quality, dev / (T - 3), rtol=1e-6)
+
+
+def test_the_fit_is_at_least_as_likely_as_the_truth(response):
+    # Catches Levenberg-Marquardt damping that grows on accepted steps (stalls before the maximum).
+    rng = np.random.default_rng(45)
+    mu = rng.uniform(700, 1700, 500) * PS
+    truth = expected_counts(response, scan_times(T, SHIFT), 3.0, mu, 0.1)
+    cube = rng.poisson(truth).astype(float)
+    fit = fit_profiles(cube, SHIFT, response)
+
+    def log_likelihood_ratio(m):  # 2 (log L(m) - log L(constant mean)), Poisson
+        mean = cube.mean(axis=1, keepdims=True)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return 2 * np.sum(np.where(cube > 0, cube * np.log(m / mean), 0.0) - (m - mean), axis=1)
+
+    # The maximum-likelihood estimate is never less likely than the true parameters.
+    assert (fit.significance >= log_likelihood_ratio(truth) - 1e-6).all()
+
+
+def test_a_pixel_that_reaches_the_threshold_exactly_is_a_return(response):
+    # Catches "significance > threshold" where the contract is "reaches" (>=).
+    a, mu, b = scene((1, 3), 5.0, 2.0, response, seed=25)
+    cube = simulate_cube(a, mu, b, T, SHIFT, response, np.random.default_rng(26))
+    s = fit_profiles(cube, SHIFT, response, threshold=0.0).significance
+    assert (s > 0).all()
+    for k, level in enumerate(s.ravel()):
+        assert fit_profiles(cube, SHIFT, response, threshold=level).valid.ravel()[k]
+
+
 # --- the measured-IRF path ---------------------------------------------------------------
 
 
@@ -262,6 +348,16 @@ def test_irf_cut_by_the_scan_is_extended_and_serves_every_arrival(response, edge
     fit = fit_profiles(simulate_cube(a, mu, b, T, SHIFT, response), SHIFT, from_irf)
     assert fit.valid.all()
     np.testing.assert_allclose(fit.timing, mu, atol=2 * PS)
+
+
+def test_negative_irf_noise_is_clipped_to_zero(response):
+    # Catches an IRF whose negative (background-subtracted) noise reaches the spline.
+    rng = np.random.default_rng(27)
+    irf = response(scan_times(T, SHIFT) - 1200 * PS) + rng.normal(0, 0.01, T)
+    assert (irf < 0).any()
+    noisy, clipped = response_from_irf(irf, SHIFT), response_from_irf(np.clip(irf, 0, None), SHIFT)
+    assert noisy.start == clipped.start
+    np.testing.assert_array_equal(noisy.values, clipped.values)
 
 
 def test_irf_reference_time_shifts_the_response(response):
