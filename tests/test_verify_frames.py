@@ -72,13 +72,18 @@ def _grid(levels, shape, zero):
     )  # fmt: skip
 
 
+def _random_design():
+    """A random 8-level tile and the default thresholds of its own figures."""
+    levels = np.random.default_rng(7).integers(0, L, (N, N)).astype(np.uint8)
+    _, efficiency = simulate_levels(levels, L, K)
+    return levels, resolve_thresholds(None, efficiency, design_order_power(levels, L)[0, 0])
+
+
 @pytest.mark.parametrize("axis", [0, 1])
 def test_window_that_touches_the_frame_edge_is_measured_and_one_past_it_is_not(axis):
-    levels = np.random.default_rng(7).integers(0, L, (N, N)).astype(np.uint8)
+    levels, thresholds = _random_design()
     half = K // 2
     zero = [10, 12]
-    _, efficiency = simulate_levels(levels, L, K)
-    thresholds = resolve_thresholds(None, efficiency, design_order_power(levels, L)[0, 0])
     # last window row (or column) is the frame's last one: in frame, a K x K PSF
     shape = [21, 25]
     shape[axis] = zero[axis] + half + 1
@@ -178,11 +183,9 @@ REFLECTED_PLATES = {
 @pytest.mark.parametrize("fault", sorted(REFLECTED_PLATES))
 def test_every_reflected_plate_is_named_for_its_fault(fault):
     # catches naming a plate flipped top to bottom (mirror-y) a conjugate plate
-    levels = np.random.default_rng(7).integers(0, L, (N, N)).astype(np.uint8)
+    levels, t = _random_design()
     make, code = REFLECTED_PLATES[fault]
     plate = np.ascontiguousarray(make(levels))
-    _, efficiency = simulate_levels(levels, L, K)
-    t = resolve_thresholds(None, efficiency, design_order_power(levels, L)[0, 0])
     result, _ = analyse(_grid(plate, (21, 25), (10, 12)), levels, L, K, "as-designed", t)
     assert result["diagnosis"] == [code]
 
@@ -190,9 +193,7 @@ def test_every_reflected_plate_is_named_for_its_fault(fault):
 def test_a_clipped_dot_outside_the_window_marks_the_capture_saturated():
     # catches counting clipped dots in the K x K window only: one outside it takes light
     # from the beam power, and the efficiency reads high
-    levels = np.random.default_rng(7).integers(0, L, (N, N)).astype(np.uint8)
-    _, efficiency = simulate_levels(levels, L, K)
-    t = resolve_thresholds(None, efficiency, design_order_power(levels, L)[0, 0])
+    levels, t = _random_design()
     grid = _grid(levels, (21, 25), (10, 12))
     saturated = np.zeros(grid.power.shape, bool)
     saturated[1, 2] = True  # order (-9, -10), outside the window
