@@ -18,7 +18,7 @@ from psf_learn.images import dead_leaves
 from psf_learn.network import SRNet
 from psf_learn.psf import LearnedPSF, baseline_psf, box_psf, delta_psf, gaussian_psf
 from psf_learn.sensor import SensorModel
-from psf_learn.sr import SRModel, load_model, super_resolve
+from psf_learn.sr import SRModel, load_model, super_resolve, white_counts
 from psf_learn.train import TrainConfig, default_patch, make_batch, train
 
 K = 11
@@ -54,6 +54,11 @@ def test_learned_psf_is_normalised_for_any_logits():
     psf = LearnedPSF(delta_psf(K))
     psf.logits.data = torch.randn(K, K, generator=torch.Generator().manual_seed(0)) * 5
     p = psf()
+    # softmax ignores a common offset, even one whose exp overflows (float32 logits
+    # near 1000 are rounded to 6e-5)
+    shifted = LearnedPSF(delta_psf(K))
+    shifted.logits.data = psf.logits.data + 1000
+    np.testing.assert_allclose(shifted.numpy(), psf.numpy(), rtol=1e-4)
     assert (p >= 0).all()
     assert p.sum().item() == pytest.approx(1, abs=1e-6)
     exact = psf.numpy()
@@ -70,6 +75,16 @@ def test_learned_psf_starts_at_its_initial_psf_and_frozen_keeps_zeros():
     np.testing.assert_allclose(frozen.numpy(), box_psf(K), atol=1e-12)
 
 
+def test_a_learned_psf_started_from_a_delta_can_move_light_to_any_cell():
+    # Zeros of the start are floored at 1e-6 of the peak: at log 0 the softmax would
+    # hold them at exactly 0, with zero gradient, for ever.
+    psf = LearnedPSF(delta_psf(K))
+    (-psf()[0, 0]).backward()  # a loss that wants light in the corner
+    p0 = 1e-6 / (1 + (K * K - 1) * 1e-6)  # the corner's share at the start
+    # d(-p_0)/dz_0 = -p_0 (1 - p_0) for a softmax
+    assert psf.logits.grad[0, 0].item() == pytest.approx(-p0 * (1 - p0), rel=1e-4)
+
+
 @pytest.mark.parametrize("sigma", [0.01, 1e-200])
 def test_a_gaussian_narrower_than_a_cell_tends_to_its_limit(sigma):
     # Centred between cells every sample underflowed: 0 / 0, then a flat 11 x 11 PSF.
@@ -79,6 +94,30 @@ def test_a_gaussian_narrower_than_a_cell_tends_to_its_limit(sigma):
     np.testing.assert_allclose(between, expected, atol=1e-12)
     on_axis = gaussian_psf(K, sigma)
     assert on_axis[K // 2, K // 2] == pytest.approx(1)
+
+
+@pytest.mark.parametrize("sigma", [0.8, 1.0, 1.2])
+def test_a_gaussian_psf_has_the_variance_of_its_sigma(sigma):
+    # A sampled Gaussian's variance is sigma^2 but for aliasing (Poisson summation:
+    # terms in exp(-2 pi^2 sigma^2), 3e-6 at sigma 0.8) and the cut at 4.5 cells from a
+    # centre between cells (3.7 sigma at sigma 1.2): both well under 1e-3.
+    r = np.arange(K) - K // 2
+    for centre in [(0.0, 0.0), (0.5, 0.5)]:
+        g = gaussian_psf(K, sigma, centre)
+        for axis, c in enumerate(centre):
+            marginal = g.sum(axis=1 - axis)
+            mean = marginal @ r
+            assert mean == pytest.approx(c, abs=1e-12)
+            assert marginal @ (r - mean) ** 2 == pytest.approx(sigma**2, rel=1e-3)
+
+
+@pytest.mark.parametrize("centre", [(1.5, -1.0), (-2.0, 0.5)])
+def test_a_gaussian_psf_keeps_its_centroid_at_any_centre(centre):
+    # The window is cut symmetric about the centre (whole or half cells: the pixel
+    # centres of point samples), which a wide Gaussian's tails reach.
+    g = gaussian_psf(K, 3.0, centre)
+    r = np.arange(K) - K // 2
+    np.testing.assert_allclose((g.sum(axis=1) @ r, g.sum(axis=0) @ r), centre, atol=1e-12)
 
 
 def test_baseline_psfs():
@@ -308,6 +347,13 @@ def test_each_image_gets_its_own_noise():
     assert per["a"]["psnr"] != per["b"]["psnr"]
 
 
+def test_super_resolve_removes_the_dark_counts_the_model_was_trained_with():
+    # the flat model upsamples: a uniform frame of 50 counts, 5 of them dark, is 45 of light
+    model = _flat_model(100.0)
+    dark = SRModel(model.net, model.psf, SensorModel(POINT, 100.0, dark_counts=5.0), None)
+    np.testing.assert_allclose(super_resolve(dark, np.full((4, 5), 50.0)), 45.0, atol=1e-5)
+
+
 def test_super_resolve_shapes_and_photon_scaling():
     model = _flat_model(100.0)
     frames = np.random.default_rng(0).poisson(50, size=(2, 3, 6, 5)).astype(float)
@@ -321,6 +367,8 @@ def test_super_resolve_shapes_and_photon_scaling():
         rtol=1e-5,
         atol=1e-6,
     )
+    # A model trained without noise saw frames scaled to white = 1.
+    assert white_counts(model) == 100.0 and white_counts(_flat_model(0.0)) == 1.0
     # A white level of 0 or NaN has no meaning: refused, not replaced or spread as NaN.
     for white in (0.0, -5.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="photons"):
@@ -875,6 +923,7 @@ def test_evaluate_and_sr_refuse_bad_inputs(trained, tmp_path, capsys):
         lambda r: r["sensor"].update(photons=float("nan")),  # ran, writing NaN
         lambda r: r["sensor"].update(weights=[]),  # tracebacks: a broadcast error
         lambda r: r["sensor"].update(weights=[[1 / 9] * 3] * 3),  # for a factor-4 network
+        lambda r: r["sensor"].update(weights=[[1 / 8] * 4] * 4),  # twice the light
         lambda r: r["sensor"].update(dark_counts=-1.0),
         lambda r: r["network"].update(factor=3),  # six lines of torch's size mismatches
     ],

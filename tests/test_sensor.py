@@ -89,7 +89,15 @@ def test_box_psf_with_point_sample_is_the_block_mean():
     )
 
 
-@pytest.mark.parametrize("sensor_toml", ["", "active_area_um = 40.0\n", "active_area_um = 100.0\n"])
+@pytest.mark.parametrize(
+    "sensor_toml",
+    [
+        "",
+        "active_area_um = 40.0\n",
+        "active_area_um = 100.0\n",
+        "active_offset_um = [37.5, 0.0]\n",  # samples cell (2, 3): rows and columns differ
+    ],
+)
 def test_gaussian_baseline_shows_each_pixel_its_own_centre(tmp_path, sensor_toml):
     # The response of pixel (4, 4) to unit impulses has its centroid at the block's
     # centre, 17.5 sub-pixels; built for the argmax cell of a 40 um disc (four cells
