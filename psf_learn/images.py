@@ -198,9 +198,7 @@ def dead_leaves(size, rng, n_disks=3000, r_min=1.5, r_max=None):
     """
     r_max = r_max or size / 4
     img = np.full((size, size), rng.uniform(), dtype=np.float32)
-    u = rng.uniform(size=n_disks)
-    # inverse CDF of p(r) ~ r^-3 on [r_min, r_max]
-    radii = 1.0 / np.sqrt(1 / r_min**2 - u * (1 / r_min**2 - 1 / r_max**2))
+    radii = power_law_radii(rng.uniform(size=n_disks), r_min, r_max)
     for r in np.sort(radii)[::-1]:  # large discs first, small ones on top
         cy, cx = rng.uniform(-r, size + r, size=2)
         y0, y1 = max(int(cy - r), 0), min(int(cy + r) + 2, size)
@@ -212,6 +210,14 @@ def dead_leaves(size, rng, n_disks=3000, r_min=1.5, r_max=None):
         grey = rng.uniform() + rng.normal(0, 0.002) * ((yy - cy) + (xx - cx))
         img[y0:y1, x0:x1][inside] = np.clip(grey, 0, 1)[inside]
     return img
+
+
+def power_law_radii(u, r_min, r_max):
+    """Return radii with density p(r) ~ r^-3 on [r_min, r_max] from uniform ``u`` in [0, 1].
+
+    The inverse of the CDF F(r) = (r_min^-2 - r^-2) / (r_min^-2 - r_max^-2).
+    """
+    return 1.0 / np.sqrt(1 / r_min**2 - np.asarray(u) * (1 / r_min**2 - 1 / r_max**2))
 
 
 def default_images(seed=0, n_dead_leaves=8, size=256):

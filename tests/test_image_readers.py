@@ -237,6 +237,38 @@ def test_float_training_images_must_lie_in_zero_one(tmp_path):
         read_image(tmp_path / "signed.tif")
 
 
+def test_nan_pixels_in_a_float_training_image_are_refused(tmp_path):
+    # NaN slips past the [0, 1] range check (nanmin and nanmax skip it)
+    from psf_learn.images import to_gray
+
+    image = np.full((6, 6), 0.5, np.float32)
+    image[2, 3] = np.nan
+    with pytest.raises(InputError, match=r"img\.tif.*NaN"):
+        to_gray(image, tmp_path / "img.tif")
+
+
+def test_an_image_folder_takes_images_of_exactly_the_minimum_size(tmp_path):
+    from psf_learn.images import read_folder
+
+    write_image(tmp_path / "a.png", np.full((16, 20), 200, np.uint8))
+    assert read_folder(tmp_path, min_size=16)[1][0].shape == (16, 20)
+    with pytest.raises(InputError, match=r"a\.png.*smaller than 17"):
+        read_folder(tmp_path, min_size=17)
+
+
+def test_dead_leaves_radii_have_density_r_to_the_minus_3():
+    # F(r) by integrating r^-3 numerically; the radii must invert it
+    from scipy.integrate import quad
+
+    from psf_learn.images import power_law_radii
+
+    r_min, r_max = 1.5, 64.0
+    total = quad(lambda r: r**-3, r_min, r_max)[0]
+    for r in (1.5, 2.0, 3.7, 10.0, 64.0):
+        cdf = quad(lambda x: x**-3, r_min, r)[0] / total
+        assert power_law_radii(cdf, r_min, r_max) == pytest.approx(r, rel=1e-9)
+
+
 def test_raw_stack_without_frames_is_refused(tmp_path):
     # A (0, H, W) stack once went through `sr` and left empty outputs behind.
     np.save(tmp_path / "none.npy", np.zeros((0, 8, 8)))
