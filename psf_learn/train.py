@@ -80,6 +80,11 @@ class CodedCamera(nn.Module):
         frames = simulate_capture(scenes, self.psf(), self.sensor, padding="valid", seeds=seeds)
         return self.net(frames)
 
+    def centres(self, scenes):
+        """Return the (B, 1, P, P) centres of scenes that :meth:`forward` estimates."""
+        m = self.psf.logits.shape[-1] // 2  # the valid convolution trims K // 2 per side
+        return scenes[..., m : scenes.shape[-2] - m, m : scenes.shape[-1] - m]
+
 
 def augment_scales(images, min_size):
     """Return the images plus 2x-downscaled copies (area mean) still at least ``min_size``."""
@@ -267,7 +272,6 @@ def train(
         )
     k = np.asarray(psf_init).shape[0]
     size, local = config.patch + k - 1, config.batch // world
-    margin = k // 2
 
     def save():
         if checkpoint is not None and rank == 0:
@@ -313,7 +317,7 @@ def train(
             g["lr"] = g["base"] * lr_factor(frac)
         ids = range(rank * local, (rank + 1) * local)
         scenes = make_batch(images, [(config.seed, step, i, 0) for i in ids], size).to(device)
-        target = scenes[..., margin : margin + config.patch, margin : margin + config.patch]
+        target = camera.centres(scenes)
         estimate = model(scenes, [(config.seed, step, i, 1) for i in ids])
         loss = F.l1_loss(estimate, target)
         opt.zero_grad(set_to_none=True)

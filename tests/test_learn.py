@@ -19,7 +19,7 @@ from psf_learn.network import SRNet
 from psf_learn.psf import LearnedPSF, baseline_psf, box_psf, delta_psf, gaussian_psf
 from psf_learn.sensor import SensorModel
 from psf_learn.sr import SRModel, load_model, super_resolve, white_counts
-from psf_learn.train import TrainConfig, default_patch, make_batch, train
+from psf_learn.train import CodedCamera, TrainConfig, default_patch, make_batch, train
 
 K = 11
 POINT = tuple(map(tuple, np.eye(4)[[2]].T @ np.eye(4)[[2]]))
@@ -153,6 +153,23 @@ def test_network_upsamples_by_the_factor(arch):
 
 
 # --- training -------------------------------------------------------------------------------
+
+
+def test_the_training_target_is_the_scene_the_camera_estimates():
+    # Box PSF + point sample = the block means; a ramp's block means, upsampled by the
+    # untrained network (bicubic, a = -0.75), come back as the ramp but for an error
+    # odd about the samples, zero on average over whole pixels. A target one
+    # sub-pixel off is off by the ramp's slope.
+    camera = CodedCamera(box_psf(K), SensorModel(POINT, 0.0), TINY)
+    patch = 32
+    rows, cols = np.mgrid[0 : patch + K - 1, 0 : patch + K - 1].astype(np.float32)
+    for ramp in (rows, cols, 3 * rows - 2 * cols):
+        scenes = torch.from_numpy(ramp)[None, None]
+        with torch.no_grad():
+            error = (camera(scenes, [(0, 0, 0, 1)]) - camera.centres(scenes))[0, 0, 8:-8, 8:-8]
+        assert camera.centres(scenes).shape[-2:] == (patch, patch)
+        assert abs(error.mean().item()) < 1e-3  # float32 rounding of values near 100
+        assert error.abs().max().item() < 1.0
 
 
 def test_make_batch_is_keyed_and_in_range():
