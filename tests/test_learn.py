@@ -19,7 +19,14 @@ from psf_learn.network import SRNet
 from psf_learn.psf import LearnedPSF, baseline_psf, box_psf, delta_psf, gaussian_psf
 from psf_learn.sensor import SensorModel
 from psf_learn.sr import SRModel, load_model, super_resolve, white_counts
-from psf_learn.train import CodedCamera, TrainConfig, default_patch, make_batch, train
+from psf_learn.train import (
+    CodedCamera,
+    TrainConfig,
+    default_patch,
+    lr_factor,
+    make_batch,
+    train,
+)
 
 K = 11
 POINT = tuple(map(tuple, np.eye(4)[[2]].T @ np.eye(4)[[2]]))
@@ -180,11 +187,43 @@ def test_make_batch_is_keyed_and_in_range():
     assert not torch.equal(a, make_batch(imgs, [(0, 2, i, 0) for i in range(3)], 20))
 
 
+def test_learning_rate_warms_up_then_follows_a_cosine_to_a_twentieth():
+    assert [lr_factor(p) for p in (-1.0, 0.0, 0.01, 0.02)] == pytest.approx([0.05, 0.05, 0.525, 1])
+    # halfway through the cosine (progress 0.51) it is halfway between 1 and 0.05
+    assert [lr_factor(p) for p in (0.51, 1.0, 2.0)] == pytest.approx([0.525, 0.05, 0.05])
+    assert lr_factor(0.265) == pytest.approx(0.05 + 0.95 * (1 + np.cos(np.pi / 4)) / 2)
+
+
+def test_make_batch_draws_every_window_and_each_of_the_eight_flips():
+    from numpy.lib.stride_tricks import sliding_window_view
+
+    rng = np.random.default_rng(4)
+    imgs = [rng.random((24, 31), dtype=np.float32), rng.random((26, 22), dtype=np.float32)]
+    dihedral = [lambda p: p, lambda p: p[::-1], lambda p: p[:, ::-1], lambda p: p[::-1, ::-1]]
+    dihedral += [lambda p, f=f: f(p).T for f in dihedral]
+    seen = set()
+    for patch in make_batch(imgs, [(5, 0, i, 0) for i in range(400)], 20)[:, 0].numpy():
+        found = [
+            (i, t, r, c)
+            for i, img in enumerate(imgs)
+            for t, f in enumerate(dihedral)
+            for r, c in np.argwhere(
+                (sliding_window_view(img, (20, 20)) == f(patch)[None, None]).all(axis=(2, 3))
+            )
+        ]
+        assert len(found) == 1  # every patch is a window of an image, flipped one way
+        seen.add(found[0])
+    assert {i for i, *_ in seen} == {0, 1} and {t for _, t, *_ in seen} == set(range(8))
+    for i, img in enumerate(imgs):  # the first and the last rows and columns are drawn
+        assert {r for j, _, r, _ in seen if j == i} >= {0, img.shape[0] - 20}
+        assert {c for j, _, _, c in seen if j == i} >= {0, img.shape[1] - 20}
+
+
 def _fixed_batch_loss(camera, images):
     scenes = make_batch(images, [(99, 0, i, 0) for i in range(8)], 16 + K - 1)
-    target = scenes[..., K // 2 : K // 2 + 16, K // 2 : K // 2 + 16]
     with torch.no_grad():
-        return float((camera(scenes, [(99, 0, i, 1) for i in range(8)]) - target).abs().mean())
+        estimate = camera(scenes, [(99, 0, i, 1) for i in range(8)])
+    return float((estimate - camera.centres(scenes)).abs().mean())
 
 
 def test_short_training_lowers_the_loss():
