@@ -1,6 +1,9 @@
 """GDS: golden geometry (KLayout XOR against an independent reference), orientation, AREF,
 grid, byte-identical files, marks outside the aperture, layer images read back with OIIO."""
 
+import dataclasses
+import itertools
+import re
 import tempfile
 from pathlib import Path
 
@@ -15,7 +18,14 @@ from hypothesis.extra.numpy import arrays
 from fab.layer_images import plate_preview, read_image, tile_image, write_image
 from fab.masks import masks_from_levels
 from layouts import marks as mk_marks
-from layouts.gds import array_origin_nm, build_library, write_gds, write_oasis
+from layouts.gds import (
+    array_origin_nm,
+    build_library,
+    cell_name,
+    max_vertices,
+    write_gds,
+    write_oasis,
+)
 from layouts.readback import check_written_gds
 
 L = 8
@@ -87,6 +97,55 @@ def test_golden_xor_against_independent_reference(tmp_path):
             top.shapes(dbg.layer(1, 0)).insert(diff)
             dbg.write(str(tmp_path / f"xor_{mk.name}.gds"))
         assert diff.is_empty(), f"{mk.name}: XOR area {diff.area()} nm^2"
+
+
+def test_array_origin_of_an_odd_sized_array_rounds_towards_zero():
+    # -(tiles * N * p // 2): 3 * 5 * 4991 nm = 74865 nm -> -37432, the spare nm at +x/+y
+    assert array_origin_nm((3, 1), 5, 4991) == (-37432, -12477)
+
+
+def test_flat_library_draws_the_tiles_polygons_in_the_top_cell(tmp_path):
+    levels = random_levels(7, seed=11)
+    tiles = (3, 2)
+    path, masks, info = write_plate(tmp_path, levels, tiles, marks=False, flat=True)
+    layout = read_layout(path)
+    assert list(layout.cell(info.top_cell).each_inst()) == []  # no reference left
+    assert layout.cell(info.tile_cell) is None
+    for mk in masks:
+        want = reference_region(mk.bitmap, tiles, info.array_origin_nm)
+        assert (flat_layer(layout, info.top_cell, mk.gds_layer) ^ want).is_empty(), mk.name
+
+
+def test_each_mask_is_drawn_on_its_own_layer_and_datatype(tmp_path):
+    masks = masks_from_levels(random_levels(6, seed=10), L, STEP)
+    masks = [
+        dataclasses.replace(mk, gds_datatype=d) for mk, d in zip(masks, (0, 3, 7), strict=True)
+    ]
+    lib, info = build_library(masks, PITCH, (1, 1), "t", marks=False)
+    path = tmp_path / "dt.gds"
+    write_gds(lib, path)
+    layout = read_layout(path)
+    for mk in masks:
+        li = layout.find_layer(mk.gds_layer, mk.gds_datatype)
+        assert li is not None, (mk.gds_layer, mk.gds_datatype)
+        got = kdb.Region(layout.cell(info.tile_cell).begin_shapes_rec(li)).merged()
+        assert (got ^ reference_region(mk.bitmap, (1, 1), (0, 0))).is_empty(), mk.name
+    assert check_written_gds(path, info, masks) == []
+
+
+def test_cell_names_are_gds_safe_and_at_most_32_characters():
+    for name in ("x" * 50, "µ-plate été 2020", ""):
+        top, tile = cell_name(name, "TOP"), cell_name(name, "TILE")
+        assert len(top) <= 32 and len(tile) <= 32 and top != tile
+        assert re.fullmatch(r"[A-Za-z0-9_]+", top + tile)
+
+
+def test_max_vertices_is_the_largest_polygon_of_the_library():
+    masks = masks_from_levels(random_levels(6, seed=12), L, STEP)
+    bare, _ = build_library(masks, PITCH, (2, 2), "t", marks=False)
+    assert max_vertices(bare) == 4  # rectangles only
+    marked, _ = build_library(masks, PITCH, (2, 2), "t")
+    assert max_vertices(marked) >= 12  # the alignment cross is one 12-vertex polygon
 
 
 def test_single_pixel_at_row0_col0_lands_top_left(tmp_path):
@@ -236,24 +295,73 @@ def test_marks_of_too_many_masks_for_the_aperture_are_refused():
 def test_vernier_pitches_read_two_tenths_of_a_micron():
     polys = mk_marks.alignment_block(0, 0, ref_layer=1, layer=2)
 
-    def bar_centres(layer):
-        xs = []
+    def bars(layer, axis):
+        """(centre, length) of the 4 um bars of the x vernier (below the cross) or the y one."""
+        out = []
         for p in polys:
-            (x0, _), (x1, y1) = p.bounding_box()
-            if p.layer == layer and y1 < -100 and abs((x1 - x0) - 4.0) < 1e-9:
-                xs.append(round((x0 + x1) / 2, 6))
-        return np.array(sorted(xs))
+            (x0, y0), (x1, y1) = p.bounding_box()
+            if p.layer == layer and axis == "x" and y1 < -100 and abs((x1 - x0) - 4.0) < 1e-9:
+                out.append((round((x0 + x1) / 2, 6), y1 - y0))
+            if p.layer == layer and axis == "y" and x1 < -100 and abs((y1 - y0) - 4.0) < 1e-9:
+                out.append((round((y0 + y1) / 2, 6), x1 - x0))
+        return np.array(sorted(out))
 
-    ref, moving = bar_centres(1), bar_centres(2)
-    assert len(ref) == len(moving) == 2 * mk_marks.VERNIER_BARS + 1
-    assert np.allclose(np.diff(ref), 10.0) and np.allclose(np.diff(moving), 9.8)
-    # an overlay error of k * 0.2 um lines up bar k of the two scales
-    k = 3
-    shift = k * 0.2
-    i = np.argmin(np.abs(moving + shift - ref[:, None]).min(axis=0))
-    assert np.isclose(moving[i] + shift, ref[i]) and i - mk_marks.VERNIER_BARS == k
-    # cross on the reference mask, box on the later one
-    assert any(p.layer == 1 and len(p.points) == 12 for p in polys)
+    for axis in ("x", "y"):  # x vernier below the cross, y vernier left of it: same reading
+        (ref, ref_len), (moving, moving_len) = bars(1, axis).T, bars(2, axis).T
+        assert len(ref) == len(moving) == 2 * mk_marks.VERNIER_BARS + 1
+        assert np.allclose(np.diff(ref), 10.0) and np.allclose(np.diff(moving), 9.8)
+        # an overlay error of k * 0.2 um lines up bar k of the two scales
+        k = 3
+        shift = k * 0.2
+        i = np.argmin(np.abs(moving + shift - ref[:, None]).min(axis=0))
+        assert np.isclose(moving[i] + shift, ref[i]) and i - mk_marks.VERNIER_BARS == k
+        # the longer zero bars, which find the scale's zero, lie on the cross's axis
+        assert ref[np.argmax(ref_len)] == 0 and moving[np.argmax(moving_len)] == 0
+    # cross on the reference mask: a plus of 100 um arms, 10 um wide; box on the later one
+    (cross,) = [p for p in polys if len(p.points) == 12]
+    assert cross.layer == 1
+    assert np.allclose(cross.bounding_box(), ((-50, -50), (50, 50)))
+    assert cross.area() == pytest.approx(2 * 100 * 10 - 10 * 10)
+
+
+def test_every_mask_carries_its_own_label_in_exposure_order():
+    masks = masks_from_levels(random_levels(6, seed=3), L, STEP)
+    a = 7_000_000
+    polys, _ = mk_marks.marks_and_labels(masks, a, "sun2020")
+    # the label band: below the aperture, above the lower mark blocks, which reach at most
+    # 102 um (the x vernier's end bar) above their crosses at y = -(a + 0.75 mm)
+    low = -(a + mk_marks.MARK_RING_NM) + 102_000
+    centres = []
+    for mk in masks:
+        ys = [
+            p.points[:, 1] * 1000
+            for p in polys
+            if p.layer == mk.gds_layer
+            and low < p.points[:, 1].min() * 1000
+            and p.points[:, 1].max() * 1000 < -a
+        ]
+        assert ys, f"no label on layer {mk.gds_layer} ({mk.name})"
+        centres.append(np.concatenate(ys).mean())
+    assert centres == sorted(centres, reverse=True)  # the first exposure's label on top
+
+
+@pytest.mark.parametrize("aperture_mm", [2.0, 2.4, 2.8, 14.0])
+def test_mark_blocks_of_successive_masks_keep_the_label_gap_or_are_refused(aperture_mm):
+    masks = masks_from_levels(random_levels(6, seed=3) % 64, 64, STEP)
+    a = round(aperture_mm * 1e6) // 2
+    try:
+        polys, _ = mk_marks.marks_and_labels(masks, a, "t")
+    except ValueError:
+        return  # too many masks for this aperture: refused
+    ring = a + mk_marks.MARK_RING_NM
+    extents = []  # x extent of each later mask's own part of its lower-left block
+    for mk in masks[1:]:
+        pts = np.concatenate([p.points for p in polys if p.layer == mk.gds_layer]) * 1000
+        block = pts[(pts[:, 0] < 0) & (pts[:, 1] < -ring + 110_000)]  # below the labels
+        extents.append((block[:, 0].min(), block[:, 0].max()))
+    extents.sort()
+    gaps = [lo - hi for (_, hi), (lo, _) in itertools.pairwise(extents)]
+    assert min(gaps) >= mk_marks.LABEL_GAP_NM
 
 
 def test_oasis_reads_back_as_the_same_masks(tmp_path):
@@ -275,6 +383,38 @@ def test_readback_detects_a_mirrored_layer(tmp_path):
     assert len(problems) == 1 and "M3_shallow" in problems[0]
 
 
+def test_readback_detects_a_single_wrong_pixel(tmp_path):
+    levels = random_levels(8, seed=8)
+    path, masks, info = write_plate(tmp_path, levels, (2, 2), marks=False)
+    bitmap = masks[1].bitmap.copy()
+    bitmap[2, 5] = not bitmap[2, 5]
+    wrong = [masks[0], dataclasses.replace(masks[1], bitmap=bitmap), masks[2]]
+    problems = check_written_gds(path, info, wrong)
+    assert len(problems) == 1 and "M2_mid" in problems[0] and ": 1 pixels differ" in problems[0]
+
+
+def test_readback_refuses_a_mirrored_tile_placement(tmp_path):
+    # same displacements as the lattice, but every tile etched upside down
+    masks = masks_from_levels(random_levels(8, seed=8), L, STEP)
+    lib, info = build_library(masks, PITCH, (2, 2), "t", marks=False)
+    (top,) = [c for c in lib.cells if c.name == info.top_cell]
+    top.references[0].x_reflection = True
+    path = tmp_path / "mirrored.gds"
+    write_gds(lib, path)
+    with pytest.raises(ValueError, match="mirror"):
+        check_written_gds(path, info, masks)
+
+
+def test_readback_refuses_a_database_unit_other_than_1_nm(tmp_path):
+    masks = masks_from_levels(random_levels(8, seed=8), L, STEP)
+    lib, info = build_library(masks, PITCH, (1, 1), "t", marks=False)
+    lib.precision = 1e-10  # 0.1 nm database unit: every coordinate read 10 times too large
+    path = tmp_path / "dbu.gds"
+    write_gds(lib, path)
+    with pytest.raises(ValueError, match="DBU"):
+        check_written_gds(path, info, masks)
+
+
 def test_tile_image_round_trips_through_openimageio(tmp_path):
     bitmap = np.zeros((7, 9), bool)
     bitmap[0, 0] = True  # top-left pixel etched
@@ -289,14 +429,14 @@ def test_tile_image_round_trips_through_openimageio(tmp_path):
     assert path.read_bytes() == first  # pinned DateTime
 
 
-def test_layer_images_record_their_pixel_size(tmp_path):
+@pytest.mark.parametrize("plate_half", [2_000_000, 12_000_000])  # 1 and 5 mask px per preview px
+def test_layer_images_record_their_pixel_size(tmp_path, plate_half):
     # read by Pillow, not the writer's library: a viewer shows the mask at true scale
     from PIL import Image
 
     from fab.layer_images import write_layer_images
 
     masks = masks_from_levels(random_levels(10, seed=4), L, STEP)
-    plate_half = 2_000_000
     names = write_layer_images(tmp_path, masks, (4, 4), PITCH, plate_half, 1_000_000)
     for name in names:
         with Image.open(tmp_path / name) as im:
@@ -324,6 +464,16 @@ def test_plate_preview_places_the_tiles_and_the_outline(tmp_path):
     assert img[0, size // 2] == 128  # plate edge drawn
     write_image(tmp_path / "p.png", img[:, :, None])
     assert np.array_equal(read_image(tmp_path / "p.png"), img)
+
+
+def test_plate_preview_draws_both_frames_on_their_edge_pixels():
+    # 1 um preview pixels: the plate (+-20 um) spans pixels 0..39, the aperture (+-12 um)
+    # pixels 8..31; each frame is drawn on the outermost pixels inside its edge.
+    img = plate_preview(np.zeros((5, 5), bool), (2, 2), 1000, 20_000, 12_000)[:, :, 0]
+    want = np.zeros((40, 40), np.uint8)
+    want[[0, -1], :] = want[:, [0, -1]] = 128
+    want[[8, 31], 8:32] = want[8:32, [8, 31]] = 128
+    assert np.array_equal(img, want)
 
 
 @settings(max_examples=40, deadline=None)
@@ -444,12 +594,16 @@ def test_a_mask_that_etches_nothing_keeps_its_layer(tmp_path):
         assert layout.find_layer(mk.gds_layer, 0) is not None, f"{mk.name} layer missing"
 
 
-@pytest.mark.parametrize("tiles", [(1, 40), (40, 1), (2, 80)])
-def test_marks_never_etch_inside_a_non_square_tiled_array(tiles):
-    # Without an aperture the marks go outside the tiled array: along its longer side too.
+@pytest.mark.parametrize(
+    ("tiles", "aperture_nm"),
+    [((1, 40), None), ((40, 1), None), ((2, 80), None), ((40, 40), 100_000)],
+)
+def test_marks_never_etch_inside_a_non_square_tiled_array(tiles, aperture_nm):
+    # Without an aperture the marks go outside the tiled array: along its longer side too;
+    # an aperture smaller than the array (here 0.1 mm < 2.4 mm) does not pull them inside.
     levels = np.random.default_rng(0).integers(0, 8, (12, 12)).astype(np.uint8)
     masks = masks_from_levels(levels, 8, STEP)
-    lib, info = build_library(masks, 4990, tiles, "t")
+    lib, info = build_library(masks, 4990, tiles, "t", aperture_nm=aperture_nm)
     (top,) = [c for c in lib.cells if c.name == info.top_cell]
     x0, y0 = info.array_origin_nm
     array = gdstk.rectangle((x0 / 1000, y0 / 1000), (-x0 / 1000, -y0 / 1000))

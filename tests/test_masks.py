@@ -46,7 +46,7 @@ def test_deepest_mask_is_exposed_first():
     assert [mk.exposure_order for mk in masks] == [1, 2, 3]
     assert [mk.steps for mk in masks] == [4, 2, 1]
     assert [mk.name for mk in masks] == ["M1_deep", "M2_mid", "M3_shallow"]
-    assert len({mk.gds_layer for mk in masks}) == 3
+    assert [mk.gds_layer for mk in masks] == [1, 2, 3]  # the manifest's layers (CONVENTIONS.md)
     assert all(mk.gds_datatype == 0 for mk in masks)
     assert masks[0].etch_depth > masks[1].etch_depth > masks[2].etch_depth
 
@@ -102,7 +102,12 @@ def test_masks_do_not_alias_or_mutate_the_input():
 
 @pytest.mark.parametrize(
     "levels, n_levels",
-    [(np.array([[8]], np.uint8), 8), (np.array([[-1]]), 8), (np.zeros((2, 2), np.uint8), 6)],
+    [
+        (np.array([[8]], np.uint8), 8),
+        (np.array([[-1]]), 8),
+        (np.zeros((2, 2), np.uint8), 6),
+        (np.zeros((2, 2), np.uint8), 1),  # one level: not a single mask
+    ],
 )
 def test_bad_levels_are_refused(levels, n_levels):
     with pytest.raises(ValueError):
@@ -126,6 +131,14 @@ def test_rectangles_merge_identical_runs_vertically():
     rects = bitmap_rectangles(b)
     assert sorted(map(tuple, rects.tolist())) == [(0, 5, 5, 6), (1, 1, 3, 4)]
     assert row_runs(b).tolist() == [[1, 1, 3], [2, 1, 3], [3, 1, 3], [5, 0, 5]]
+
+
+def test_rectangles_merge_runs_of_rows_that_hold_several_runs():
+    b = np.zeros((4, 7), bool)
+    b[0:3, 0:2] = True  # two 3-row blocks side by side: two rectangles, not six
+    b[0:3, 4:7] = True
+    b[3, 0:2] = True  # one more run under the left block, one row down: joins it
+    assert bitmap_rectangles(b).tolist() == [[0, 0, 2, 4], [4, 0, 7, 3]]  # by c0, c1, r0
 
 
 def test_rectangles_of_a_checkerboard_are_single_pixels():
@@ -155,6 +168,13 @@ def test_min_feature_sees_a_feature_narrow_along_y():
     assert min_feature_pixels(b.T) == 1
 
 
+def test_fill_fraction_is_the_etched_share_of_the_tile():
+    levels = np.full((2, 4), 7, np.uint8)
+    levels[0, :3] = 6  # 3 of 8 pixels one step down: etched by the shallow mask only
+    masks = masks_from_levels(levels, 8, STEP)
+    assert [mk.fill_fraction for mk in masks] == [0.0, 0.0, 3 / 8]
+
+
 def test_levels_from_masks_is_uint8_up_to_256_levels():
     # levels.npy is uint8 (CONVENTIONS.md); level 255 of a 256-level tile must survive
     levels = np.arange(256, dtype=np.uint8).reshape(16, 16)
@@ -168,3 +188,10 @@ def test_levels_from_masks_refuses_masks_that_etch_deeper_than_l_minus_1_steps()
     too_deep = [masks[0], masks[1], dataclasses.replace(masks[2], etch_depth=2 * STEP)]
     with pytest.raises(ValueError, match="deeper"):
         levels_from_masks(too_deep, 8, STEP)  # 4 + 2 + 2 = 8 steps: level -1
+
+
+def test_levels_from_masks_refuses_depths_that_are_not_whole_steps():
+    masks = masks_from_levels(np.zeros((2, 2), np.uint8), 8, STEP)
+    off = [masks[0], masks[1], dataclasses.replace(masks[2], etch_depth=0.7 * STEP)]
+    with pytest.raises(ValueError, match="whole multiples"):
+        levels_from_masks(off, 8, STEP)  # 4 + 2 + 0.7 = 6.7 steps
