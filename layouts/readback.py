@@ -75,7 +75,11 @@ def check_written_gds(gds_path, layout_info, masks):
     problems = []
     layers = [(mk.gds_layer, mk.gds_datatype) for mk in masks]
     n, p = layout_info.tile_pixels, layout_info.pixel_pitch_nm
-    rasters = rasterise_tile(gds_path, layout_info.tile_cell, layers, n, p)
+    try:
+        rasters = rasterise_tile(gds_path, layout_info.tile_cell, layers, n, p)
+        placements = tile_placements(gds_path, layout_info.top_cell, layout_info.tile_cell)
+    except ValueError as e:  # another DBU, a missing cell, a mirrored tile: a failed check
+        return [str(e)]
     for mk, got in zip(masks, rasters, strict=True):
         bad = int(np.count_nonzero(got != mk.bitmap))
         if bad:
@@ -83,6 +87,6 @@ def check_written_gds(gds_path, layout_info, masks):
     nx, ny = layout_info.tiles
     x0, y0 = layout_info.array_origin_nm
     want = sorted((x0 + i * n * p, y0 + j * n * p) for i in range(nx) for j in range(ny))
-    if tile_placements(gds_path, layout_info.top_cell, layout_info.tile_cell) != want:
+    if placements != want:
         problems.append(f"the tile is not placed on the {nx} x {ny} lattice at {x0, y0} nm")
     return problems

@@ -279,10 +279,19 @@ def test_dense_default_design_fits_the_size_budget(tmp_path):
     assert man["pixel_pitch_nm"] == 4990 and man["tiles"] == [16, 16]
 
 
-def test_failed_readback_exits_1_and_releases_nothing(tmp_path, monkeypatch, capsys):
+def _wrong_dbu(*args):
+    raise ValueError("out.gds: DBU is 0.0001 um, not 0.001")
+
+
+@pytest.mark.parametrize(
+    "name, fake",
+    [("check_written_gds", lambda *a: ["layer 1: 3 differ"]), ("rasterise_tile", _wrong_dbu)],
+)
+def test_failed_readback_exits_1_and_releases_nothing(tmp_path, monkeypatch, capsys, name, fake):
+    # a file unlike the one meant is a failed check (exit 1), not an internal error (3)
     import layouts.readback
 
-    monkeypatch.setattr(layouts.readback, "check_written_gds", lambda *a: ["layer 1: 3 differ"])
+    monkeypatch.setattr(layouts.readback, name, fake)
     d = tmp_path / "design"
     make_design_dir(d, n=15)
     out = tmp_path / "out"
