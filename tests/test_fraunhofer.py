@@ -146,6 +146,19 @@ def test_dot_lattice_image_has_every_order_with_the_pixel_envelope():
         assert spot == pytest.approx(expected, rel=1e-4, abs=1e-12), (m, k)
 
 
+def test_dot_lattice_spots_are_centred_and_reach_in_from_outside():
+    from doe.fraunhofer import dot_lattice_image
+
+    flat = np.zeros((4, 4))  # all light in the zero order
+    # default centre: the middle of the image, here pixel (2, 3) of 5 x 7
+    img = dot_lattice_image(flat, (5, 7), 10.0, spot_sigma_px=0.8)
+    assert np.unravel_index(np.argmax(img), img.shape) == (2, 3)
+    np.testing.assert_allclose(img, img[::-1, ::-1], rtol=1e-12)
+    # a spot 2 sigma above the top edge still lights it: exp(-2) / (2 pi sigma^2)
+    img = dot_lattice_image(flat, (5, 7), 10.0, centre=(-1.6, 3.0), spot_sigma_px=0.8)
+    assert img[0, 3] == pytest.approx(np.exp(-2) / (2 * np.pi * 0.8**2), rel=1e-12)
+
+
 def test_plate_quality_is_that_of_a_finely_sampled_plate_of_square_pixels():
     # each mask pixel drawn as 64 x 64 samples: the window orders of that FFT
     n, k, levels, s = 9, 5, 8, 64
