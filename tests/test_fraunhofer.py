@@ -126,6 +126,9 @@ def test_correlation_with_a_uniform_target_is_undefined_not_noise():
     assert np.isnan(fraunhofer.correlation(np.full((5, 5), 0.3), psf[:5, :5]))
     assert fraunhofer.correlation(psf, 2 * psf + 1) == pytest.approx(1.0, abs=1e-14)
     assert fraunhofer.correlation(psf, -psf) == pytest.approx(-1.0, abs=1e-14)
+    # scale-free both ways: tiny values still vary, huge uniform ones still do not
+    assert fraunhofer.correlation(1e-14 * psf, psf) == pytest.approx(1.0, abs=1e-14)
+    assert np.isnan(fraunhofer.correlation(psf, np.full((11, 11), 1e6 / 121)))
 
 
 def test_dot_lattice_image_has_every_order_with_the_pixel_envelope():
