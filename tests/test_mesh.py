@@ -12,7 +12,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from doe.cli import main
-from fab.cli_mesh import BYTES_PER_TRIANGLE, TILE_MEMORY_LIMIT_BYTES
+from fab.cli_mesh import (
+    BYTES_PER_TRIANGLE,
+    MERGED_MEMORY_LIMIT_BYTES,
+    TILE_MEMORY_LIMIT_BYTES,
+    check_crop,
+)
 from fab.mesh import (
     Relief,
     instance_offsets_mm,
@@ -158,6 +163,15 @@ def test_volume_matches_analytic_formula():
     assert trimesh.Trimesh(v, f, process=False).volume == pytest.approx(analytic_mm3, rel=1e-12)
 
 
+def test_volume_keeps_its_digits_far_from_the_origin():
+    # A crop sits at the manifest's array origin, which may lie tens of mm off (a centred
+    # aperture): its volume must be as exact as at the origin, not lose digits to the shift.
+    relief = relief_of(random_levels(12, seed=18))
+    v, f = tile_mesh(relief)
+    for shift in ([40.0, -40.0, 0.0], [-35.0, 35.0, 0.0]):
+        assert mesh_volume(v + shift, f) == pytest.approx(relief.analytic_volume() * 1e9, rel=1e-12)
+
+
 def test_faces_are_terraces_and_vertical_walls_with_exact_top_areas():
     levels = random_levels(16, seed=3)
     relief = relief_of(levels)
@@ -214,6 +228,47 @@ def test_instance_offsets_lattice():
     t = 5 * PITCH * 1e3
     assert off.shape == (6, 3)
     assert np.allclose(off[0], [1.0, -2.0, 0]) and np.allclose(off[-1], [1 + 2 * t, -2 + t, 0])
+
+
+def test_instance_offsets_of_a_non_square_tile_abut_x_fastest():
+    # 3 rows x 5 columns: the tile is 5 p wide along x and 3 p high along y, and its
+    # neighbours on the lattice touch it edge to edge; x varies fastest.
+    relief = relief_of(random_levels(5, seed=19)[:3])
+    v, _ = tile_mesh(relief)
+    width, height = np.ptp(v[:, 0]), np.ptp(v[:, 1])
+    assert (width, height) == pytest.approx((5 * PITCH * 1e3, 3 * PITCH * 1e3), rel=1e-12)
+    off = instance_offsets_mm(relief, (3, 2), origin_mm=(1.0, -2.0))
+    want_x = 1.0 + np.array([0, 1, 2, 0, 1, 2]) * width
+    want_y = -2.0 + np.array([0, 0, 0, 1, 1, 1]) * height
+    assert np.allclose(off, np.column_stack([want_x, want_y, np.zeros(6)]), rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "levels",
+    [
+        np.tile(np.arange(L, dtype=np.uint8), (L, 1)),  # a ramp along x: only x seams
+        np.tile(np.arange(L, dtype=np.uint8), (L, 1)).T,  # a ramp along y: only y seams
+        random_levels(6, seed=21),
+    ],
+)
+def test_periodic_bound_covers_a_merged_crop(levels):
+    # check_crop sizes a merged c x c body as c^2 periodic bounds: the walls across the
+    # tile seams (in x and in y) must be counted.
+    for c in (2, 3):
+        _, f = tile_mesh(relief_of(levels).tiled(c, c))
+        assert len(f) <= c * c * triangle_upper_bound(levels, periodic=True)
+
+
+def test_crop_of_flat_tiles_well_within_the_memory_limit_is_accepted():
+    # A flat body of c x c tiles of N x N pixels has 2 (cN)^2 top, 8 cN outer wall and
+    # 4 cN back triangles (checked on a small one); at N = 10, c = 100 that is 2 M
+    # triangles, about a quarter of the merged-body memory limit: it must be accepted.
+    flat = np.full((3, 3), L - 1, np.uint8)
+    assert len(tile_mesh(relief_of(flat).tiled(2, 2))[1]) == 2 * 6**2 + 12 * 6
+    n, c = 10, 100
+    need = 2 * (c * n) ** 2 + 12 * c * n
+    assert need * BYTES_PER_TRIANGLE < MERGED_MEMORY_LIMIT_BYTES / 3
+    assert check_crop(relief_of(np.full((n, n), L - 1, np.uint8)), c, [c, c]) >= need
 
 
 # --- file encoders ---------------------------------------------------------------------
@@ -305,6 +360,8 @@ def test_cli_writes_all_mesh_formats_deterministically(tmp_path, capsys):
     assert_closed_manifold(np.asarray(crop.vertices), np.asarray(crop.faces))
     assert np.allclose(crop.vertices.min(0), [1.0, 2.0, 0.0])
     assert crop.volume == pytest.approx(4 * relief.analytic_volume() * 1e9, rel=1e-12)
+    for key in ("volume_mm3", "analytic_volume_mm3"):
+        assert report["crop"][key] == pytest.approx(4 * relief.analytic_volume() * 1e9, rel=1e-12)
 
 
 def test_cli_refuses_merged_full_aperture(tmp_path, capsys):
@@ -352,8 +409,38 @@ def test_cli_refuses_float32_formats_on_a_thick_substrate(tmp_path, capsys):
     np.testing.assert_allclose(z, np.concatenate([[0.0], tops]), rtol=0, atol=1e-12)
 
 
-def test_cli_refuses_crop_beyond_aperture(tmp_path, capsys):
-    fab = write_fab_dir(tmp_path / "fab", random_levels(4, seed=12), tiles=(2, 2))
+def test_cli_writes_float32_formats_up_to_32_mm(tmp_path):
+    # From 16 to 32 mm the float32 spacing is 1.9 nm, so STL and GLB round heights by
+    # at most 0.95 nm, within the 1 nm the mesh checks allow: 30 mm is accepted.
+    levels = random_levels(3, seed=16)
+    fab = write_fab_dir(tmp_path / "fab", levels)
+    out = tmp_path / "out"
+    argv = ["mesh", str(fab), "--out", str(out), "--thickness-mm", "30", "--formats", "glb,stl"]
+    assert main(argv) == 0
+    z = np.unique(trimesh.load(out / "tile.stl", process=False).vertices[:, 2])
+    tops = 30.0 - (L - 1 - np.unique(levels)) * STEP * 1e3
+    np.testing.assert_allclose(z, np.concatenate([[0.0], tops]), rtol=0, atol=1e-6)
+
+
+def test_cli_aperture_scenes_put_nx_by_ny_tiles_at_the_manifest_origin(tmp_path):
+    # tiles [nx, ny] = [3, 2] from array_origin_nm (1 mm, -2 mm), pitch N p, one mesh
+    levels = random_levels(4, seed=20)
+    fab = write_fab_dir(tmp_path / "fab", levels, tiles=(3, 2), origin_nm=(1e6, -2e6))
+    out = tmp_path / "out"
+    assert main(["mesh", str(fab), "--out", str(out), "--formats", "glb,3mf"]) == 0
+    t = 4 * PITCH * 1e3
+    want = sorted((1.0 + ix * t, -2.0 + iy * t, 0.0) for ix in range(3) for iy in range(2))
+    for name in ("aperture.glb", "aperture.3mf"):
+        scene = trimesh.load(out / name, process=False)
+        nodes = scene.graph.nodes_geometry
+        assert len({scene.graph[n][1] for n in nodes}) == 1, name
+        got = sorted(tuple(scene.graph[n][0][:3, 3]) for n in nodes)
+        assert len(got) == 6 and np.allclose(got, want, rtol=0, atol=1e-6), name
+
+
+@pytest.mark.parametrize("tiles", [(2, 2), (3, 2), (2, 3)])
+def test_cli_refuses_crop_beyond_aperture(tmp_path, capsys, tiles):
+    fab = write_fab_dir(tmp_path / "fab", random_levels(4, seed=12), tiles=tiles)
     assert main(["mesh", str(fab), "--out", str(tmp_path / "o"), "--crop", "3"]) == 2
     assert "exceed" in capsys.readouterr().err
 
@@ -468,11 +555,11 @@ def test_stl_facet_normals_are_outward_and_follow_the_vertex_order():
     assert np.allclose(rec["n"][top], [0, 0, 1]) and np.allclose(rec["n"][back], [0, 0, -1])
 
 
-def test_preview_shows_row_0_at_the_largest_y(saved_figures):
+@pytest.mark.parametrize("n,cols", [(8, 8), (3, 7)])  # non-square: x and y extents differ
+def test_preview_shows_row_0_at_the_largest_y(saved_figures, n, cols):
     # CONVENTIONS.md: pixel (row 0, col 0) covers x in [0, p], y in [(N-1) p, N p].
     # The preview's axes are x, y in mm: the raised pixel must be drawn there.
-    n = 8
-    levels = np.zeros((n, n), np.uint8)
+    levels = np.zeros((n, cols), np.uint8)
     levels[0, 0] = MESH_L - 1
     preview_png_bytes(Relief(levels, MESH_L, MESH_STEP, MESH_PITCH, MESH_THICK))
     (ax,) = [a for a in saved_figures[0].axes if a.images]
@@ -487,3 +574,4 @@ def test_preview_shows_row_0_at_the_largest_y(saved_figures):
     bottom_left = shown_at(0.5 * p_mm, 0.5 * p_mm)
     assert top_left == 0.0  # level L-1: the unetched surface, 0 um below it
     assert bottom_left < -1.0  # level 0: (L-1) steps (1.26 um) deep
+    assert shown_at((cols - 0.5) * p_mm, (n - 0.5) * p_mm) < -1.0  # top right: level 0

@@ -1,6 +1,7 @@
 """Tests of the STEP solid and assembly (fab.step) and ``doefab mesh --formats step``."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -83,6 +84,57 @@ def test_step_aperture_is_an_assembly_of_located_instances(tmp_path, route):
     assert lows == want
 
 
+def step_entities(data):
+    """Return the entities of a STEP file as {number: text}, checking the numbers are unique."""
+    found = re.findall(rb"^#(\d+) = (.*?);\r?$", data, re.M | re.S)
+    numbers = [int(n) for n, _ in found]
+    assert len(numbers) == len(set(numbers)), "entity instance names must be unique"
+    return {int(n): text.decode() for n, text in found}
+
+
+def refs(text):
+    return [int(v) for v in re.findall(r"#(\d+)", text)]
+
+
+@pytest.mark.parametrize("route", ["text", "xcaf"])
+def test_step_assembly_transforms_map_the_tile_origin_onto_each_offset(route):
+    # ISO 10303-42/43: an ITEM_DEFINED_TRANSFORMATION maps its first item, in the related
+    # (tile) representation, onto its second, in the relating (assembly) one; OCCT's own
+    # assembly writer (the xcaf route) does so. The second item stands at the offset.
+    relief = relief_of(3, seed=7)
+    solid = step.tile_solid(relief)
+    offsets = instance_offsets_mm(relief, (2, 2), origin_mm=(1.0, -2.0))
+    offsets[:, 2] = 0.25  # raised too: z is translated like x and y
+    if route == "text":
+        data = step.assembly_step_bytes(step.step_bytes(solid), offsets)
+    else:
+        data = step.step_bytes(solid, offsets)
+    ents = step_entities(data)
+
+    def items(rep):
+        return set(refs(re.match(r"\w+\('[^']*',\(([^)]*)\)", ents[rep]).group(1)))
+
+    def location(placement):
+        point = ents[refs(ents[placement])[0]]
+        return [float(v) for v in re.search(r"\(([^()]*)\)\)$", point).group(1).split(",")]
+
+    placed = []
+    for text in ents.values():
+        rel = re.search(
+            r"REPRESENTATION_RELATIONSHIP\('[^']*','[^']*',#(\d+),#(\d+)\)\s*"
+            r"REPRESENTATION_RELATIONSHIP_WITH_TRANSFORMATION\(#(\d+)\)",
+            text,
+        )
+        if rel:
+            tile_rep, assembly_rep, transform = (int(v) for v in rel.groups())
+            first, second = refs(ents[transform])
+            assert first in items(tile_rep) and second in items(assembly_rep)
+            assert location(first) == [0.0, 0.0, 0.0]
+            placed.append(location(second))
+    assert len(placed) == 4
+    assert np.allclose(sorted(placed), sorted(offsets.tolist()), rtol=0, atol=1e-12)
+
+
 def write_fab_dir(path, levels):
     path.mkdir(parents=True)
     np.save(path / "levels.npy", levels)
@@ -114,6 +166,26 @@ def test_cli_step_writes_checked_solid_and_assembly(tmp_path):
         "preview.png",
         "tile.step",
     ]
+    aperture = step.read_step(out / "aperture.step")
+    lows = sorted(
+        tuple(np.round((s.bounding_box().min.X, s.bounding_box().min.Y), 6))
+        for s in aperture.solids()
+    )
+    t = 6 * PITCH * 1e3
+    assert lows == [(0.0, 0.0), (0.0, round(t, 6)), (round(t, 6), 0.0), (round(t, 6), round(t, 6))]
+
+
+def test_cli_step_solid_with_a_wrong_volume_fails_the_check(tmp_path, monkeypatch):
+    # A closed single solid whose heights are 0.1 % off must not pass: exit 1, ok false.
+    relief = relief_of(4, seed=6)
+    fab = write_fab_dir(tmp_path / "fab", relief.levels)
+    exact = step.surface_points_mm
+    monkeypatch.setattr(step, "surface_points_mm", lambda s, r: exact(s, r) * [1, 1, 1.001])
+    out = tmp_path / "out"
+    assert main(["mesh", str(fab), "--out", str(out), "--formats", "step"]) == 1
+    report = json.loads((out / "mesh_report.json").read_text())["step"]
+    assert report["solids"] == 1 and report["closed"] and not report["ok"]
+    assert report["volume_rel_err"] == pytest.approx(1e-3, rel=1e-6)
 
 
 def test_cli_refuses_too_complex_step(tmp_path, capsys, monkeypatch):
