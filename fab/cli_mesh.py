@@ -156,7 +156,7 @@ def check_crop(relief, crop, tiles):
         raise InputError(
             "--crop", f"{crop} x {crop} tiles exceed the aperture's {tiles[0]} x {tiles[1]} tiles"
         )
-    est = triangle_upper_bound(relief.levels, periodic=True) * crop**2
+    est = triangle_upper_bound(relief.levels, crop)
     need = est * BYTES_PER_TRIANGLE
     if need > MERGED_MEMORY_LIMIT_BYTES:
         raise InputError(

@@ -312,24 +312,22 @@ def tile_mesh(relief):
     return surface_points_mm(surface, relief), surface.triangles
 
 
-def triangle_upper_bound(levels, periodic=False):
-    """Return an upper bound on the triangle count of ``relief_surface(levels)``.
+def triangle_upper_bound(levels, tiles=1):
+    """Return an upper bound on the triangle count of a merged ``tiles`` x ``tiles`` body.
 
-    With ``periodic`` the edges across the tile border are counted as between
-    neighbouring tiles, so ``c * c`` times the result bounds a c x c tiling's
-    interior; this is cheap and is checked before building a large merged body.
+    That of ``relief_surface`` of the tiled level map, counted without building it
+    (cheap; checked before building a large merged body): tops, a wall per level
+    step between neighbours (within tiles and across their seams), the outer walls
+    and the back.
     """
     lev = np.asarray(levels, np.int64)
     rows, cols = lev.shape
-    if periodic:
-        dx = np.abs(lev - np.roll(lev, 1, axis=1))
-        dy = np.abs(lev - np.roll(lev, 1, axis=0))
-        walls = int(dx.sum() + dy.sum())
-    else:
-        walls = int(np.abs(np.diff(lev, axis=1)).sum() + np.abs(np.diff(lev, axis=0)).sum())
-        edge = np.concatenate([lev[0], lev[-1], lev[:, 0], lev[:, -1]])
-        walls += int((edge + 1).sum())
-    return 2 * rows * cols + 2 * walls + 2 * (rows + cols) + 4 * (rows + cols)
+    c = int(tiles)
+    inside = np.abs(np.diff(lev, axis=1)).sum() + np.abs(np.diff(lev, axis=0)).sum()
+    seams = np.abs(lev[:, 0] - lev[:, -1]).sum() + np.abs(lev[0] - lev[-1]).sum()
+    edge = np.concatenate([lev[0], lev[-1], lev[:, 0], lev[:, -1]])
+    walls = int(c * c * inside + c * (c - 1) * seams + c * (edge + 1).sum())
+    return 2 * rows * cols * c * c + 2 * walls + 6 * c * (rows + cols)
 
 
 def mesh_volume(vertices, faces):

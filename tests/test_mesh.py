@@ -249,14 +249,17 @@ def test_instance_offsets_of_a_non_square_tile_abut_x_fastest():
         np.tile(np.arange(L, dtype=np.uint8), (L, 1)),  # a ramp along x: only x seams
         np.tile(np.arange(L, dtype=np.uint8), (L, 1)).T,  # a ramp along y: only y seams
         random_levels(6, seed=21),
+        # a peak in a ring: as a tile, 94 triangles; c^2 bounds of a periodic tile
+        # (the seams in place of the outer walls) once said 86
+        np.array([[4, 3, 4], [3, 5, 3], [4, 3, 4]], np.uint8),
     ],
 )
-def test_periodic_bound_covers_a_merged_crop(levels):
-    # check_crop sizes a merged c x c body as c^2 periodic bounds: the walls across the
-    # tile seams (in x and in y) must be counted.
-    for c in (2, 3):
+def test_triangle_bound_covers_a_merged_crop(levels):
+    # check_crop sizes a merged c x c body by it: the walls across the tile seams (in x
+    # and in y) and around the body must be counted
+    for c in (1, 2, 3):
         _, f = tile_mesh(relief_of(levels).tiled(c, c))
-        assert len(f) <= c * c * triangle_upper_bound(levels, periodic=True)
+        assert len(f) <= triangle_upper_bound(levels, c)
 
 
 def test_crop_of_flat_tiles_well_within_the_memory_limit_is_accepted():
