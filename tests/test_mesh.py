@@ -405,11 +405,7 @@ def test_cli_refuses_float32_formats_on_a_thick_substrate(tmp_path, capsys):
         assert main(["mesh", str(fab), "--out", str(out), "--thickness-mm", bad]) == 2
         assert "--thickness-mm" in capsys.readouterr().err and not out.exists()
     # PLY (float64) and 3MF (9 decimals) hold the heights at any thickness.
-    argv = ["mesh", str(fab), "--out", str(out), "--thickness-mm", "40", "--formats", "ply,3mf"]
-    assert main(argv) == 0
-    z = np.unique(trimesh.load(out / "tile.ply", process=False).vertices[:, 2])
-    tops = 40.0 - (L - 1 - np.unique(levels)) * STEP * 1e3
-    np.testing.assert_allclose(z, np.concatenate([[0.0], tops]), rtol=0, atol=1e-12)
+    assert_heights_written(fab, out, levels, 40.0, "ply,3mf", "tile.ply", atol=1e-12)
 
 
 def test_cli_writes_float32_formats_up_to_32_mm(tmp_path):
@@ -417,12 +413,16 @@ def test_cli_writes_float32_formats_up_to_32_mm(tmp_path):
     # at most 0.95 nm, within the 1 nm the mesh checks allow: 30 mm is accepted.
     levels = random_levels(3, seed=16)
     fab = write_fab_dir(tmp_path / "fab", levels)
-    out = tmp_path / "out"
-    argv = ["mesh", str(fab), "--out", str(out), "--thickness-mm", "30", "--formats", "glb,stl"]
-    assert main(argv) == 0
-    z = np.unique(trimesh.load(out / "tile.stl", process=False).vertices[:, 2])
-    tops = 30.0 - (L - 1 - np.unique(levels)) * STEP * 1e3
-    np.testing.assert_allclose(z, np.concatenate([[0.0], tops]), rtol=0, atol=1e-6)
+    assert_heights_written(fab, tmp_path / "out", levels, 30.0, "glb,stl", "tile.stl", atol=1e-6)
+
+
+def assert_heights_written(fab, out, levels, thickness_mm, formats, name, atol):
+    """Write the mesh; the file's heights (mm) must be the back and each level's top."""
+    argv = ["mesh", str(fab), "--out", str(out), "--thickness-mm", str(thickness_mm)]
+    assert main([*argv, "--formats", formats]) == 0
+    z = np.unique(trimesh.load(out / name, process=False).vertices[:, 2])
+    tops = thickness_mm - (L - 1 - np.unique(levels)) * STEP * 1e3
+    np.testing.assert_allclose(z, np.concatenate([[0.0], tops]), rtol=0, atol=atol)
 
 
 def test_cli_aperture_scenes_put_nx_by_ny_tiles_at_the_manifest_origin(tmp_path):

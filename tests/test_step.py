@@ -60,15 +60,19 @@ def test_open_shell_is_reported_not_closed():
     assert not check["closed"]
 
 
+def assembly_bytes(solid, offsets, route):
+    """The aperture assembly as STEP bytes, written as text around the tile or by OCCT."""
+    if route == "text":
+        return step.assembly_step_bytes(step.step_bytes(solid), offsets)
+    return step.step_bytes(solid, offsets)
+
+
 @pytest.mark.parametrize("route", ["text", "xcaf"])
 def test_step_aperture_is_an_assembly_of_located_instances(tmp_path, route):
     relief = relief_of(5, seed=3)
     solid = step.tile_solid(relief)
     offsets = instance_offsets_mm(relief, (3, 2), origin_mm=(1.0, 2.0))
-    if route == "text":
-        data = step.assembly_step_bytes(step.step_bytes(solid), offsets)
-    else:
-        data = step.step_bytes(solid, offsets)
+    data = assembly_bytes(solid, offsets, route)
     assert data.count(b"MANIFOLD_SOLID_BREP") == 1, "the tile is stored once"
     assert data.count(b"NEXT_ASSEMBLY_USAGE_OCCURRENCE") == 6
     path = tmp_path / "aperture.step"
@@ -105,10 +109,7 @@ def test_step_assembly_transforms_map_the_tile_origin_onto_each_offset(route):
     solid = step.tile_solid(relief)
     offsets = instance_offsets_mm(relief, (2, 2), origin_mm=(1.0, -2.0))
     offsets[:, 2] = 0.25  # raised too: z is translated like x and y
-    if route == "text":
-        data = step.assembly_step_bytes(step.step_bytes(solid), offsets)
-    else:
-        data = step.step_bytes(solid, offsets)
+    data = assembly_bytes(solid, offsets, route)
     ents = step_entities(data)
 
     def items(rep):
