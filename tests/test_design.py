@@ -72,10 +72,46 @@ def test_lattice_drift_is_taken_along_the_sensors_longer_side():
     assert der.lattice_drift_at_edge == pytest.approx(der.lattice_mismatch * 128 * 4 / 2)
 
 
-def test_an_aperture_of_exactly_one_tile_is_accepted():
-    # N * pitch came out 1 ulp above the aperture: "0.873 mm is larger than 0.873 mm".
-    der = derive(parse_design(with_value("fabrication", "aperture_mm", 0.87325), "one.toml"))
-    assert der.tile_size == pytest.approx(0.87325e-3) and der.tiles == 1
+@pytest.mark.parametrize("tiles", [1, 2, 16])
+def test_an_aperture_of_exactly_whole_tiles_holds_them_all(tiles):
+    # N * pitch came out 1 ulp above the aperture: "0.873 mm is larger than 0.873 mm";
+    # and 2 x 0.87325 mm held 1 tile by floor(aperture / tile) alone.
+    raw = with_value("fabrication", "aperture_mm", tiles * 0.87325)
+    der = derive(parse_design(raw, "whole.toml"))
+    assert der.tile_size == pytest.approx(0.87325e-3) and der.tiles == tiles
+    assert der.tiled_size == pytest.approx(tiles * 0.87325e-3)
+
+
+def test_the_mask_pitch_is_the_grid_value_nearest_the_tile_over_n():
+    # 873 333.3 nm / 172 = 5077.52 nm: the nearest 1 nm value is 5078, not 5077
+    der = derive(load_design(), tile_pixels=172)
+    nominal_nm = 655 * 50e-3 / 37.5e-6
+    assert der.mask_pixel_pitch * 1e9 == pytest.approx(round(nominal_nm / 172)) == 5078
+
+
+@pytest.mark.parametrize(
+    ("feature_um", "accepted"),
+    [(79.39, True), (0.21322, True), (0.21317, False)],  # N = 11 = K, 4096, 4097
+)
+def test_tile_pixel_limits_are_inclusive(feature_um, accepted):
+    raw = with_value("fabrication", "feature_size_um", feature_um)
+    if accepted:
+        assert derive(parse_design(raw, "n.toml")).tile_pixels in (11, 4096)
+    else:
+        with pytest.raises(InputError, match="N = 4097 pixels, more than 4096"):
+            parse_design(raw, "n.toml")
+
+
+def test_glass_exactly_as_thick_as_the_deepest_etch_is_refused():
+    deepest = sum(derive(load_design()).etch_depths)  # m
+    with pytest.raises(InputError, match="not thicker than the deepest etch"):
+        parse_design(with_value("material", "thickness_mm", deepest * 1e3), "thin.toml")
+
+
+def test_a_square_active_area_fills_its_side_squared():
+    raw = raw_default()
+    raw["sensor"].update(active_area_shape="square", active_area_um=75.0)
+    assert derive(parse_design(raw, "square.toml")).fill_factor == pytest.approx(0.25)
 
 
 @pytest.mark.parametrize(
