@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from doe.cli import main
+from doe.errors import InputError
 from psf_learn.cubes import read_cube, write_frame_png16
 from psf_learn.depth import (
     FWHM_PER_SIGMA,
@@ -547,6 +548,40 @@ def test_frame_folder_is_read_as_uint16_in_name_order(tmp_path, name):
         write_frame_png16(folder / name.format(k=k), cube[..., k] / 65535.0)
     (folder / "._shift_000.png").write_bytes(b"\x00\x05\x16\x07 macOS metadata")
     np.testing.assert_array_equal(read_cube(folder), cube.astype(np.float64))
+
+
+def test_a_cube_needs_its_fewest_samples_and_no_negative_counts():
+    from psf_learn.cubes import check_cube
+
+    ones = np.ones((2, 3, 4))
+    assert check_cube(ones, "c.npy").shape == (2, 3, 4)  # 4 samples fit a return
+    with pytest.raises(InputError, match="T >= 4"):
+        check_cube(ones[..., :3], "c.npy")
+    assert check_cube(ones[..., :1], "c.npy", min_samples=1).shape == (2, 3, 1)
+    with pytest.raises(InputError, match="negative counts"):  # integers too
+        check_cube(-np.ones((2, 3, 4), np.int32), "c.npy")
+
+
+def test_an_irf_is_read_as_one_row_and_needs_light(tmp_path):
+    from psf_learn.cubes import read_irf
+
+    irf = np.exp(-0.5 * (np.arange(20) - 8.0) ** 2)
+    np.save(tmp_path / "row.npy", irf[None, :])  # saved as a (1, T) row: one response
+    np.testing.assert_array_equal(read_irf(tmp_path / "row.npy"), irf)
+    np.save(tmp_path / "dark.npy", np.zeros(20))
+    with pytest.raises(InputError, match=r"dark\.npy.*no positive sample"):
+        read_irf(tmp_path / "dark.npy")
+
+
+def test_frames_are_written_rounded_to_the_nearest_16_bit_code(tmp_path):
+    import OpenImageIO as oiio
+
+    codes = np.array([[0.0, 0.4, 0.6, 1.5], [100.49, 100.51, 65534.6, 65535.0]])
+    write_frame_png16(tmp_path / "f.png", codes / 65535)
+    read = oiio.ImageInput.open(str(tmp_path / "f.png"))
+    got = read.read_image(0, 0, 0, 1, "uint16")[..., 0]
+    read.close()
+    np.testing.assert_array_equal(got, [[0, 0, 1, 2], [100, 101, 65535, 65535]])
 
 
 def write_frame(path, array, fmt):
