@@ -105,6 +105,58 @@ def test_run_killed_while_swapping_a_stage_in_resumes(tmp_path, monkeypatch):
     assert (tmp_path / "run" / "second" / "second.txt").read_text() == "XYZ"
 
 
+def test_a_swap_killed_and_its_new_folder_deleted_redoes_the_stage(tmp_path, monkeypatch):
+    # Killed after the state named the new files, then the lab removed the hidden
+    # .first.new: the old outputs left in first/ are the run's (the files they
+    # replaced), not edits (refused without --force) nor the lab's (a clash).
+    import shutil
+
+    class WithAnExtra(FakeDoefab):  # the first run also writes an output the next does not
+        def __call__(self, argv):
+            with open(f"{argv[argv.index('--out') + 1]}/extra.txt", "w") as f:
+                f.write("of the first run")
+            return super().__call__(argv)
+
+    (tmp_path / "input.txt").write_text("abc")
+    assert run_all(tmp_path, WithAnExtra()) == 0
+    (tmp_path / "input.txt").write_text("xyz")
+
+    def killed(path):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pipeline, "_remove_tree", killed)
+    with pytest.raises(KeyboardInterrupt):
+        run_all(tmp_path, FakeDoefab())
+    monkeypatch.undo()
+    shutil.rmtree(tmp_path / "run" / ".first.new")
+    fake = FakeDoefab()
+    assert run_all(tmp_path, fake) == 0
+    assert fake.calls == ["first", "second"]
+    assert sorted(p.name for p in (tmp_path / "run" / "first").iterdir()) == ["first.txt"]
+    assert (tmp_path / "run" / "second" / "second.txt").read_text() == "XYZ"
+
+
+def test_a_leftover_of_another_configuration_is_started_clean(tmp_path):
+    (tmp_path / "input.txt").write_text("abc")
+    leftover = tmp_path / "run" / ".first.new"
+    leftover.mkdir(parents=True)
+    (leftover / ".stage_key").write_text("a key of other arguments")
+    (leftover / "stale.txt").write_text("from another configuration")
+    assert run_all(tmp_path, FakeDoefab()) == 0
+    assert sorted(p.name for p in (tmp_path / "run" / "first").iterdir()) == ["first.txt"]
+
+
+def test_a_stage_key_does_not_depend_on_where_the_run_folder_lives(tmp_path):
+    keys = []
+    for place in ("here", "moved"):
+        run = tmp_path / place / "run"
+        (run / "first").mkdir(parents=True)
+        (run / "first" / "first.txt").write_text("abc")
+        made = run / "first" / "first.txt"
+        keys.append(pipeline.stage_key(Stage("second", ("second", str(made)), (made,)), run))
+    assert keys[0] == keys[1]
+
+
 def test_ctrl_c_while_swapping_a_stage_in_keeps_the_labs_files(tmp_path, monkeypatch):
     # Stopped between removing the old folder and the rename, the lab's files sat in a
     # .NAME.new without a key, which the resumed run removed whole.
