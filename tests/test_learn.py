@@ -832,6 +832,82 @@ def test_a_refused_torch_write_is_one_line_and_leaves_no_part(tmp_path):
     assert not target.exists()
 
 
+def _model_folder(path, record):
+    """A model folder with ``record`` as model.pt, a PSF and no learn.json."""
+    from doe.files import save_npy
+
+    path.mkdir()
+    torch.save(record, path / "model.pt")
+    save_npy(path / "psf.npy", gaussian_psf(K))
+    return path
+
+
+def test_model_record_keeps_the_sensor_and_weights_as_they_were(tmp_path):
+    from psf_learn import store
+
+    # An off-centre active area: weights that are not symmetric under a transpose.
+    weights = ((0.0, 0.1, 0.0, 0.0), (0.0, 0.6, 0.2, 0.0), (0.0, 0.0, 0.1, 0.0), (0.0,) * 4)
+    sensor = SensorModel(weights, photons=250.0, dark_counts=0.5)
+    net = SRNet(factor=4, features=6, stages=1)
+    config = {"factor": 4, "features": 6, "stages": 1}
+    folder = _model_folder(tmp_path / "m", store.model_record(net, config, sensor))
+    record, psf, learn = store.load_model_dir(folder)
+    assert record["format"] == store.MODEL_FORMAT and record["network"] == config
+    assert record["sensor"] == {"weights": [list(r) for r in weights], "photons": 250.0,
+                                "dark_counts": 0.5}  # fmt: skip
+    assert record["state_dict"].keys() == net.state_dict().keys()
+    for k, v in net.state_dict().items():
+        assert torch.equal(record["state_dict"][k], v)
+    np.testing.assert_array_equal(psf, gaussian_psf(K))
+    assert learn is None
+
+
+def test_model_and_checkpoint_files_holding_code_or_another_format_are_refused(tmp_path):
+    # weights_only: a torch file that unpickles anything but tensors and plain types could
+    # run code; such a file is refused, not loaded
+    from fractions import Fraction
+
+    from doe.errors import InputError
+    from psf_learn import store
+
+    pickled = {"format": store.MODEL_FORMAT, "x": Fraction(1, 3)}
+    foreign = _model_folder(tmp_path / "pickled", pickled)
+    with pytest.raises(InputError, match="not a readable model"):
+        store.load_model_dir(foreign)
+    other = _model_folder(tmp_path / "other", {"format": "doefab-sr-0", "network": {}})
+    with pytest.raises(InputError, match="not a doefab-sr-1 model file"):
+        store.load_model_dir(other)
+    ckpt = tmp_path / "checkpoint.pt"
+    torch.save({"identity": {}, "camera": {}, "step": 1, "x": Fraction(1, 3)}, ckpt)
+    with pytest.raises(InputError, match="not readable"):
+        store.load_checkpoint(ckpt)
+    torch.save({"camera": {}, "step": 1}, ckpt)  # no identity: not one of ours
+    with pytest.raises(InputError, match="not a doefab checkpoint"):
+        store.load_checkpoint(ckpt)
+
+
+def test_a_checkpoint_write_that_fails_keeps_the_previous_checkpoint(tmp_path, monkeypatch):
+    # A full disk while writing: the old checkpoint must survive whole and no part be left.
+    from doe.errors import InputError
+    from psf_learn import store
+
+    path = tmp_path / "run" / "sub" / "checkpoint.pt"  # the folders are made
+    store.save_checkpoint(path, {"identity": "a", "camera": {}, "step": 3})
+    assert store.load_checkpoint(path)["step"] == 3
+
+    def full_disk(obj, f):
+        with open(f, "wb") as out:
+            out.write(b"PK\x03\x04 partial")
+        raise RuntimeError("[enforce fail at inline_container.cc] : file write failed")
+
+    monkeypatch.setattr(torch, "save", full_disk)
+    with pytest.raises(InputError, match=r"checkpoint\.pt: cannot be written"):
+        store.save_checkpoint(path, {"identity": "a", "camera": {}, "step": 4})
+    monkeypatch.undo()
+    assert store.load_checkpoint(path)["step"] == 3
+    assert [p.name for p in path.parent.iterdir()] == ["checkpoint.pt"]
+
+
 @pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
 def test_an_unwritable_out_is_refused_before_training(tmp_path, capsys):
     out = tmp_path / "out"

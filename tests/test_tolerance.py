@@ -1,5 +1,6 @@
 """Tests of fab.tolerance: the fabricated-plate model against independent oracles."""
 
+import itertools
 import json
 from dataclasses import replace
 
@@ -437,3 +438,174 @@ def test_shifting_every_mask_alike_only_adds_a_phase_ramp(dx, dy, bias):
     tile = n * PITCH
     ramp = np.exp(-2j * np.pi * (m[None, :] * dx - m[:, None] * dy) / tile)
     np.testing.assert_allclose(moved, base * ramp, rtol=0, atol=1e-13)
+
+
+def _flat_design(n=16):
+    """A small GS level map for a flat 3 x 3 target, its masks and its own (contract) PSF."""
+    levels = gs_levels(n, np.full((3, 3), 1 / 9))
+    return levels, masks_from_levels(levels, L, STEP), simulate_levels(levels, L, 3)[0]
+
+
+def test_rmse_limit_is_the_nominal_rmse_plus_the_allowance_or_the_given_one():
+    # Against a target the plate does not make, the nominal rmse is far from 0 and the
+    # limit must be relative to it (the fixture's plate meets its own PSF: rmse 0).
+    levels, masks, _ = _flat_design()
+    target = np.array([[1.0, 2, 1], [2, 6, 2], [1, 2, 1]])
+    target /= target.sum()
+    env = np.sinc((np.arange(3) - 1) / 16) ** 2  # the continuous plate's pixel envelope
+    power = window_power(level_phase(levels, L), 3) * env[:, None] * env[None, :]
+    psf = power / power.sum()
+    nominal = np.sqrt(np.mean((psf / psf.max() - target / target.max()) ** 2))
+    assert nominal > 0.1
+    result = tolerance_analysis(levels, L, target, masks, PITCH, STEP, WAVELENGTH, N_INDEX)
+    assert result["nominal"]["rmse"] == pytest.approx(nominal, rel=1e-9)
+    assert result["rmse_limit"] == pytest.approx(nominal + 0.01, rel=1e-9)
+    given = tolerance_analysis(
+        levels, L, target, masks, PITCH, STEP, WAVELENGTH, N_INDEX, rmse_limit=nominal + 0.002
+    )
+    assert given["rmse_limit"] == nominal + 0.002
+    assert all(b["rmse"] <= nominal + 0.002 for b in given["budget"])
+
+
+def test_a_table_value_exactly_at_the_rmse_limit_is_within_budget():
+    # "rmse <= limit": the deep mask's largest etch value, with the limit set to its own
+    # worse-sign rmse, is the budget, not the start of a bisection below it.
+    levels, masks, own = _flat_design()
+    model = plate_model(masks, PITCH, STEP, L, WAVELENGTH, N_INDEX, 3)
+    at = max(plate_quality(model, own, PlateErrors(etch=(s * 0.1, 0.0, 0.0)))["rmse"]
+             for s in (1, -1))  # fmt: skip
+    spec = ToleranceSpec(monte_carlo_plates=1)
+    result = tolerance_analysis(levels, L, own, masks, PITCH, STEP, WAVELENGTH, N_INDEX,
+                                rmse_limit=at, spec=spec)  # fmt: skip
+    deep = next(b for b in result["budget"] if (b["kind"], b["mask"]) == ("etch", masks[0].name))
+    assert deep["si_value"] == 0.1 and not deep["limited_by_rmse"]
+    assert (deep["value"], deep["unit"]) == (pytest.approx(10.0), "%")  # in the table's unit
+
+
+def test_overlay_is_relative_to_the_first_exposed_mask_whichever_it_is():
+    levels, masks, own = _flat_design()
+    masks = [replace(mk, exposure_order=o) for mk, o in zip(masks, (2, 1, 3), strict=True)]
+    result = tolerance_analysis(levels, L, own, masks, PITCH, STEP, WAVELENGTH, N_INDEX)
+    assert result["reference_mask"] == masks[1].name
+    others = {masks[0].name, masks[2].name}
+    assert {r["mask"] for r in result["rows"] if r["kind"] == "overlay"} == others
+    assert {b["mask"] for b in result["budget"] if b["kind"] == "overlay"} == others
+
+
+def test_monte_carlo_plates_draw_every_error_uniformly_within_its_budget(monkeypatch):
+    import fab.tolerance
+
+    drawn, figures, real = [], [], fab.tolerance.plate_quality
+
+    def spy(model, target, errors, reference=None):
+        q = real(model, target, errors, reference)
+        if reference is not None:  # only the Monte Carlo plates carry the reference PSF
+            drawn.append(errors)
+            figures.append(q)
+        return q
+
+    monkeypatch.setattr(fab.tolerance, "plate_quality", spy)
+    levels, masks, own = _flat_design()
+
+    def run(seed):
+        drawn.clear()
+        figures.clear()
+        result = tolerance_analysis(levels, L, own, masks, PITCH, STEP, WAVELENGTH, N_INDEX,
+                                    seed=seed)  # fmt: skip
+        return result, list(drawn)
+
+    result, plates = run(5)
+    assert len(plates) == ToleranceSpec().monte_carlo_plates
+    budget = {(b["kind"], b["mask"]): b["si_value"] for b in result["budget"]}
+    etch = np.array([p.etch for p in plates])  # (plates, masks)
+    shift = np.array([p.shift for p in plates])  # (plates, masks, (dx, dy))
+    cd = np.array([p.cd_bias for p in plates])
+
+    def uniform_within(values, b):
+        # |value| <= budget (SI units), and 16 uniform draws reach past a quarter of
+        # it on both sides (each side misses with probability (5/8)**16 = 5e-4)
+        assert b > 0
+        assert np.all(np.abs(values) <= b)
+        assert values.min() < -b / 4 and values.max() > b / 4
+
+    for i, mk in enumerate(masks):
+        uniform_within(etch[:, i], budget["etch", mk.name])
+    assert np.all(shift[:, 0] == 0)  # the first exposed mask is the reference
+    for i in (1, 2):
+        for axis in (0, 1):
+            uniform_within(shift[:, i, axis], budget["overlay", masks[i].name])
+        assert np.all(shift[:, i, 0] != shift[:, i, 1])  # x and y drawn independently
+    uniform_within(cd, budget["cd_bias", "all"])
+    # the thresholds are the worst of these plates, widened by the margins
+    spec, acc = ToleranceSpec(), result["acceptance"]
+    worst = {key: [q[key] for q in figures] for key in figures[0]}
+    corr, rmse = worst["correlation_vs_reference"], worst["rmse_vs_reference"]
+    assert acc["correlation_min"] == min(corr) - spec.correlation_margin
+    assert acc["rmse_max"] == max(rmse) + spec.rmse_margin
+    assert acc["efficiency_min"] == min(worst["efficiency"]) * (1 - spec.efficiency_margin)
+    assert acc["zero_order_max"] == max(worst["zero_order"]) + spec.zero_order_margin
+    # seeded: the same seed draws the same plates, another seed others
+    assert run(5)[1] == plates
+    assert run(6)[1] != plates
+
+
+def test_masks_one_step_off_on_a_single_pixel_are_refused():
+    levels = random_levels(8)
+    masks = masks_from_levels(levels, L, STEP)
+    bitmap = masks[2].bitmap.copy()  # the shallowest mask: one level step
+    bitmap[3, 4] = not bitmap[3, 4]
+    wrong = [masks[0], masks[1], replace(masks[2], bitmap=bitmap)]
+    target = np.full((3, 3), 1 / 9)
+    with pytest.raises(ValueError, match="level map"):
+        tolerance_analysis(levels, L, target, wrong, PITCH, STEP, WAVELENGTH, N_INDEX)
+
+
+def test_supersampled_model_rounds_the_cd_bias_to_sub_samples():
+    model, _ = model_of(random_levels(12, seed=1), 5, supersample=4)
+    np.testing.assert_array_equal(
+        window_amplitudes(model, PlateErrors(cd_bias=PITCH / 4)),
+        window_amplitudes(model, PlateErrors(cd_bias=PITCH / 4 * 1.2)),
+    )
+    # 0.45 pixel is two of four sub-samples: half a pixel, which closes one-pixel gaps
+    with pytest.raises(ValueError, match="half the pixel pitch"):
+        window_amplitudes(model, PlateErrors(cd_bias=0.45 * PITCH))
+
+
+def test_y_overlay_rows_shift_along_y():
+    # Levels that vary only along x (every row alike) are blind to a shift along y, at any
+    # sub-pixel value: the y rows must equal the nominal plate, the x rows must not.
+    row = np.random.default_rng(6).integers(0, L, 16).astype(np.uint8)
+    levels = np.tile(row, (16, 1))
+    masks = masks_from_levels(levels, L, STEP)
+    own = simulate_levels(levels, L, 3)[0]
+    result = tolerance_analysis(levels, L, own, masks, PITCH, STEP, WAVELENGTH, N_INDEX)
+    nominal = result["nominal"]["rmse"]
+    overlay = [r for r in result["rows"] if r["kind"] == "overlay"]
+    assert {r["axis"] for r in overlay} == {"x", "y"}
+    for r in overlay:
+        if r["axis"] == "y":
+            assert r["rmse"] == pytest.approx(nominal, abs=1e-12), r
+        else:
+            assert r["rmse"] > nominal + 1e-4, r
+
+
+@pytest.mark.parametrize("bias_sub", [-1, 1])
+def test_shifts_half_way_between_sub_samples_round_to_one_consistent_plate(bias_sub):
+    # Rounding may go either way at a tie, but the plate must be one of the supersampled
+    # tiles with every shift on a whole sub-sample, not a mix of two of them.
+    s, k = 5, 5
+    model, masks = model_of(random_levels(12, seed=1), k, supersample=s)
+    sub = PITCH / s
+
+    def plate(shifts):  # (dx, dy) of each mask in sub-samples
+        shift = tuple((x * sub, y * sub) for x, y in shifts)
+        return PlateErrors(etch=(0.0, 0.0, 0.0), shift=shift, cd_bias=bias_sub * sub)
+
+    halves = ((-2.5, 2.5), (-0.5, 0.5), (1.5, -3.5))
+    got = window_amplitudes(model, plate(halves))
+    roundings = itertools.product(*[(c - 0.5, c + 0.5) for xy in halves for c in xy])
+    candidates = (plate(zip(r[::2], r[1::2], strict=True)) for r in roundings)
+    assert any(
+        np.allclose(got, brute_force_window(masks, c, s, k, False), rtol=0, atol=1e-13)
+        for c in candidates
+    )
