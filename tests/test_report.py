@@ -144,7 +144,8 @@ def test_report_has_every_required_section(written, name):
     assert "MIRRORED" in text and "chrome-down" in text
     assert f"{context['manifest']['level_step_nm']:.2f} nm" in text
     acc = context["tolerance"]["acceptance"]
-    assert f"{acc['rmse_max']:.4f}" in text
+    shown = re.search(r"rmse_max(?: \| |</td><td>)([-+.e\d]+)", text)  # its table row
+    assert shown and float(shown.group(1)) == pytest.approx(acc["rmse_max"], rel=1e-5)
     for fig in FIGURES.values():
         assert fig in text
 
