@@ -86,9 +86,10 @@ def test_interrupted_run_resumes_at_the_failed_stage(tmp_path):
     assert fake.calls == ["second"]
 
 
-def test_run_killed_while_swapping_a_stage_in_resumes(tmp_path, monkeypatch):
+def a_run_killed_while_swapping_in_its_redone_first_stage(tmp_path, monkeypatch, first_run):
+    """A finished run (by ``first_run``), a new input, a rerun killed in the first swap."""
     (tmp_path / "input.txt").write_text("abc")
-    assert run_all(tmp_path, FakeDoefab()) == 0
+    assert run_all(tmp_path, first_run) == 0
     (tmp_path / "input.txt").write_text("xyz")  # both stages are redone next
 
     def killed(path):  # a SIGKILL or power cut between the two steps of the swap
@@ -98,6 +99,10 @@ def test_run_killed_while_swapping_a_stage_in_resumes(tmp_path, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         run_all(tmp_path, FakeDoefab())
     monkeypatch.undo()
+
+
+def test_run_killed_while_swapping_a_stage_in_resumes(tmp_path, monkeypatch):
+    a_run_killed_while_swapping_in_its_redone_first_stage(tmp_path, monkeypatch, FakeDoefab())
     fake = FakeDoefab()
     assert run_all(tmp_path, fake) == 0  # not refused: every file there is the run's
     assert fake.calls == ["second"]  # the first stage's swap is finished, not redone
@@ -117,17 +122,7 @@ def test_a_swap_killed_and_its_new_folder_deleted_redoes_the_stage(tmp_path, mon
                 f.write("of the first run")
             return super().__call__(argv)
 
-    (tmp_path / "input.txt").write_text("abc")
-    assert run_all(tmp_path, WithAnExtra()) == 0
-    (tmp_path / "input.txt").write_text("xyz")
-
-    def killed(path):
-        raise KeyboardInterrupt
-
-    monkeypatch.setattr(pipeline, "_remove_tree", killed)
-    with pytest.raises(KeyboardInterrupt):
-        run_all(tmp_path, FakeDoefab())
-    monkeypatch.undo()
+    a_run_killed_while_swapping_in_its_redone_first_stage(tmp_path, monkeypatch, WithAnExtra())
     shutil.rmtree(tmp_path / "run" / ".first.new")
     fake = FakeDoefab()
     assert run_all(tmp_path, fake) == 0
