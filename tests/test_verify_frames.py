@@ -10,7 +10,7 @@ import pytest
 
 from doe.fraunhofer import pixel_envelope, simulate_levels
 from fab.capture_sim import ORIENTATION_MAPS
-from fab.lattice import OrderGrid
+from fab.lattice import Lattice, OrderGrid
 from fab.verify import (
     _PLATE_LEVELS,
     _TRANSFORMS,
@@ -200,3 +200,15 @@ def test_a_clipped_dot_outside_the_window_marks_the_capture_saturated():
     grid = dataclasses.replace(grid, saturated=saturated)
     result, _ = analyse(grid, levels, L, K, "as-designed", t)
     assert result["saturated_in_window"] == 0 and result["diagnosis"] == ["saturated"]
+
+
+def test_lattice_pitch_and_rotation_are_those_of_its_two_step_vectors():
+    # A sheared lattice (a camera tilted about one axis): the step vectors, the basis's
+    # columns, are 10 and hypot(4, 8) long; the basis's rows are hypot(10, 4) and 8.
+    lattice = Lattice(np.array([5.0, 7.0]), np.array([[10.0, 4.0], [0.0, 8.0]]))
+    origin = np.array(lattice.positions(0, 0))
+    steps = [np.array(lattice.positions(u, v)) - origin for u, v in ((1, 0), (0, 1))]
+    assert lattice.pitch_px == pytest.approx(np.mean([np.hypot(*d) for d in steps]))
+    assert lattice.pitch_px == pytest.approx((10 + np.hypot(4, 8)) / 2)
+    # +v steps 8 right and 4 down: clockwise as displayed, by atan(4 / 8)
+    assert lattice.rotation_deg == pytest.approx(-np.degrees(np.arctan2(4, 8)))
