@@ -2,6 +2,7 @@
 
 import json
 
+import numpy as np
 import pytest
 from hypothesis import settings
 
@@ -27,6 +28,30 @@ def saved_figures(monkeypatch):
         Figure, "savefig", lambda fig, *a, **k: saved.append(fig) or save(fig, *a, **k)
     )
     return saved
+
+
+@pytest.fixture
+def colour_at():
+    """Return colour(ax, x, y, space="data"): the RGB drawn at (x, y) of a figure's axes.
+
+    ``space`` "axes" takes (x, y) as fractions of the axes, (0, 0) the lower left.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    drawn = {}
+
+    def colour(ax, x, y, space="data"):
+        fig = ax.figure
+        if id(fig) not in drawn:
+            canvas = FigureCanvasAgg(fig)
+            canvas.draw()
+            drawn[id(fig)] = np.asarray(canvas.buffer_rgba())[..., :3].astype(int)
+        pixels = drawn[id(fig)]
+        to_display = ax.transData if space == "data" else ax.transAxes
+        col, row = to_display.transform((x, y))  # display y grows upwards
+        return pixels[pixels.shape[0] - 1 - int(row), int(col)]
+
+    return colour
 
 
 @pytest.fixture

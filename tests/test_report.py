@@ -236,28 +236,9 @@ def test_markdown_report_gives_a_design_name_as_text(tmp_path):
     assert "| &lt;i>a\\|b&lt;/i> |" in text
 
 
-def _drawn(monkeypatch, draw, *args):
-    """Draw a report figure; return its canvas (H, W, 3) and its axes."""
-    from fab import figures
-
-    saved = []
-    monkeypatch.setattr(figures, "_save", lambda fig, path: saved.append(fig))
-    draw("unused.png", *args)
-    (fig,) = saved
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-
-    canvas = FigureCanvasAgg(fig)
-    canvas.draw()
-    return np.asarray(canvas.buffer_rgba())[..., :3], fig.axes
-
-
-def _colour_at(canvas, ax, x, y):
-    """The canvas colour at data point (x, y) of ``ax`` (display y grows upwards)."""
-    col, row = ax.transData.transform((x, y))
-    return canvas[canvas.shape[0] - 1 - int(row), int(col)]
-
-
-def test_tile_figures_show_row_0_at_the_top_and_column_0_at_the_left(monkeypatch):
+def test_tile_figures_show_row_0_at_the_top_and_column_0_at_the_left(
+    tmp_path, saved_figures, colour_at
+):
     # One lit pixel at row 0, last column: top right in x-y, as the level map and the
     # masks are viewed onto the patterned surface (CONVENTIONS.md); a transposed,
     # flipped or mirrored picture lights another corner.
@@ -270,22 +251,21 @@ def test_tile_figures_show_row_0_at_the_top_and_column_0_at_the_left(monkeypatch
     corners = {"top right": (hi, hi), "top left": (lo, hi), "bottom right": (hi, lo),
                "bottom left": (lo, lo)}  # fmt: skip
 
-    def lit_corners(canvas, ax, xy, background):
-        return [
-            k for k, p in xy.items() if np.abs(_colour_at(canvas, ax, *p) - background).max() > 60
-        ]
+    def lit(ax, points, background):
+        return [k for k, p in points.items() if np.abs(colour_at(ax, *p) - background).max() > 60]
 
-    canvas, axes = _drawn(monkeypatch, figures.level_map, levels, L, pitch)
-    dark = _colour_at(canvas, axes[0], lo, lo)  # level 0
-    assert lit_corners(canvas, axes[0], corners, dark) == ["top right"]
-    canvas, axes = _drawn(monkeypatch, figures.mask_bitmaps, [levels > 0], ["M"], [1.0], pitch)
-    assert _colour_at(canvas, axes[0], hi, hi).max() < 64  # a polygon: etched, drawn black
-    assert lit_corners(canvas, axes[0], corners, np.full(3, 255)) == ["top right"]
+    figures.level_map(tmp_path / "levels.png", levels, L, pitch)
+    ax = saved_figures[-1].axes[0]
+    assert lit(ax, corners, colour_at(ax, lo, lo)) == ["top right"]  # against level 0
+    figures.mask_bitmaps(tmp_path / "masks.png", [levels > 0], ["M"], [1.0], pitch)
+    ax = saved_figures[-1].axes[0]
+    assert colour_at(ax, hi, hi).max() < 64  # a polygon: etched, drawn black
+    assert lit(ax, corners, np.full(3, 255)) == ["top right"]
     # the PSF: row 0 at y = +K//2 (rows grow to -y), column 0 at x = -K//2
     psf = np.full((5, 5), 1.0)
     psf[0, 4] = 20.0
-    canvas, axes = _drawn(monkeypatch, figures.psf_comparison, psf, psf)
+    figures.psf_comparison(tmp_path / "psf.png", psf, psf)
+    ax = saved_figures[-1].axes[0]
     cells = {"top right": (2, 2), "top left": (-2, 2), "bottom right": (2, -2),
              "bottom left": (-2, -2)}  # fmt: skip
-    dim = _colour_at(canvas, axes[0], 0, 0)
-    assert lit_corners(canvas, axes[0], cells, dim) == ["top right"]
+    assert lit(ax, cells, colour_at(ax, 0, 0)) == ["top right"]
