@@ -139,6 +139,22 @@ def test_every_panel_of_verify_png_has_a_colour_bar(tmp_path, levels, saved_figu
     assert capture.norm.vmin == 0 and capture.norm.vmax > 1  # DN, not square roots of DN
 
 
+def test_verify_png_shows_the_psfs_row_0_at_the_top(tmp_path, levels, saved_figures, colour_at):
+    # each PSF panel's brightest cell is where the design PSF's is, counted from the
+    # top left of the panel as displayed
+    assert run_verify(tmp_path, levels, dict(seed=1))[0] == 0
+    (fig,) = [f for f in saved_figures if f.axes[0].get_title().startswith("capture")]
+    design = simulate_levels(levels, L, K)[0]
+    assert not np.allclose(design, design.T) and not np.allclose(design, design[::-1])
+    peak = np.unravel_index(np.argmax(design), design.shape)
+    for ax in fig.axes:
+        if ax.get_title() not in ("measured PSF", "design PSF (simulate_levels)"):
+            continue
+        light = np.array([[colour_at(ax, (c + 0.5) / K, 1 - (r + 0.5) / K, space="axes").sum()
+                           for c in range(K)] for r in range(K)])  # fmt: skip
+        assert np.unravel_index(np.argmax(light), light.shape) == peak, ax.get_title()
+
+
 def test_12bit_msb_png_is_detected(tmp_path, levels):
     code, report, _ = run_verify(tmp_path, levels, dict(seed=4, bits=12), dark=False)
     assert code == 0
