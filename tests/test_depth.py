@@ -716,3 +716,23 @@ def test_depth_module_does_not_import_torch():
     code = "import sys, psf_learn.depth, psf_learn.depth_sim, psf_learn.cubes, psf_learn.cli_depth; print('torch' in sys.modules)"  # noqa: E501
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_depth_maps_show_row_0_at_the_top_and_invalid_pixels_grey(
+    tmp_path, saved_figures, colour_at
+):
+    from psf_learn.depth_plots import save_map
+
+    image = np.zeros((3, 5))
+    image[0, 4] = 1.0  # top right, lit
+    valid = np.ones((3, 5), bool)
+    valid[2, 0] = False  # bottom left, no fit
+    save_map(tmp_path / "map.png", image, "depth", "m", valid=valid)
+    (ax,) = [a for a in saved_figures[-1].axes if a.images]
+
+    def at(row, col):  # the centre of a cell, from the top left as displayed
+        return colour_at(ax, (col + 0.5) / 5, 1 - (row + 0.5) / 3, space="axes")
+
+    assert at(0, 4).min() > 200 and at(0, 0).max() < 60  # grey scale: white is 1, black 0
+    assert np.all(np.abs(at(2, 0) - 0.6 * 255) < 3)  # "0.6" grey
+    assert at(2, 4).max() < 60 and at(1, 2).max() < 60
