@@ -3,6 +3,7 @@
 import hashlib
 import importlib.util
 import json
+import re
 
 import numpy as np
 import pytest
@@ -61,6 +62,9 @@ def test_manifest_records_the_kernel_of_the_target_not_the_designs(tmp_path):
     assert main(["fab", str(tmp_path / "design"), "--out", str(tmp_path / "out")]) == 0
     man = json.loads((tmp_path / "out" / "fab_manifest.json").read_text())
     assert man["kernel_size"] == 7 == np.load(tmp_path / "out" / man["target_psf_file"]).shape[0]
+    # the design's own target file, not a re-encoding of it
+    target = (tmp_path / "out" / man["target_psf_file"]).read_bytes()
+    assert target == (tmp_path / "design" / "target_psf.npy").read_bytes()
 
 
 def test_package_has_the_contract_manifest_and_files(package):
@@ -392,3 +396,33 @@ def test_manifest_lattice_pitch_is_lambda_f_over_tile_size(tmp_path):
     assert man["tile_size_um"] * 1e-6 == pytest.approx(tile_m, rel=1e-12)
     expected_um = design.optics.wavelength * design.optics.focal_length / tile_m * 1e6
     assert abs(man["lattice_pitch_um"] - expected_um) < 1e-9 * expected_um
+
+
+@pytest.mark.skipif(not HAS_REPORT, reason="fab.report is not in this build")
+def test_report_summary_gives_the_tiles_own_figures_against_its_target(tmp_path):
+    # The target (what retrieval aimed at) is not the PSF the tile forms: the report's
+    # nominal figures are the tile's PSF (CONVENTIONS.md forward model) against it.
+    n, k = 15, 7
+    d = tmp_path / "design"
+    levels = make_design_dir(d, n=n, target=False)
+    other = make_design_dir(tmp_path / "other", n=n, seed=5, target=False)
+    target = simulate_levels(other, 8, k)[0]
+    np.save(d / "target_psf.npy", target)
+    out = tmp_path / "out"
+    assert main(["fab", str(d), "--out", str(out)]) == 0
+    f = np.fft.fft2(np.exp(2j * np.pi * levels / 8)) / n**2
+    orders = (np.arange(k) - k // 2) % n
+    window = np.abs(f[np.ix_(orders, orders)]) ** 2
+    sim = window / window.sum()
+    corr = np.corrcoef(sim.ravel(), target.ravel())[0, 1]
+    rmse = np.sqrt(np.mean((sim / sim.max() - target / target.max()) ** 2))
+    md = (out / "fab_report.md").read_text()
+    eff = re.search(r"^\| window efficiency \(nominal\) \| ([\d.]+) \|$", md, re.M)
+    assert float(eff[1]) == pytest.approx(window.sum(), abs=6e-5)
+    row = re.search(r"^\| correlation / rmse vs target \(nominal\) \| (\S+) / (\S+) \|$", md, re.M)
+    assert float(row[1]) == pytest.approx(corr, abs=1e-6) and corr < 0.9
+    assert float(row[2]) == pytest.approx(rmse, abs=1e-5)
+    # a random tile's masks hold single-pixel features: the smallest is one mask pixel
+    pitch_um = json.loads((out / "fab_manifest.json").read_text())["pixel_pitch_nm"] / 1000
+    minima = re.findall(r"^\| \d \| M\d_\w+ \|.* \| ([\d.]+) \|$", md, re.M)
+    assert len(minima) == 3 and all(float(v) == pytest.approx(pitch_um) for v in minima)

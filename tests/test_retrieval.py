@@ -1,5 +1,6 @@
 """Phase retrieval: objective and gradient, discrete updates, determinism, quality, CLI."""
 
+import hashlib
 import json
 import warnings
 
@@ -557,7 +558,7 @@ def _retrieve_asymmetric(tmp_path, capsys, *flags):
     return psf, out, json.loads((out / "retrieval.json").read_text()), err
 
 
-def test_cli_writes_the_contract_files(tmp_path, capsys):
+def test_cli_writes_the_contract_files(tmp_path, capsys, saved_figures):
     target = targets.asymmetric(7)
     psf, out, info, err = _retrieve_asymmetric(tmp_path, capsys, "--seed", 2)
     levels = np.load(out / "levels.npy")
@@ -579,6 +580,16 @@ def test_cli_writes_the_contract_files(tmp_path, capsys):
     assert info["square_pixels"]["rmse"] == pytest.approx(plate["rmse"], rel=1e-12)
     assert "warning: the design meets the goals, but a plate of square pixels" in err
     assert (out / "retrieval.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # the input named and hashed, not its path: `sha256sum psf.npy` checks it
+    assert info["target_psf"] == "psf.npy"
+    assert info["target_psf_sha256"] == hashlib.sha256(psf.read_bytes()).hexdigest()
+    # the figure shows the quantised plate: its PSF (CONVENTIONS.md model) and figures
+    f = np.fft.fft2(np.exp(2j * np.pi * levels / 8)) / 31**2
+    orders = (np.arange(7) - 3) % 31
+    window = np.abs(f[np.ix_(orders, orders)]) ** 2
+    fig = saved_figures[0]
+    assert np.allclose(fig.axes[1].images[0].get_array(), window / window.max(), atol=1e-12)
+    assert f"rmse {info['quantised']['rmse']:.5f}" in fig.get_suptitle()
     # same seed -> byte-identical level map and figure
     out2 = tmp_path / "out2"
     assert _run([psf, "--out", out2, "--tile-pixels", 31, "--seed", 2], capsys)[0] == 0
@@ -780,6 +791,14 @@ def test_cli_refuses_an_output_path_that_is_a_file(tmp_path, capsys):
     code, err = _run([psf, "--out", out, "--tile-pixels", 15], capsys)
     assert code == 2 and "out" in err and len(err.strip().splitlines()) == 1
     assert out.read_text() == "a file"
+
+
+def test_cli_accepts_a_kernel_as_large_as_the_tile(tmp_path, capsys):
+    # K = N: the window holds every order of the tile (K > N is refused)
+    psf = _psf_file(tmp_path, targets.compact_blob(5))
+    code, err = _run([psf, "--out", tmp_path / "out", "--tile-pixels", 5], capsys)
+    assert code == 0, err
+    assert np.load(tmp_path / "out" / "levels.npy").shape == (5, 5)
 
 
 def test_cli_refuses_to_overwrite_without_force(tmp_path, capsys):

@@ -36,6 +36,7 @@ from fab.verify import (
 N, K, L = 35, 11, 8
 PITCH_UM, CAMERA_UM = 37.504, 3.45
 PITCH_PX = PITCH_UM / CAMERA_UM
+ACCEPTANCE_KEYS = ("correlation_min", "rmse_max", "efficiency_min", "zero_order_max")
 
 
 @pytest.fixture(scope="module")
@@ -54,7 +55,12 @@ def make_design_dir(path, levels, acceptance=None):
         "lattice_pitch_um": PITCH_UM,
         "levels_file": "levels.npy",
         "target_psf_file": "target_psf.npy",
-        "masks": [{"name": "M1_deep", "etch_depth_nm": 717.6, "exposure_order": 1}],
+        # listed in any order: exposure_order 1 is the deep etch
+        "masks": [
+            {"name": "M3_shallow", "etch_depth_nm": 179.4, "exposure_order": 3},
+            {"name": "M2_mid", "etch_depth_nm": 358.8, "exposure_order": 2},
+            {"name": "M1_deep", "etch_depth_nm": 717.6, "exposure_order": 1},
+        ],
     }
     if acceptance is not None:
         manifest["acceptance"] = acceptance
@@ -484,7 +490,15 @@ def test_blank_capture_exits_2(tmp_path, levels, capsys):
 
 @pytest.mark.parametrize(
     "change, culprit",
-    [({"levels": 0}, "fab_manifest.json"), ({"target_psf_file": "gone.npy"}, "gone.npy")],
+    [
+        ({"levels": 0}, "fab_manifest.json"),
+        ({"target_psf_file": "gone.npy"}, "gone.npy"),
+        ({"kernel_size": 10}, "fab_manifest.json"),  # even: no centre order
+        ({"kernel_size": N + 2}, "fab_manifest.json"),  # a window wider than the tile
+        ({"acceptance": 0.95}, "fab_manifest.json"),  # not a table of thresholds
+        ({"lattice_pitch_um": 0}, "fab_manifest.json"),
+        ({"acceptance": dict.fromkeys(ACCEPTANCE_KEYS, "0.9")}, "fab_manifest.json"),  # text
+    ],
 )
 def test_inconsistent_manifest_exits_2(tmp_path, levels, capsys, change, culprit):
     # levels 0 was blamed on levels.npy ("must lie in 0..-1"); a target the manifest
@@ -516,6 +530,79 @@ def test_manifest_acceptance_is_used(tmp_path, levels):
     assert report["thresholds"]["correlation_min"] == acc["correlation_min"]
 
 
+def test_verify_json_records_the_flags_and_inputs_it_ran_with(tmp_path, levels):
+    # a camera of 5 um pixels, mounted turned by 90 degrees: the record must say so
+    pixel_um = 5.0
+    code, report, _ = run_verify(
+        tmp_path,
+        levels,
+        dict(seed=10, orientation="rot90", pitch_px=PITCH_UM / pixel_um),
+        flags=("--orientation", "rot90", "--pixel-pitch-um", str(pixel_um)),
+    )
+    assert code == 0, report["diagnosis"]
+    assert report["orientation"] == "rot90" and report["pixel_pitch_um"] == pixel_um
+    assert report["lattice"]["nominal_pitch_px"] == pytest.approx(PITCH_UM / pixel_um)
+    assert report["inputs"]["capture"] == "capture.png" and report["inputs"]["dark"] == "dark.png"
+
+
+def test_existing_verify_output_is_refused_without_force(tmp_path, levels, capsys):
+    code, _, _ = run_verify(tmp_path, levels, dict(seed=1))
+    assert code == 0
+    out = tmp_path / "out"
+    (out / "verify.json").write_text("the lab's notes")
+    psf = (out / "measured_psf.npy").read_bytes()
+    argv = ["verify", str(tmp_path / "design"), str(tmp_path / "capture.png"),
+            "--dark", str(tmp_path / "dark.png"), "--out", str(out)]  # fmt: skip
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--force" in err
+    assert (out / "verify.json").read_text() == "the lab's notes"
+    assert (out / "measured_psf.npy").read_bytes() == psf
+    assert main([*argv, "--force"]) == 0
+    assert json.loads((out / "verify.json").read_text())["pass"] is True
+
+
+def test_correlation_target_compares_the_measured_psf_with_the_target_psf(tmp_path, levels):
+    # The target the tile was designed for is not the PSF its levels form: correlation
+    # judges the plate against its levels, correlation_target the PSF against the target.
+    design = make_design_dir(tmp_path / "design", levels)
+    other = np.random.default_rng(3).integers(0, L, (N, N)).astype(np.uint8)
+    target = simulate_levels(other, L, K)[0]
+    save_npy(design / "target_psf.npy", target)
+    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, seed=1)
+    write_image(tmp_path / "cap.png", sim["capture"])
+    out = tmp_path / "o"
+    assert main(["verify", str(design), str(tmp_path / "cap.png"), "--out", str(out)]) == 0
+    report = json.loads((out / "verify.json").read_text())
+    measured = np.load(out / "measured_psf.npy")
+    pearson = np.corrcoef(measured.ravel(), target.ravel())[0, 1]
+    assert report["correlation_target"] == pytest.approx(pearson, abs=1e-9)
+    assert report["correlation_target"] < 0.5 < report["correlation"]
+
+
+def test_manifest_without_lattice_pitch_takes_it_from_the_optics(tmp_path, levels):
+    # the contract's keys only: lattice pitch = lambda f / (N p)
+    design = make_design_dir(tmp_path / "design", levels)
+    man = json.loads((design / "fab_manifest.json").read_text())
+    del man["lattice_pitch_um"]
+    pitch_nm, wavelength_nm, focal_mm = 24950, 655.0, 50.0
+    man.update(
+        tile_pixels=N,
+        pixel_pitch_nm=pitch_nm,
+        wavelength_nm=wavelength_nm,
+        focal_length_mm=focal_mm,
+    )
+    write_json(design / "fab_manifest.json", man)
+    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, seed=1)
+    write_image(tmp_path / "cap.png", sim["capture"])
+    out = tmp_path / "o"
+    assert main(["verify", str(design), str(tmp_path / "cap.png"), "--out", str(out)]) == 0
+    expected_um = wavelength_nm * 1e-9 * focal_mm * 1e-3 / (N * pitch_nm * 1e-9) * 1e6
+    report = json.loads((out / "verify.json").read_text())
+    assert report["design_lattice_pitch_um"] == pytest.approx(expected_um, rel=1e-12)
+    assert report["lattice_pitch_um"] == pytest.approx(expected_um, rel=1e-12)
+
+
 def test_retrieve_folder_is_accepted(tmp_path, levels):
     from doe.design import design_summary, load_design
 
@@ -532,6 +619,14 @@ def test_retrieve_folder_is_accepted(tmp_path, levels):
     # N = 35 snaps the mask pitch to 24.95 um: the same 873.25 um tile, the same lattice.
     code = main(["verify", str(folder), str(tmp_path / "cap.png"), "--out", str(tmp_path / "o")])
     assert code == 0
+    # the lattice of the plate fab makes of this tile: its pitch snapped to the GDS grid
+    from doe.design import derive
+
+    design = load_design()
+    pitch = derive(design, tile_pixels=N).mask_pixel_pitch
+    expected_um = design.optics.wavelength * design.optics.focal_length / (N * pitch) * 1e6
+    report = json.loads((tmp_path / "o" / "verify.json").read_text())
+    assert report["design_lattice_pitch_um"] == pytest.approx(expected_um, rel=1e-9)
 
 
 def test_implied_deep_etch_error_inverts_the_simulated_plate(levels):
@@ -759,6 +854,16 @@ def test_designed_plate_of_another_design_fails(tmp_path, designed):
     )
     assert code == 1 and report["diagnosis"] == ["other_design"]
     assert not any("the orders match the design seen with" in n for n in report["notes"])
+
+
+def test_an_orientation_hint_never_names_the_orientation_given(tmp_path, designed):
+    # The deep mask 8 um off: the orders outside the window still match the design as
+    # seen, the window does not (other_design). "Verify again with --orientation
+    # as-designed", the flag just used, would send the lab round in a circle.
+    faults = PlateFaults(overlay_mask=1, overlay_shift=(8e-6, 0.0))
+    code, report, _ = run_verify(tmp_path, designed, dict(seed=11, faults=faults, supersample=4))
+    assert code == 1 and report["diagnosis"] == ["other_design"]
+    assert not any("--orientation as-designed" in n for n in report["notes"])
 
 
 def test_clipped_14bit_capture_is_flagged_saturated(tmp_path, levels):
