@@ -562,6 +562,15 @@ def test_existing_verify_output_is_refused_without_force(tmp_path, levels, capsy
     assert json.loads((out / "verify.json").read_text())["pass"] is True
 
 
+def verified_without_dark(tmp_path, design, levels):
+    """Verify a simulated capture of ``levels`` (seed 1, no dark) against ``design``."""
+    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, seed=1)
+    write_image(tmp_path / "cap.png", sim["capture"])
+    out = tmp_path / "o"
+    assert main(["verify", str(design), str(tmp_path / "cap.png"), "--out", str(out)]) == 0
+    return json.loads((out / "verify.json").read_text()), out
+
+
 def test_correlation_target_compares_the_measured_psf_with_the_target_psf(tmp_path, levels):
     # The target the tile was designed for is not the PSF its levels form: correlation
     # judges the plate against its levels, correlation_target the PSF against the target.
@@ -569,11 +578,7 @@ def test_correlation_target_compares_the_measured_psf_with_the_target_psf(tmp_pa
     other = np.random.default_rng(3).integers(0, L, (N, N)).astype(np.uint8)
     target = simulate_levels(other, L, K)[0]
     save_npy(design / "target_psf.npy", target)
-    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, seed=1)
-    write_image(tmp_path / "cap.png", sim["capture"])
-    out = tmp_path / "o"
-    assert main(["verify", str(design), str(tmp_path / "cap.png"), "--out", str(out)]) == 0
-    report = json.loads((out / "verify.json").read_text())
+    report, out = verified_without_dark(tmp_path, design, levels)
     measured = np.load(out / "measured_psf.npy")
     pearson = np.corrcoef(measured.ravel(), target.ravel())[0, 1]
     assert report["correlation_target"] == pytest.approx(pearson, abs=1e-9)
@@ -593,12 +598,8 @@ def test_manifest_without_lattice_pitch_takes_it_from_the_optics(tmp_path, level
         focal_length_mm=focal_mm,
     )
     write_json(design / "fab_manifest.json", man)
-    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, seed=1)
-    write_image(tmp_path / "cap.png", sim["capture"])
-    out = tmp_path / "o"
-    assert main(["verify", str(design), str(tmp_path / "cap.png"), "--out", str(out)]) == 0
+    report, _ = verified_without_dark(tmp_path, design, levels)
     expected_um = wavelength_nm * 1e-9 * focal_mm * 1e-3 / (N * pitch_nm * 1e-9) * 1e6
-    report = json.loads((out / "verify.json").read_text())
     assert report["design_lattice_pitch_um"] == pytest.approx(expected_um, rel=1e-12)
     assert report["lattice_pitch_um"] == pytest.approx(expected_um, rel=1e-12)
 
