@@ -632,6 +632,31 @@ def test_learn_with_fixed_psf_file_and_fine_tuning(trained, tmp_path, capsys):
     assert not other.exists()
 
 
+def test_fine_tuning_starts_from_the_model_and_a_frozen_psf_stays(trained, tmp_path):
+    # One step at a learning rate of 1e-12 moves no weight by more than ~1e-12: the
+    # tuned network is the --init one, and --freeze-psf keeps its PSF exactly.
+    out, images = trained
+    tuned = tmp_path / "tuned"
+    argv = ["learn", "--out", str(tuned), "--images", str(images), "--init", str(out)]
+    argv += ["--freeze-psf", "--steps", "1", "--batch", "2", "--patch", "16", "--lr", "1e-12"]
+    assert main(argv) == 0
+    np.testing.assert_allclose(np.load(tuned / "psf.npy"), np.load(out / "psf.npy"), rtol=1e-12)
+    before = load_model(out).net.state_dict()
+    for name, weights in load_model(tuned).net.state_dict().items():
+        np.testing.assert_allclose(weights, before[name], rtol=0, atol=1e-9, err_msg=name)
+
+
+def test_training_images_must_hold_a_patch_and_the_psf_margin(tmp_path, capsys):
+    # a 16 sub-pixel patch seen through an 11 x 11 PSF needs 26 x 26 pixels of scene
+    images = tmp_path / "images"
+    images.mkdir()
+    io.imsave(images / "small.png", np.full((25, 40), 128, np.uint8), check_contrast=False)
+    assert main(["learn", "--out", str(tmp_path / "out"), "--images", str(images), *SMALL]) == 2
+    assert "small.png" in capsys.readouterr().err and not (tmp_path / "out").exists()
+    io.imsave(images / "small.png", np.full((26, 40), 128, np.uint8), check_contrast=False)
+    assert main(["learn", "--out", str(tmp_path / "out"), "--images", str(images), *SMALL]) == 0
+
+
 def test_evaluate_writes_json(trained, tmp_path, capsys):
     out, images = trained
     res = tmp_path / "eval.json"
@@ -818,6 +843,8 @@ def test_a_foreign_checkpoint_is_refused_in_one_line(tmp_path, capsys):
     assert main(["learn", "--out", str(out), *SMALL]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--restart" in err
+    assert main(["learn", "--out", str(out), *SMALL, "--restart"]) == 0  # as it says
+    assert not (out / "checkpoint.pt").exists()
 
 
 def test_a_refused_torch_write_is_one_line_and_leaves_no_part(tmp_path):
@@ -967,6 +994,7 @@ def test_learn_refuses_bad_inputs_with_exit_2(tmp_path, capsys, kind):
         ("--dark-counts", "1e300"),
         ("--batch", "100000000"),
         ("--patch", "100000"),
+        ("--patch", "18"),  # not whole SPAD pixels at factor 4
         ("--features", "100000"),
         ("--minutes", "1e308"),  # overflowed the deadline after the images had loaded
         ("--steps", str(10**9 + 1)),  # trained on for ever
