@@ -30,6 +30,23 @@ def saved_figures(monkeypatch):
     return saved
 
 
+def _window_from_contract(levels, n_levels, k):
+    """The contract's window powers, written out literally (the oracle for the model)."""
+    n = levels.shape[0]
+    f = np.fft.fft2(np.exp(2j * np.pi * levels / n_levels)) / n**2
+    out = np.empty((k, k))
+    for i in range(k):
+        for j in range(k):
+            out[i, j] = abs(f[(i - k // 2) % n, (j - k // 2) % n]) ** 2
+    return out
+
+
+@pytest.fixture
+def window_from_contract():
+    """Return window(levels, n_levels, k): CONVENTIONS.md's window powers, written out."""
+    return _window_from_contract
+
+
 @pytest.fixture
 def colour_at():
     """Return colour(ax, x, y, space="data"): the RGB drawn at (x, y) of a figure's axes.

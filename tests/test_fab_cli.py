@@ -399,7 +399,9 @@ def test_manifest_lattice_pitch_is_lambda_f_over_tile_size(tmp_path):
 
 
 @pytest.mark.skipif(not HAS_REPORT, reason="fab.report is not in this build")
-def test_report_summary_gives_the_tiles_own_figures_against_its_target(tmp_path):
+def test_report_summary_gives_the_tiles_own_figures_against_its_target(
+    tmp_path, window_from_contract
+):
     # The target (what retrieval aimed at) is not the PSF the tile forms: the report's
     # nominal figures are the tile's PSF (CONVENTIONS.md forward model) against it.
     n, k = 15, 7
@@ -410,9 +412,7 @@ def test_report_summary_gives_the_tiles_own_figures_against_its_target(tmp_path)
     np.save(d / "target_psf.npy", target)
     out = tmp_path / "out"
     assert main(["fab", str(d), "--out", str(out)]) == 0
-    f = np.fft.fft2(np.exp(2j * np.pi * levels / 8)) / n**2
-    orders = (np.arange(k) - k // 2) % n
-    window = np.abs(f[np.ix_(orders, orders)]) ** 2
+    window = window_from_contract(levels, 8, k)
     sim = window / window.sum()
     corr = np.corrcoef(sim.ravel(), target.ravel())[0, 1]
     rmse = np.sqrt(np.mean((sim / sim.max() - target / target.max()) ** 2))

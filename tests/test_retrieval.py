@@ -558,7 +558,7 @@ def _retrieve_asymmetric(tmp_path, capsys, *flags):
     return psf, out, json.loads((out / "retrieval.json").read_text()), err
 
 
-def test_cli_writes_the_contract_files(tmp_path, capsys, saved_figures):
+def test_cli_writes_the_contract_files(tmp_path, capsys, saved_figures, window_from_contract):
     target = targets.asymmetric(7)
     psf, out, info, err = _retrieve_asymmetric(tmp_path, capsys, "--seed", 2)
     levels = np.load(out / "levels.npy")
@@ -584,9 +584,7 @@ def test_cli_writes_the_contract_files(tmp_path, capsys, saved_figures):
     assert info["target_psf"] == "psf.npy"
     assert info["target_psf_sha256"] == hashlib.sha256(psf.read_bytes()).hexdigest()
     # the figure shows the quantised plate: its PSF (CONVENTIONS.md model) and figures
-    f = np.fft.fft2(np.exp(2j * np.pi * levels / 8)) / 31**2
-    orders = (np.arange(7) - 3) % 31
-    window = np.abs(f[np.ix_(orders, orders)]) ** 2
+    window = window_from_contract(levels, 8, 7)
     fig = saved_figures[0]
     assert np.allclose(fig.axes[1].images[0].get_array(), window / window.max(), atol=1e-12)
     assert f"rmse {info['quantised']['rmse']:.5f}" in fig.get_suptitle()
