@@ -1,5 +1,6 @@
 """Design schema, presets and derived optics."""
 
+import json
 import math
 
 import pytest
@@ -162,6 +163,8 @@ def test_every_material_refuses_wavelengths_outside_its_fit():
         ("sensor", "columns", 64.5, "must be int"),
         ("optics", "focal_length_mm", float("nan"), "finite"),
         ("sensor", "active_offset_um", [1.0], r"\[x, y\]"),
+        ("sensor", "active_offset_um", ["60", 0.0], "must be a list of numbers"),
+        ("sensor", "active_offset_um", [True, 0.0], "must be a list of numbers"),
         ("sensor", "colums", 64, "unknown key"),
         # TOML integers are unbounded: these overflowed float() or the training deadline
         ("optics", "wavelength_nm", 10**400, "at most 2\\^63 - 1, got a number near 10\\^400"),
@@ -206,6 +209,20 @@ def test_more_masks_than_the_marks_beside_the_aperture_fit_is_refused():
 def test_a_unit_slip_is_named_with_the_keys_it_could_be(section, key, value, message):
     with pytest.raises(InputError, match=message):
         parse_design(with_value(section, key, value), "bad.toml")
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "message"),
+    [
+        ("opitcs", {"wavelength_nm": 655.0}, "unknown section or key 'opitcs'"),
+        ("name", 2020, "name: must be a string"),
+        ("description", ["a", "b"], "description: must be a string"),
+    ],
+)
+def test_top_level_keys_are_checked(key, value, message):
+    raw = dict(raw_default(), **{key: value})
+    with pytest.raises(InputError, match=message):
+        parse_design(raw, "bad.toml")
 
 
 @pytest.mark.parametrize("value", [5, [{"wavelength_nm": 655.0}]])
@@ -269,6 +286,38 @@ def test_config_show_cli(capsys):
     assert '"tile_pixels": 175' in out and '"mask_pixel_pitch_nm": 4990' in out
 
 
+def _table_value(text):
+    """A value of the ``config show`` table: a number, a list of numbers or a word."""
+    if text.startswith("["):
+        return [float(x) for x in text.strip("[]").split(", ")]
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
+def test_config_show_table_lists_every_value_of_the_json_under_its_section(capsys):
+    assert main(["config", "show", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert main(["config", "show"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == f"design {summary['name']}: {summary['description']}"
+    table, section = {}, None
+    for line in lines[1:]:
+        if line.startswith("["):
+            section = table.setdefault(line.strip("[]"), {})
+        else:
+            key, value = line.split(maxsplit=1)
+            section[key] = _table_value(value)
+    expected = {name: part for name, part in summary.items() if isinstance(part, dict)}
+    assert table.keys() == expected.keys() and "derived" in table
+    for name, part in expected.items():
+        assert table[name].keys() == part.keys()
+        for key, value in part.items():  # six significant digits, enough to check a plate
+            shown = table[name][key]
+            assert shown == (value if isinstance(value, str) else pytest.approx(value, rel=1e-5))
+
+
 @pytest.mark.parametrize(
     ("content", "message"),
     [
@@ -305,6 +354,12 @@ def test_missing_config_file_exits_2(tmp_path, capsys):
     missing = tmp_path / "nope.toml"
     assert main(["config", "show", "--config", str(missing)]) == 2
     assert str(missing) in capsys.readouterr().err
+
+
+def test_a_folder_given_as_the_design_file_exits_2(tmp_path, capsys):
+    assert main(["config", "show", "--config", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert f"{tmp_path}: cannot read" in err and "Traceback" not in err
 
 
 def test_active_area_may_touch_the_pixel_edge():
