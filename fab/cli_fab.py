@@ -77,7 +77,9 @@ def load_design_dir(design_dir, design):
     if info.is_file():
         record = read_json(info)
         got = record.get("levels")
-        if got is not None and int(got) != n_levels:
+        if got is not None and (not isinstance(got, int) or isinstance(got, bool)):
+            raise InputError(info, f"'levels' must be a whole number, got {got!r}")
+        if got is not None and got != n_levels:
             raise InputError(
                 info,
                 f"the design was quantised to {got} levels but the "

@@ -271,6 +271,34 @@ def test_json_that_is_not_an_object_is_refused(tmp_path, text, capsys):
     assert "retrieval.json" in capsys.readouterr().err and not out.exists()
 
 
+@pytest.mark.parametrize("levels", ['"eight"', "8.5", "true", "[8]"])
+def test_a_level_count_of_the_wrong_type_in_retrieval_json_exits_2(tmp_path, levels, capsys):
+    # "eight" once ended in a ValueError traceback (exit 3) and 8.5 read as 8
+    (tmp_path / "retrieval.json").write_text(f'{{"levels": {levels}}}')
+    save_npy(tmp_path / "levels.npy", np.zeros((15, 15), np.uint8))
+    out = tmp_path / "fab"
+    assert main(["fab", str(tmp_path), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "retrieval.json: 'levels' must be a whole number" in err and not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        (None, "no such file"),
+        (b'{"levels": 8', "not readable JSON"),  # cut short
+        (b'{"name": "\xb5"}', "not readable JSON"),  # Latin-1, not UTF-8
+    ],
+)
+def test_a_missing_or_unreadable_json_file_is_named(tmp_path, content, message):
+    path = tmp_path / "retrieval.json"
+    if content is not None:
+        path.write_bytes(content)
+    with pytest.raises(InputError, match=message) as e:
+        read_json(path)
+    assert str(path) in str(e.value)
+
+
 def test_empty_or_unwritable_out_exits_2(tmp_path, capsys, monkeypatch):
     # An empty --out (an unset $OUT) once wrote into the current folder; an
     # unwritable one ended in a FileNotFoundError traceback.
