@@ -39,6 +39,18 @@ def test_cli_help_does_not_load_torch():
     assert out.stdout.strip() == "False"
 
 
+def test_python_dash_m_doe_is_the_doefab_command():
+    # where no console script is on PATH (a venv not activated): python -m doe
+    run = subprocess.run([sys.executable, "-m", "doe", "presets"], capture_output=True, text=True)
+    assert run.returncode == 0 and "sun2020 (default): " in run.stdout
+    bad = subprocess.run(
+        [sys.executable, "-m", "doe", "config", "show", "--config", "nope.toml"],
+        capture_output=True,
+        text=True,
+    )
+    assert bad.returncode == 2 and "nope.toml" in bad.stderr
+
+
 def test_learning_needs_no_layout_or_mesh_libraries(tmp_path):
     """A GPU node that only learns PSFs may lack gdstk, klayout, trimesh, nlopt, OpenImageIO.
 

@@ -56,6 +56,11 @@ def test_a_uniform_background_costs_exactly_its_rmse_and_no_correlation():
     assert fraunhofer.correlation(padded, target) == pytest.approx(1.0, abs=1e-12)
 
 
+def test_a_target_without_dark_orders_gets_no_background():
+    target = np.arange(1.0, K * K + 1).reshape(K, K)
+    np.testing.assert_allclose(bounds.with_background(target, 0.004), target / target.sum())
+
+
 def _bound_of_window(window, n_levels):
     """(mean_x |g| cos d)^2 / |w|^2 of a window field, computed afresh (d: distance to a level)."""
     spec = np.zeros((N, N), dtype=np.complex128)

@@ -135,6 +135,11 @@ def test_every_material_refuses_wavelengths_outside_its_fit():
             m.index(m.valid[1] * 1.01)
 
 
+def test_an_unknown_material_is_refused_with_the_known_ones():
+    with pytest.raises(InputError, match=r"material.name: .*'sapphire'; choose one of bk7, fused"):
+        refractive_index("sapphire", 655e-9)
+
+
 @pytest.mark.parametrize(
     ("section", "key", "value", "message"),
     [

@@ -385,6 +385,51 @@ def test_write_json_sorts_keys_at_every_level(tmp_path):
     assert text.index('"b"') < text.index('"y"')
 
 
+def test_a_failed_atomic_write_leaves_the_old_file_and_no_temporary_one(tmp_path):
+    path = tmp_path / "x.bin"
+    path.write_bytes(b"old")
+    with pytest.raises(TypeError):
+        atomic_write_bytes(path, "text, not bytes")
+    assert path.read_bytes() == b"old" and sorted(tmp_path.iterdir()) == [path]
+
+
+def test_a_file_that_cannot_be_published_is_named_as_the_output(tmp_path):
+    # A folder where an output file goes (with --force, which skips the overwrite
+    # check): the error names out/a.txt, not the staging file that vanishes with it.
+    out = tmp_path / "out"
+    (out / "a.txt").mkdir(parents=True)
+    (out / "a.txt" / "lab.txt").write_text("the lab's")
+    with pytest.raises(OSError) as e, staged_output(out, force=True) as stage:
+        (stage / "a.txt").write_text("new")
+    assert e.value.filename == str(out / "a.txt")
+    assert (out / "a.txt" / "lab.txt").read_text() == "the lab's"
+    assert sorted(p.name for p in out.iterdir()) == ["a.txt"]  # no staging folder left
+
+
+def test_json_writes_paths_as_text(tmp_path, read_strict_json):
+    write_json(tmp_path / "p.json", {"file": tmp_path / "levels.npy"})
+    assert read_strict_json(tmp_path / "p.json") == {"file": str(tmp_path / "levels.npy")}
+
+
+def test_handlers_are_installed_only_in_the_main_thread():
+    import threading
+
+    before = signal.getsignal(signal.SIGINT)
+    ran = []
+
+    def block():
+        with interrupts.handled():  # signal.signal would raise ValueError here
+            ran.append(signal.getsignal(signal.SIGINT))
+
+    worker = threading.Thread(target=block)
+    worker.start()
+    worker.join()
+    assert ran == [before]
+    with interrupts.handled():
+        assert signal.getsignal(signal.SIGINT) is not before
+    assert signal.getsignal(signal.SIGINT) is before
+
+
 def test_atomic_writes_get_the_usual_file_mode(tmp_path):
     # mkstemp makes 0600; a package file must be readable as any other file (0666 & ~umask)
     umask = os.umask(0)

@@ -483,6 +483,8 @@ def test_retrieval_refuses_bad_arguments():
         retrieval.retrieve_phase(targets.compact_blob(11), 9)
     with pytest.raises(ValueError, match="odd"):
         retrieval.retrieve_phase(np.ones((4, 4)) / 16, 31)
+    with pytest.raises(ValueError, match="at least 2 levels"):
+        retrieval.retrieve_phase(targets.compact_blob(11), 31, n_levels=1)
 
 
 @pytest.mark.slow
