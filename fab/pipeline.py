@@ -117,13 +117,35 @@ def stage_files(folder):
 
 
 def load_state(run_dir):
+    """Return ``run_state.json``: {stage: {"key", "files", "replaces", "seconds"}}, or {}.
+
+    Raises InputError for a file that is no such record (edited, or another
+    tool's): read as one, a stage named "../x" would have its folder replaced.
+    """
     path = Path(run_dir) / STATE_FILE
     if not path.exists():
         return {}
     try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as e:
+        state = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise InputError(path, f"unreadable run state ({e}); use --force to start over") from None
+    if not _is_state(state):
+        raise InputError(path, "not a run state written by doefab run; use --force to start over")
+    return state
+
+
+def _is_state(state):
+    def is_file_map(files):
+        return isinstance(files, dict) and all(isinstance(h, str) for h in files.values())
+
+    return isinstance(state, dict) and all(
+        Path(name).name == name
+        and name not in ("", ".", "..")
+        and isinstance(rec, dict)
+        and is_file_map(rec.get("files", {}))
+        and is_file_map(rec.get("replaces", {}))
+        for name, rec in state.items()
+    )
 
 
 def is_current(stage, state, run_dir):

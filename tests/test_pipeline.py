@@ -229,3 +229,36 @@ def test_edited_output_is_not_overwritten_without_force(tmp_path):
     assert edited.read_text() == "my notes"
     assert run_all(tmp_path, FakeDoefab(), force=True) == 0
     assert edited.read_text() == "ABC"
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        (b'{"first": {"key": "k"', "unreadable run state"),  # cut short
+        (b'{"first": {"key": "\xb5"}}', "unreadable run state"),  # not UTF-8
+        (b"[]", "not a run state"),
+        (b'{"first": 5}', "not a run state"),
+        (b'{"first": {"files": ["first.txt"]}}', "not a run state"),
+        (b'{"first": {"files": {"first.txt": 7}}}', "not a run state"),
+        (b'{"../first": {"files": {}}}', "not a run state"),  # its folder would be replaced
+    ],
+)
+def test_a_run_state_that_no_run_wrote_is_refused_naming_it(tmp_path, text, message):
+    # a list, a number or a non-UTF-8 byte once ended in a traceback (exit 3)
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "run_state.json").write_bytes(text)
+    with pytest.raises(InputError, match=message) as e:
+        load_state(run)
+    assert "run_state.json" in str(e.value) and "--force" in str(e.value)
+
+
+def test_doefab_run_on_a_folder_with_a_foreign_run_state_exits_2_before_any_stage(tmp_path, capsys):
+    from doe.cli import main
+
+    (tmp_path / "run_state.json").write_text("[]")
+    assert main(["run", "--out", str(tmp_path)]) == 2
+    assert "run_state.json: not a run state" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir() if not p.name.startswith(".")) == [
+        "run_state.json"
+    ]
