@@ -152,6 +152,11 @@ def _learn(args):
         config = with_overrides(config, minutes=0.0)
     if config.patch % sensor.factor:
         raise InputError("--patch", f"must be a multiple of {sensor.factor}, got {config.patch}")
+    world = int(os.environ.get("WORLD_SIZE", "1"))  # torchrun's processes share each batch
+    if config.batch % world:
+        raise InputError(
+            "--batch", f"{config.batch} does not split among the {world} processes of this job"
+        )
 
     init_state = None
     init_psf = None

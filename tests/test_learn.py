@@ -1139,3 +1139,15 @@ def test_gaussian_sigma_spec(tmp_path, capsys):
         assert "--psf" in capsys.readouterr().err and not out.exists()
     # A sigma far beyond the window is its flat limit (1e300 ** 2 once overflowed).
     np.testing.assert_array_equal(gaussian_psf(K, 1e300), np.full((K, K), 1 / K**2))
+
+
+def test_a_batch_the_torchrun_processes_cannot_share_is_refused(tmp_path, capsys, monkeypatch):
+    # Under torchrun each of WORLD_SIZE processes takes batch / WORLD_SIZE samples; an
+    # odd --batch for two once ended in a traceback (exit 3) after making --out.
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    out = tmp_path / "out"
+    args = ["learn", "--out", str(out), *SMALL[:-4], "--batch", "3", "--patch", "16"]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--batch" in err and "2 processes" in err
+    assert not out.exists()
