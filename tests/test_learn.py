@@ -159,6 +159,20 @@ def test_network_upsamples_by_the_factor(arch):
     assert net(torch.rand(2, 1, 5, 7)).shape == (2, 1, 20, 28)
 
 
+def test_count_parameters_counts_the_trainable_weights_and_biases():
+    from psf_learn.network import count_parameters
+
+    # resnet, F features, S stages, factor f: a 3 x 3 head 1 -> F, S blocks of two
+    # 3 x 3 F -> F convolutions and a 3 x 3 tail F -> f^2, each with its biases
+    f, features, stages = 4, 6, 2
+    head, block, tail = 9 * features + features, 9 * features**2 + features, 9 * features * f**2
+    expected = head + stages * 2 * block + tail + f**2
+    net = SRNet(f, features=features, stages=stages)
+    assert count_parameters(net) == expected
+    net.head.requires_grad_(False)
+    assert count_parameters(net) == expected - head
+
+
 # --- training -------------------------------------------------------------------------------
 
 
@@ -1052,6 +1066,8 @@ def test_evaluate_and_sr_refuse_bad_inputs(trained, tmp_path, capsys):
     assert str(psf_file) in capsys.readouterr().err and not res.exists()
     assert main(["evaluate", str(tmp_path), "--images", str(images)]) == 2
     assert "model.pt" in capsys.readouterr().err
+    assert main(["evaluate", str(tmp_path / "gone"), "--images", str(images)]) == 2
+    assert f"{tmp_path / 'gone'}: not a model folder" in capsys.readouterr().err
     # --out names a file; a folder there is refused by name, --force or not
     for force in ([], ["--force"]):
         args = ["evaluate", str(out), "--images", str(images), "--out", str(tmp_path), *force]
@@ -1086,6 +1102,7 @@ def test_evaluate_and_sr_refuse_bad_inputs(trained, tmp_path, capsys):
         lambda r: r["sensor"].update(weights=[[1 / 8] * 4] * 4),  # twice the light
         lambda r: r["sensor"].update(dark_counts=-1.0),
         lambda r: r["network"].update(factor=3),  # six lines of torch's size mismatches
+        lambda r: r["network"].update(arch="transformer"),  # no such network
     ],
 )
 def test_a_damaged_model_record_is_refused_in_one_line(trained, tmp_path, capsys, damage):
@@ -1134,11 +1151,67 @@ def test_gaussian_sigma_spec(tmp_path, capsys):
     np.testing.assert_allclose(baseline_psf("gaussian:1.5", K), gaussian_psf(K, 1.5, (0.5, 0.5)))
     np.testing.assert_allclose(baseline_psf("gaussian", K), gaussian_psf(K, 0.459, (0.5, 0.5)))
     out = tmp_path / "out"
-    for spec in ("gaussian:-1", "gaussian:inf", "gaussian:nan"):
+    for spec in ("gaussian:-1", "gaussian:inf", "gaussian:nan", "gaussian:wide"):
         assert main(["learn", "--out", str(out), "--psf", spec, *SMALL]) == 2
-        assert "--psf" in capsys.readouterr().err and not out.exists()
+        err = capsys.readouterr().err
+        assert "--psf" in err and "gaussian:SIGMA needs a finite sigma" in err
+        assert not out.exists()
+    with pytest.raises(ValueError, match="unknown baseline PSF 'airy'"):
+        baseline_psf("airy", K)
     # A sigma far beyond the window is its flat limit (1e300 ** 2 once overflowed).
     np.testing.assert_array_equal(gaussian_psf(K, 1e300), np.full((K, K), 1 / K**2))
+
+
+# --- from a coverage run: paths no test took ------------------------------------------------
+
+
+def test_an_init_model_for_another_factor_is_refused(trained, tmp_path, capsys):
+    # Without learn.json (a model saved from Python) the grid check has nothing to
+    # compare; the network's own factor must still match the design's.
+    import shutil
+
+    out, images = trained
+    model = tmp_path / "model"
+    model.mkdir()
+    for name in ("model.pt", "psf.npy"):
+        shutil.copy(out / name, model / name)
+    factor2 = tmp_path / "factor2.toml"
+    factor2.write_text("[sensor]\nsuperres_factor = 2\n")
+    args = ["learn", "--out", str(tmp_path / "m"), "--images", str(images)]
+    assert main([*args, "--init", str(model), "--config", str(factor2), *SMALL]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(model) in err
+    assert "super-resolves by 4, the design by 2" in err
+    assert not (tmp_path / "m").exists()
+
+
+def test_a_named_baseline_psf_is_trained_with_as_given(trained, tmp_path):
+    _, images = trained
+    out = tmp_path / "m"
+    assert main(["learn", "--out", str(out), "--images", str(images), "--psf", "box", *SMALL]) == 0
+    np.testing.assert_array_equal(np.load(out / "psf.npy"), box_psf(K))
+    assert json.loads((out / "learn.json").read_text())["config"]["psf"] == "box"
+
+
+def test_an_out_the_probe_cannot_write_in_is_refused_before_training(
+    trained, tmp_path, capsys, monkeypatch
+):
+    # The read-only folder of test_an_unwritable_out_is_refused_before_training, as
+    # root too: the write probe's refusal is one line naming --out.
+    import tempfile
+
+    def refused(*args, **kwargs):
+        raise PermissionError(13, "Permission denied")
+
+    out = tmp_path / "out"
+    out.mkdir()
+    monkeypatch.setattr(tempfile, "TemporaryFile", refused)
+    assert main(["learn", "--out", str(out), "--images", str(trained[1]), *SMALL]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.splitlines() == [
+        f"doefab learn: error: {out}: cannot write here (Permission denied)"
+    ]
+    assert not any(out.iterdir())
 
 
 def test_a_batch_the_torchrun_processes_cannot_share_is_refused(tmp_path, capsys, monkeypatch):
@@ -1151,3 +1224,89 @@ def test_a_batch_the_torchrun_processes_cannot_share_is_refused(tmp_path, capsys
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--batch" in err and "2 processes" in err
     assert not out.exists()
+
+
+def test_a_rank_other_than_0_trains_but_writes_nothing(trained, tmp_path, capsys, monkeypatch):
+    # A torchrun job: every rank trains, rank 0 alone writes, and all leave together.
+    # The process group is faked: rank 1 of a group of one.
+    calls = []
+    dist = torch.distributed
+    monkeypatch.setattr(dist, "is_initialized", lambda: True)
+    monkeypatch.setattr(dist, "get_rank", lambda: 1)
+    monkeypatch.setattr(dist, "get_world_size", lambda: 1)
+    monkeypatch.setattr(dist, "barrier", lambda: calls.append("barrier"))
+    monkeypatch.setattr(dist, "destroy_process_group", lambda: calls.append("destroy"))
+    out = tmp_path / "out"
+    assert main(["learn", "--out", str(out), "--images", str(trained[1]), *SMALL]) == 0
+    assert calls == ["barrier", "destroy"]
+    assert list(out.iterdir()) == [] and "trained" not in capsys.readouterr().out
+
+
+def test_idle_cores_take_omp_num_threads_or_the_cores_not_busy(monkeypatch):
+    from psf_learn.cli import idle_cores
+
+    monkeypatch.setattr(os, "cpu_count", lambda: 8)
+    monkeypatch.setattr(os, "getloadavg", lambda: (2.5, 0.0, 0.0))
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")
+    assert idle_cores() == 3
+    monkeypatch.setenv("OMP_NUM_THREADS", "0")
+    assert idle_cores() == 1
+    monkeypatch.delenv("OMP_NUM_THREADS")
+    assert idle_cores() == 5  # 8 cores, 2.5 busy
+    monkeypatch.setattr(os, "getloadavg", lambda: (20.0, 0.0, 0.0))
+    assert idle_cores() == 1
+
+    def no_load_average():
+        raise OSError("no load average here")
+
+    monkeypatch.setattr(os, "getloadavg", no_load_average)
+    assert idle_cores() == 8
+
+
+def test_learn_records_an_unknown_version_when_doefab_is_not_installed(monkeypatch):
+    import importlib.metadata
+
+    from psf_learn.cli import _version
+
+    def not_installed(name):
+        raise importlib.metadata.PackageNotFoundError(name)
+
+    monkeypatch.setattr(importlib.metadata, "version", not_installed)
+    assert _version() == "unknown"
+
+
+def test_training_shows_its_loss_on_a_terminal(capsys):
+    train(TINY, _images(), SensorModel(POINT, 200.0), gaussian_psf(K))
+    assert "loss" not in capsys.readouterr().err
+    train(TINY, _images(), SensorModel(POINT, 200.0), gaussian_psf(K), progress=True)
+    err = capsys.readouterr().err
+    assert "6/6" in err and "loss=" in err and "psnr=" in err
+
+
+def test_a_checkpoint_is_written_every_checkpoint_seconds(tmp_path, monkeypatch):
+    from psf_learn import store
+
+    saved = []
+    monkeypatch.setattr(store, "save_checkpoint", lambda path, state: saved.append(state["step"]))
+    every_step = TrainConfig(**{**TINY.__dict__, "checkpoint_seconds": 0.0})
+    train(
+        every_step,
+        _images(),
+        SensorModel(POINT, 200.0),
+        gaussian_psf(K),
+        checkpoint=tmp_path / "c.pt",
+    )
+    assert saved == [1, 2, 3, 4, 5, 6, 6]  # after each step, and at the end
+    saved.clear()
+    train(TINY, _images(), SensorModel(POINT, 200.0), gaussian_psf(K), checkpoint=tmp_path / "c.pt")
+    assert saved == [6]  # a minute apart: only at the end
+
+
+def test_super_resolve_takes_a_model_folder_and_refuses_a_row(trained):
+    out, _ = trained
+    frames = np.random.default_rng(5).poisson(150, size=(2, 6, 5)).astype(float)
+    np.testing.assert_array_equal(
+        super_resolve(out, frames), super_resolve(load_model(out), frames)
+    )
+    with pytest.raises(ValueError, match=r"frames must be \(\.\.\., h, w\), got shape \(5,\)"):
+        super_resolve(out, frames[0, 0])
