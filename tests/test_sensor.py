@@ -71,10 +71,12 @@ def test_large_circle_weights_are_symmetric_and_cover_the_centre_most(tmp_path):
     assert w[1, 1] > w[0, 1] > w[0, 0]
 
 
-def test_delta_psf_is_a_point_sample():
+@pytest.mark.parametrize("named", [False, True])  # True: --psf delta
+def test_delta_psf_is_a_point_sample(named):
+    psf = baseline_psf("delta", K) if named else delta_psf(K)
     img = np.random.default_rng(1).uniform(size=(20, 28))
     frame = simulate_capture(
-        _t(img)[None, None], _t(delta_psf(K)), _noise_free(np.eye(4)[2:3].T @ np.eye(4)[2:3])
+        _t(img)[None, None], _t(psf), _noise_free(np.eye(4)[2:3].T @ np.eye(4)[2:3])
     )
     np.testing.assert_array_equal(frame[0, 0].numpy(), img[2::4, 2::4])
 
@@ -127,10 +129,11 @@ def test_box_psf_matches_any_sample_cell(cell):
     img = np.random.default_rng(3).uniform(size=(16, 16))
     w = np.zeros((4, 4))
     w[cell] = 1
-    frame = simulate_capture(_t(img)[None, None], _t(box_psf(K, 4, cell)), _noise_free(w))
-    np.testing.assert_allclose(
-        frame[0, 0].numpy(), img.reshape(4, 4, 4, 4).mean(axis=(1, 3)), atol=1e-12
-    )
+    for psf in (box_psf(K, 4, cell), baseline_psf("box", K, w)):  # --psf box: the same box
+        frame = simulate_capture(_t(img)[None, None], _t(psf), _noise_free(w))
+        np.testing.assert_allclose(
+            frame[0, 0].numpy(), img.reshape(4, 4, 4, 4).mean(axis=(1, 3)), atol=1e-12
+        )
 
 
 def test_convolution_orientation_with_an_asymmetric_kernel():
@@ -273,3 +276,18 @@ def test_reflect_padding_mirrors_the_scene_without_repeating_the_edge():
     # explicitly, at the left border: column c - 3 < 0 mirrors to 3 - c
     np.testing.assert_allclose(out[2:11, 0], img[4:13, 3], atol=1e-12)
     np.testing.assert_allclose(out[2:11, 1], img[4:13, 2], atol=1e-12)
+
+
+def test_sampling_refuses_a_padding_or_size_it_cannot_take():
+    # Each once returned a frame of the wrong size or a shifted sample without a word.
+    from psf_learn.sensor import point_sample_blur
+
+    img, psf = torch.zeros(1, 1, 16, 16, dtype=torch.float64), _t(delta_psf(3))
+    with pytest.raises(ValueError, match="padding must be 'reflect' or 'valid', got 'same'"):
+        convolve_psf(img, psf, padding="same")
+    with pytest.raises(ValueError, match=r"image size \(16, 18\) is not a multiple of 4"):
+        spad_sample(torch.zeros(1, 1, 16, 18, dtype=torch.float64), np.eye(4) / 4)
+    # "valid" leaves 16 - 3 + 1 = 14 sub-pixels a side: no whole 4 x 4 pixels
+    with pytest.raises(ValueError, match=r"image size \(14, 14\) is not a multiple of 4"):
+        point_sample_blur(img, psf, (2, 2), 4, padding="valid")
+    assert point_sample_blur(img, psf, (2, 2), 4).shape == (1, 1, 4, 4)
