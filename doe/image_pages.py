@@ -1,4 +1,9 @@
-"""Pages of an image file, for the readers of captures (fab) and frames (psf_learn)."""
+"""Pages of an image file and a quiet libpng, for the readers of captures (fab) and frames
+(psf_learn)."""
+
+import os
+import sys
+from contextlib import contextmanager
 
 
 def has_more_pages(inp):
@@ -14,3 +19,22 @@ def has_more_pages(inp):
             return True
         page += 1
     return False
+
+
+@contextmanager
+def native_stderr_quiet():
+    """Silence what C libraries write to file descriptor 2 while the block runs.
+
+    libpng prints "libpng error: IHDR: CRC error" there itself on a damaged PNG, a
+    second line beside the reader's one-line refusal, which quotes the same reason
+    from ``OpenImageIO.geterror()``.
+    """
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)

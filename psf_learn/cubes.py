@@ -105,12 +105,13 @@ def read_frame(path):
     """Read one single-channel frame keeping its integer type (uint8/uint16) or float32."""
     import OpenImageIO as oiio
 
-    from doe.image_pages import has_more_pages
+    from doe.image_pages import has_more_pages, native_stderr_quiet
 
     path = Path(path)
     if path.is_dir():
         raise InputError(path, "is a folder, not an image file")
-    inp = oiio.ImageInput.open(str(path))
+    with native_stderr_quiet():  # libpng's own "libpng error: ..." line; geterror() has it
+        inp = oiio.ImageInput.open(str(path))
     if inp is None:
         raise InputError(path, f"not a readable image ({oiio.geterror()})")
     try:
@@ -126,13 +127,14 @@ def read_frame(path):
             fmt = "float"
         else:
             raise InputError(path, f"unsupported pixel type {spec.format}; use 8/16-bit or float")
-        pixels = inp.read_image(0, 0, 0, 1, fmt)
+        with native_stderr_quiet():
+            pixels = inp.read_image(0, 0, 0, 1, fmt)
+        if pixels is None:
+            raise InputError(path, f"could not read the pixels ({inp.geterror()})")
         if has_more_pages(inp):  # a multi-page TIFF: which page is this shift's frame?
             raise InputError(path, "holds several images (pages); give one frame per file")
     finally:
         inp.close()
-    if pixels is None:
-        raise InputError(path, "could not read the pixels")
     return np.asarray(pixels).reshape(spec.height, spec.width)
 
 

@@ -129,18 +129,22 @@ def _decode_oiio(path):
     """Decode an image with OpenImageIO at its stored precision, alpha left as stored."""
     import OpenImageIO as oiio
 
+    from doe.image_pages import native_stderr_quiet
+
     config = oiio.ImageSpec()
     config.attribute("oiio:UnassociatedAlpha", 1)  # colour not multiplied by alpha
-    inp = oiio.ImageInput.open(str(path), config)
+    with native_stderr_quiet():  # libpng's own "libpng error: ..." line; geterror() has it
+        inp = oiio.ImageInput.open(str(path), config)
     if inp is None:
         raise ValueError(oiio.geterror().strip())
     try:
         spec = inp.spec()
-        a = inp.read_image(0, 0, 0, spec.nchannels, spec.format)
+        with native_stderr_quiet():
+            a = inp.read_image(0, 0, 0, spec.nchannels, spec.format)
+        if a is None:
+            raise ValueError(inp.geterror().strip())
     finally:
         inp.close()
-    if a is None:
-        raise ValueError(oiio.geterror().strip())
     return a[..., 0] if a.shape[-1] == 1 else a
 
 

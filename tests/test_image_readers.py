@@ -317,3 +317,23 @@ def test_a_tiff_orientation_tag_is_noted_and_the_pixels_kept_as_stored(tmp_path)
     raw = read_raw_image(path)
     assert np.array_equal(raw.data, pixels)
     assert any("Orientation tag is 3" in n for n in raw.notes)
+
+
+@pytest.mark.parametrize("reader", ["frame", "training image"])
+@pytest.mark.parametrize("damage", ["header", "pixels"])
+def test_a_damaged_png_is_refused_in_one_line_with_its_reason(
+    good_files, tmp_path, capfd, reader, damage
+):
+    # libpng wrote "libpng error: IHDR: CRC error" to stderr itself, a second line
+    # beside the one-line refusal; damaged pixel data was refused as "(ValueError: )"
+    # or "could not read the pixels", its reason only on libpng's line.
+    path, _ = good_files["png"]  # 16 bit: read through OpenImageIO
+    data = bytearray(path.read_bytes())
+    data[29 if damage == "header" else len(data) // 2] ^= 0xFF  # IHDR's CRC / the IDAT data
+    damaged = tmp_path / "damaged.png"
+    damaged.write_bytes(bytes(data))
+    with pytest.raises(InputError) as refusal:
+        READERS[reader](damaged)
+    reason = "IHDR: CRC error" if damage == "header" else "IDAT: "
+    assert str(damaged) in str(refusal.value) and reason in str(refusal.value)
+    assert capfd.readouterr().err == ""
