@@ -337,3 +337,70 @@ def test_a_damaged_png_is_refused_in_one_line_with_its_reason(
     reason = "IHDR: CRC error" if damage == "header" else "IDAT: "
     assert str(damaged) in str(refusal.value) and reason in str(refusal.value)
     assert capfd.readouterr().err == ""
+
+
+def test_a_one_bit_image_is_black_and_white(tmp_path):
+    from PIL import Image
+
+    bits = np.array([[0, 255, 255], [255, 0, 0]], np.uint8)
+    Image.fromarray(bits).convert("1").save(tmp_path / "bits.png")
+    image = read_image(tmp_path / "bits.png")
+    assert image.dtype == np.float32  # as every training image
+    np.testing.assert_array_equal(image, bits / 255)
+
+
+def test_images_no_reader_can_take_are_refused_naming_the_file(tmp_path):
+    import tifffile
+
+    tifffile.imwrite(tmp_path / "signed.tif", np.zeros((8, 8), np.int16))
+    with pytest.raises(InputError, match=r"signed\.tif: unsupported pixel type int16"):
+        read_image(tmp_path / "signed.tif")
+    five = np.zeros((8, 8, 5), np.uint8)  # five samples a pixel: no grey, RGB or alpha
+    tifffile.imwrite(tmp_path / "five.tif", five, photometric="minisblack", planarconfig="contig")
+    with pytest.raises(InputError, match=r"five\.tif: expected a grayscale or RGB image"):
+        read_image(tmp_path / "five.tif")
+    with pytest.raises(InputError, match=r"five\.tif: expected a single-channel frame"):
+        read_raw(tmp_path / "five.tif")
+    # ink planes beside a fifth sample, or of signed integers: no R = (1 - C)(1 - K)
+    tifffile.imwrite(tmp_path / "ink5.tif", five, photometric="separated", planarconfig="contig")
+    tifffile.imwrite(tmp_path / "ink_signed.tif", np.zeros((8, 8, 4), np.int16),
+                     photometric="separated")  # fmt: skip
+    for name in ("ink5.tif", "ink_signed.tif"):
+        with pytest.raises(InputError, match=rf"{name}: ink \(separated\) image"):
+            read_image(tmp_path / name)
+    for missing in ("gone.png", "gone.tif", "gone.jpg"):
+        with pytest.raises(InputError, match=rf"{missing}: no such file"):
+            read_image(tmp_path / missing)
+
+
+def test_an_image_folder_must_be_a_folder(tmp_path):
+    from psf_learn.images import read_folder
+
+    write_image(tmp_path / "a.png", np.full((16, 20), 200, np.uint8))
+    for path in (tmp_path / "gone", tmp_path / "a.png"):
+        with pytest.raises(InputError, match=f"{path}: not a folder of images"):
+            read_folder(path)
+
+
+def test_raw_frames_must_be_finite_and_two_pixels_a_side(tmp_path):
+    nan = np.ones((4, 4))
+    nan[1, 2] = np.nan
+    np.save(tmp_path / "nan.npy", nan)
+    with pytest.raises(InputError, match=r"nan\.npy: raw frames contain NaN"):
+        read_raw(tmp_path / "nan.npy")
+    for shape in ((1, 8), (8, 1), (3, 8, 1)):
+        np.save(tmp_path / "thin.npy", np.ones(shape))
+        with pytest.raises(InputError, match=r"thin\.npy: frames of .* are too small"):
+            read_raw(tmp_path / "thin.npy")
+    np.save(tmp_path / "two.npy", np.ones((2, 2)))
+    assert read_raw(tmp_path / "two.npy").shape == (2, 2)
+
+
+def test_default_images_leave_out_a_photo_this_scikit_image_lacks(monkeypatch):
+    # scikit-image versions ship different photos; a missing one is never downloaded
+    from psf_learn import images
+
+    monkeypatch.setattr(images, "_SKIMAGE_BUNDLED", ("no_such_photo", "camera"))
+    names, imgs = images.default_images(n_dead_leaves=1, size=16)
+    assert names == ["skimage:camera", "dead_leaves:0"]
+    assert imgs[0].shape == (512, 512) and imgs[1].shape == (16, 16)
