@@ -161,8 +161,10 @@ def write_frame_png16(path, frame):
     data = np.round(np.clip(frame, 0.0, 1.0) * 65535).astype(np.uint16)
     spec = oiio.ImageSpec(data.shape[1], data.shape[0], 1, oiio.UINT16)
     out = oiio.ImageOutput.create(str(path))
-    if out is None or not out.open(str(path), spec):
+    if out is None:
         raise OSError(f"cannot write {path}: {oiio.geterror()}")
+    if not out.open(str(path), spec):  # the reason is the writer's, not in oiio.geterror()
+        raise OSError(f"cannot write {path}: {out.geterror()}")
     try:
         # OpenImageIO scrambles a 2-D array; (H, W, 1) is read as intended.
         if not out.write_image(data[:, :, None]):

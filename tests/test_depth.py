@@ -736,3 +736,33 @@ def test_depth_maps_show_row_0_at_the_top_and_invalid_pixels_grey(
     assert at(0, 4).min() > 200 and at(0, 0).max() < 60  # grey scale: white is 1, black 0
     assert np.all(np.abs(at(2, 0) - 0.6 * 255) < 3)  # "0.6" grey
     assert at(2, 4).max() < 60 and at(1, 2).max() < 60
+
+
+def test_a_frame_that_cannot_be_written_raises_an_oserror_naming_it(tmp_path, monkeypatch):
+    import OpenImageIO as oiio
+
+    with pytest.raises(OSError, match=r"cannot write .*frame\.xyz: .*could not find a format"):
+        write_frame_png16(tmp_path / "frame.xyz", np.zeros((2, 2)))
+    # no such folder: the reason was left out ("cannot write .../frame.png: ")
+    with pytest.raises(OSError, match=r"cannot write .*gone/frame\.png: Could not open file"):
+        write_frame_png16(tmp_path / "gone" / "frame.png", np.zeros((2, 2)))
+
+    class FullDisk:  # the header written, the pixels refused
+        closed = False
+
+        def open(self, path, spec):
+            return True
+
+        def write_image(self, data):
+            return False
+
+        def geterror(self):
+            return "No space left on device"
+
+        def close(self):
+            FullDisk.closed = True
+
+    monkeypatch.setattr(oiio, "ImageOutput", types.SimpleNamespace(create=lambda p: FullDisk()))
+    with pytest.raises(OSError, match=r"cannot write .*full\.png: No space left on device"):
+        write_frame_png16(tmp_path / "full.png", np.zeros((2, 2)))
+    assert FullDisk.closed
