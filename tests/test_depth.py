@@ -361,6 +361,31 @@ def test_negative_irf_noise_is_clipped_to_zero(response):
     np.testing.assert_array_equal(noisy.values, clipped.values)
 
 
+def test_an_irf_is_refused_unless_a_finite_profile_with_light(response):
+    for irf, why in (
+        (np.ones((2, 5)), "1-D with at least 4 samples"),
+        (np.ones(3), "1-D with at least 4 samples"),
+        (np.array([0.0, 1.0, np.inf, 1.0]), "NaN or infinite"),
+        (-np.ones(6), "all zero"),  # background-subtracted noise alone
+    ):
+        with pytest.raises(ValueError, match=why):
+            response_from_irf(irf, SHIFT)
+
+
+def test_an_irf_tail_of_two_decays_is_extended_along_its_last_slope():
+    # Two decay constants make log h convex where the scan cuts it: a parabola through
+    # the edge's samples would turn upwards, so h goes on along the straight line (in
+    # log h) through the last two samples, h(t_end + d) = h(t_end) exp(-s d) with
+    # s = ln(y[-2] / y[-1]) / shift. The early edge rises into the scan: no extension.
+    n = np.arange(30)
+    irf = 0.5 * np.exp(-n / 3) + 0.5 * np.exp(-n / 12)
+    h = response_from_irf(irf, SHIFT)
+    t_end, slope = 29 * SHIFT, np.log(irf[-2] / irf[-1]) / SHIFT
+    d = np.array([20.0, 100.0, 500.0]) * PS
+    np.testing.assert_allclose(h(t_end + d) / h(t_end), np.exp(-slope * d), rtol=1e-3)
+    assert h.start == 0.0
+
+
 def test_irf_reference_time_shifts_the_response(response):
     irf = response(scan_times(T, SHIFT) - 500 * PS)  # reference target at 500 ps
     from_irf = response_from_irf(irf, SHIFT, t_ref=500 * PS)
@@ -413,7 +438,7 @@ def test_cli_depth_of_a_dark_scene_reports_no_returns(tmp_path, capsys):
     assert not np.load(tmp_path / "out" / "valid.npy").any()
 
 
-def test_cli_depth_with_irf(tmp_path, response):
+def test_cli_depth_with_irf(tmp_path, response, capsys):
     path, mu = write_scene_cube(tmp_path, response)
     np.save(tmp_path / "irf.npy", response(scan_times(T, SHIFT) - 1000 * PS))
     out = tmp_path / "out"
@@ -424,6 +449,10 @@ def test_cli_depth_with_irf(tmp_path, response):
     # The IRF replaces the gate model: giving both is a usage error.
     assert main(["depth", str(path), "--irf", str(tmp_path / "irf.npy"), "--rise-ps", "30",
                  "--out", str(tmp_path / "o2")]) == 2  # fmt: skip
+    for t0 in ("nan", "inf"):
+        args = [*irf[:2], "--irf-t0-ps", t0, "--out", str(tmp_path / "o2")]
+        assert main(["depth", str(path), *args]) == 2
+        assert "--irf-t0-ps: must be a finite number" in capsys.readouterr().err
     assert not (tmp_path / "o2").exists()
 
 
@@ -535,6 +564,23 @@ def test_gate_model_limits():
     np.testing.assert_allclose(delta.values, short.values, atol=1e-12)
     with pytest.raises(ValueError, match="span"):
         gate_response(GateModel(fall=1e-3))
+
+
+@pytest.mark.parametrize(
+    "params, why",
+    [
+        ({"width": 0.0}, "width must be > 0"),
+        ({"pulse_fwhm": -1 * PS}, "pulse_fwhm must be > 0"),
+        ({"rise": -1 * PS}, "rise must be >= 0"),
+        ({"tau": np.nan}, "tau must be >= 0"),
+        ({"pulse": "lorentz"}, "pulse must be 'gaussian' or 'emg'"),
+        ({"pulse": "emg"}, "an 'emg' pulse needs tau > 0"),
+    ],
+)
+def test_a_gate_model_the_response_cannot_be_built_from_is_refused(params, why):
+    # The command line checks its flags first; these guard the Python API.
+    with pytest.raises(ValueError, match=why):
+        GateModel(**params)
 
 
 @pytest.mark.parametrize("name", ["shift_{k:03d}.png", "shift_{k}.png"])
@@ -736,6 +782,102 @@ def test_depth_maps_show_row_0_at_the_top_and_invalid_pixels_grey(
     assert at(0, 4).min() > 200 and at(0, 0).max() < 60  # grey scale: white is 1, black 0
     assert np.all(np.abs(at(2, 0) - 0.6 * 255) < 3)  # "0.6" grey
     assert at(2, 4).max() < 60 and at(1, 2).max() < 60
+
+
+# --- from a coverage run: paths no test took ------------------------------------------------
+
+
+def test_a_cube_without_pixels_is_refused(response):
+    with pytest.raises(ValueError, match="the cube has no pixels"):
+        fit_profiles(np.zeros((0, 3, T)), SHIFT, response)
+
+
+def test_the_fit_shows_its_chunks_on_a_terminal(response, monkeypatch):
+    import io
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    a, mu, b = scene((3, 4), 100.0, 3.0, response, seed=5)
+    cube = simulate_cube(a, mu, b, T, SHIFT, response)
+    shown = Terminal()
+    monkeypatch.setattr(sys, "stderr", shown)
+    whole = fit_profiles(cube, SHIFT, response, progress=True)
+    assert shown.getvalue() == ""  # one chunk: no bar
+    chunked = fit_profiles(cube, SHIFT, response, chunk=5, progress=True)
+    assert "fit" in shown.getvalue() and "3/3" in shown.getvalue()  # 12 pixels, 5 a chunk
+    np.testing.assert_array_equal(chunked.timing, whole.timing)
+
+
+def test_a_random_scene_needs_room_for_a_complete_profile(response):
+    # 10 samples scan 180 ps, less than the ~330 ps the response spans; a margin of
+    # half the scan leaves no arrival time between the margins
+    with pytest.raises(ValueError, match="too short for a complete profile"):
+        random_scene((2, 2), 100.0, 3.0, SHIFT, 10, response)
+    with pytest.raises(ValueError, match="too short for a complete profile"):
+        random_scene((2, 2), 100.0, 3.0, SHIFT, T, response, margin=(T - 1) * SHIFT / 2)
+
+
+def test_example_fits_of_an_odd_count_leave_the_last_cell_blank(tmp_path, saved_figures):
+    from psf_learn.depth_plots import save_pixel_fits
+
+    profiles = np.ones((3, T))
+    save_pixel_fits(tmp_path / "f.png", scan_times(T, SHIFT), profiles, [None] * 3, list("abc"))
+    assert [ax.axison for ax in saved_figures[-1].axes] == [True, True, True, False]
+
+
+def test_transient_refuses_frames_too_wide_for_a_gif(tmp_path, capsys):
+    np.save(tmp_path / "wide.npy", np.ones((1, 65536, 1)))
+    out = tmp_path / "t"
+    assert main(["transient", str(tmp_path / "wide.npy"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "wide.npy: frames of 1 x 65536 pixels" in err
+    assert "at most 65535 pixels a side" in err and not out.exists()
+
+
+def test_sr_needs_a_model_folder(tmp_path, response, sr_model, capsys):
+    path, _ = write_scene_cube(tmp_path, response, shape=(2, 2))
+    gone, hint = tmp_path / "gone", "(write one with 'doefab learn')"
+    for command in ("depth", "transient"):
+        assert main([command, str(path), "--out", str(tmp_path / "o"), "--sr", str(gone)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err == f"doefab {command}: error: {gone}: no such model folder {hint}"
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_cube_path_must_be_an_npy_file_or_a_folder_of_frames(tmp_path):
+    import OpenImageIO as oiio
+
+    with pytest.raises(InputError, match=r"gone\.npy: no such file or folder"):
+        read_cube(tmp_path / "gone.npy")
+    write_frame_png16(tmp_path / "frame.png", np.zeros((3, 4)))  # one frame, not the folder
+    with pytest.raises(InputError, match=r"frame\.png: a cube must be a \.npy file or a folder"):
+        read_cube(tmp_path / "frame.png")
+    wide = tmp_path / "uint32"
+    wide.mkdir()
+    for k in range(4):
+        write_frame(wide / f"{k}.tif", np.zeros((3, 4, 1), np.uint32), oiio.UINT32)
+    with pytest.raises(InputError, match=r"0\.tif: unsupported pixel type uint"):
+        read_cube(wide)
+
+
+def test_an_irf_must_be_a_finite_row_of_numbers(tmp_path):
+    from psf_learn.cubes import read_irf
+
+    for name, irf, why in (
+        ("mask.npy", np.ones(8, bool), "IRF must be numeric, got dtype bool"),
+        (
+            "table.npy",
+            np.ones((3, 8)),
+            r"IRF must be 1-D with at least 4 samples, got shape \(3, 8\)",
+        ),
+        ("short.npy", np.ones(3), "IRF must be 1-D with at least 4 samples"),
+        ("inf.npy", np.array([0.0, 1.0, np.inf, 1.0]), "IRF contains NaN or infinite values"),
+    ):
+        np.save(tmp_path / name, irf)
+        with pytest.raises(InputError, match=rf"{name.replace('.', '[.]')}: {why}"):
+            read_irf(tmp_path / name)
 
 
 def test_a_frame_that_cannot_be_written_raises_an_oserror_naming_it(tmp_path, monkeypatch):
