@@ -1310,3 +1310,15 @@ def test_super_resolve_takes_a_model_folder_and_refuses_a_row(trained):
     )
     with pytest.raises(ValueError, match=r"frames must be \(\.\.\., h, w\), got shape \(5,\)"):
         super_resolve(out, frames[0, 0])
+
+
+def test_train_refuses_a_batch_its_processes_cannot_share(monkeypatch):
+    # The Python API's own guard (learn checks --batch first); the process group of
+    # two is faked, as no process stands beside this one.
+    dist = torch.distributed
+    monkeypatch.setattr(dist, "is_initialized", lambda: True)
+    monkeypatch.setattr(dist, "get_rank", lambda: 0)
+    monkeypatch.setattr(dist, "get_world_size", lambda: 2)
+    odd = TrainConfig(**{**TINY.__dict__, "batch": 3})
+    with pytest.raises(ValueError, match="batch 3 is not divisible by 2 processes"):
+        train(odd, _images(), SensorModel(POINT, 200.0), gaussian_psf(K))
