@@ -114,6 +114,11 @@ def test_bad_levels_are_refused(levels, n_levels):
         masks_from_levels(levels, n_levels, STEP)
 
 
+def test_a_levels_map_that_is_not_2d_is_refused():
+    with pytest.raises(ValueError, match="levels must be 2-D, got shape"):
+        masks_from_levels(np.zeros(4, np.uint8), 8, STEP)
+
+
 @settings(max_examples=60, deadline=None)
 @given(arrays(bool, st.tuples(st.integers(1, 12), st.integers(1, 12))))
 def test_rectangles_cover_the_bitmap_exactly_and_are_disjoint(bitmap):

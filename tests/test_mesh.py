@@ -154,6 +154,12 @@ def test_any_small_map_is_closed_with_exact_volume(rows, cols, seed, n_levels):
     assert len(f) <= triangle_upper_bound(levels)
 
 
+@pytest.mark.parametrize("levels", [np.zeros((0, 3)), np.zeros(3), [[1, -1]]])
+def test_relief_surface_refuses_a_map_that_is_not_a_level_map(levels):
+    with pytest.raises(ValueError, match="non-empty 2-D map of levels >= 0"):
+        relief_surface(levels)
+
+
 def test_volume_matches_analytic_formula():
     levels = random_levels(20, seed=2)
     v, f = tile_mesh(relief_of(levels))
@@ -455,6 +461,12 @@ def test_cli_refuses_crop_beyond_aperture(tmp_path, capsys, tiles):
         ({"substrate_thickness_mm": 0.0001}, "deepest etch"),
         ({"tile_pixels": 5}, "tile_pixels"),
         ({"levels": 4}, "levels.npy"),
+        ({"tiles": None}, "missing key 'tiles'"),
+        ({"level_step_nm": "deep"}, "malformed value"),
+        ({"tiles": [4]}, "tiles must be [nx, ny] >= 1"),
+        ({"levels": 6}, "levels 6 must be"),
+        ({"pixel_pitch_nm": 0}, "pixel_pitch_nm > 0"),
+        ({"substrate_thickness_mm": "thick"}, "substrate_thickness_mm: not a number"),
     ],
 )
 def test_cli_bad_manifest_exits_2_naming_the_file(tmp_path, capsys, change, needle):
@@ -471,6 +483,14 @@ def test_cli_bad_manifest_exits_2_naming_the_file(tmp_path, capsys, change, need
     assert main(["mesh", str(fab), "--out", str(out), "--formats", "ply"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and needle in err and str(fab) in err
+    assert not out.exists()
+
+
+def test_cli_refuses_a_crop_of_no_tiles(tmp_path, capsys):
+    fab = write_fab_dir(tmp_path / "fab", random_levels(4, seed=12))
+    out = tmp_path / "o"
+    assert main(["mesh", str(fab), "--out", str(out), "--crop", "0"]) == 2
+    assert "--crop: must be >= 1 tile, got 0" in capsys.readouterr().err
     assert not out.exists()
 
 
