@@ -340,6 +340,23 @@ def test_etch_errors_are_one_per_mask():
 
 
 @pytest.mark.parametrize(
+    "shape, k, supersample, message",
+    [
+        ((8, 6), 3, None, "must be square"),
+        ((8, 8), 4, None, "window K must be odd"),
+        ((8, 8), 9, None, "window K must be odd and <= N = 8"),
+        ((8, 8), 3, 0, "supersample must be a positive integer"),
+        ((8, 8), 3, 1.5, "supersample must be a positive integer"),
+    ],
+)
+def test_plate_model_refuses_what_it_cannot_model(shape, k, supersample, message):
+    levels = np.random.default_rng(0).integers(0, L, shape).astype(np.uint8)
+    masks = masks_from_levels(levels, L, STEP)
+    with pytest.raises(ValueError, match=message):
+        plate_model(masks, PITCH, STEP, L, WAVELENGTH, N_INDEX, k, supersample)
+
+
+@pytest.mark.parametrize(
     "pitch, tabulated",
     [
         (0.3e-6, [0.1e-6]),
