@@ -60,6 +60,13 @@ def test_open_shell_is_reported_not_closed():
     assert not check["closed"]
 
 
+def test_assembly_refuses_a_step_file_that_is_not_one_solid():
+    two_products = b"#1 = PRODUCT_DEFINITION('design','',#2,#3);\n" * 2
+    for data in (b"ISO-10303-21;\nEND-ISO-10303-21;", two_products):
+        with pytest.raises(ValueError, match="not a single-solid STEP file"):
+            step.assembly_step_bytes(data, [[0.0, 0.0, 0.0]])
+
+
 def assembly_bytes(solid, offsets, route):
     """The aperture assembly as STEP bytes, written as text around the tile or by OCCT."""
     if route == "text":
