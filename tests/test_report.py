@@ -269,3 +269,23 @@ def test_tile_figures_show_row_0_at_the_top_and_column_0_at_the_left(
     cells = {"top right": (2, 2), "top left": (-2, 2), "bottom right": (2, -2),
              "bottom left": (-2, -2)}  # fmt: skip
     assert lit(ax, cells, colour_at(ax, 0, 0)) == ["top right"]
+
+
+@pytest.mark.parametrize("shape", ["circle", "square"])
+def test_dot_lattice_outlines_each_active_area_in_its_shape(tmp_path, saved_figures, shape):
+    from matplotlib.patches import Circle, Rectangle
+
+    from fab import figures
+
+    sensor = dict(design_summary(load_design())["sensor"], active_area_shape=shape)
+    sensor["active_offset_um"] = [10.0, -5.0]
+    figures.dot_lattice(tmp_path / "dots.png", np.zeros((8, 8)), sensor, 37.5e-6, spad_pixels=1)
+    (ax,) = [a for a in saved_figures[-1].axes if a.get_title().startswith("Dot lattice")]
+    (area,) = [p for p in ax.patches if p.get_edgecolor()[:3] == (0.0, 1.0, 1.0)]  # cyan
+    # one 150 um SPAD pixel centred on the origin; its 30 um active area moved by the offset
+    if shape == "circle":
+        assert isinstance(area, Circle)
+        assert area.center == pytest.approx((10.0, -5.0)) and area.radius == pytest.approx(15.0)
+    else:
+        assert isinstance(area, Rectangle) and area.get_xy() == pytest.approx((-5.0, -20.0))
+        assert (area.get_width(), area.get_height()) == pytest.approx((30.0, 30.0))
