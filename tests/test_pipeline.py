@@ -86,6 +86,14 @@ def test_interrupted_run_resumes_at_the_failed_stage(tmp_path):
     assert fake.calls == ["second"]
 
 
+def test_a_missing_input_is_refused_before_its_stage_runs(tmp_path):
+    fake = FakeDoefab()
+    with pytest.raises(InputError, match="input of stage 'first' is missing") as err:
+        run_all(tmp_path, fake)  # no input.txt
+    assert err.value.source == str(tmp_path / "input.txt")
+    assert fake.calls == [] and not (tmp_path / "run" / ".first.new").exists()
+
+
 def a_run_killed_while_swapping_in_its_redone_first_stage(tmp_path, monkeypatch, first_run):
     """A finished run (by ``first_run``), a new input, a rerun killed in the first swap."""
     (tmp_path / "input.txt").write_text("abc")

@@ -280,6 +280,24 @@ def test_index_labels_the_level_count_of_the_retrieval(tmp_path):
     assert "efficiency (4 levels)</td><td>0.7<" in index and "8 levels" not in index
 
 
+def test_the_manifest_records_a_package_that_is_not_installed_as_none(monkeypatch):
+    from importlib import metadata
+
+    from fab.run_report import PACKAGES, package_versions
+
+    installed = metadata.version
+
+    def without_trimesh(name):
+        if name == "trimesh":
+            raise metadata.PackageNotFoundError(name)
+        return installed(name)
+
+    monkeypatch.setattr(metadata, "version", without_trimesh)
+    versions = package_versions()
+    assert versions["trimesh"] is None and versions["numpy"] == installed("numpy")
+    assert set(versions) == {"python", *PACKAGES}
+
+
 def test_index_never_shows_a_missed_goal_rounded_onto_the_goal(tmp_path):
     # 0.99989996 was shown as 0.9999 beside "goals met: NO"
     from doe.design import load_design
@@ -381,6 +399,34 @@ def test_bad_inputs_exit_2(tmp_path, capsys):
     thick.write_text("[material]\nthickness_mm = 50\n")
     assert main(["run", "--config", str(thick), "--out", str(tmp_path / "o3")]) == 2
     assert "thickness_mm" in capsys.readouterr().err and not (tmp_path / "o3").exists()
+
+
+def test_a_folder_of_other_files_or_an_unreadable_run_state_is_refused(
+    tmp_path, capsys, monkeypatch
+):
+    import doe.cli
+
+    psf = tmp_path / "psf.npy"
+    np.save(psf, np.full((11, 11), 1 / 121))  # the default design's 11 x 11 kernel
+    stranger = tmp_path / "stranger"
+    stranger.mkdir()
+    (stranger / "thesis.tex").write_text("precious")
+    argv = ["run", "--psf", str(psf), "--formats", "none", "--out"]
+    assert main([*argv, str(stranger)]) == 2
+    assert f"{stranger}: is not empty and holds no doefab run; use --force" in (
+        capsys.readouterr().err
+    )
+    assert sorted(p.name for p in stranger.iterdir()) == [".doefab_run.lock", "thesis.tex"]
+    state = stranger / "run_state.json"
+    state.write_text('{"retrieve": ')  # a run killed while writing it
+    assert main([*argv, str(stranger)]) == 2
+    err = capsys.readouterr().err
+    assert f"{state}: unreadable run state" in err and "use --force to start over" in err
+    # --force starts over: the run goes on to its first stage
+    called = []
+    monkeypatch.setattr(doe.cli, "main", lambda argv: called.append(argv[0]) or 1)
+    assert main([*argv, str(stranger), "--force"]) == 1
+    assert called == ["retrieve"] and (stranger / "thesis.tex").read_text() == "precious"
 
 
 def test_a_step_budget_learns_on_the_cpu(config, tmp_path):
