@@ -415,6 +415,37 @@ def test_readback_refuses_a_database_unit_other_than_1_nm(tmp_path):
     assert "DBU" in problem and str(path) in problem
 
 
+def test_readback_refuses_a_tile_off_its_lattice(tmp_path):
+    masks = masks_from_levels(random_levels(8, seed=8), L, STEP)
+    lib, info = build_library(masks, PITCH, (2, 2), "t", marks=False)
+    (top,) = [c for c in lib.cells if c.name == info.top_cell]
+    x, y = top.references[0].origin
+    top.references[0].origin = (x + 8 * PITCH, y)  # one tile to the right, onto its neighbour
+    path = tmp_path / "shifted.gds"
+    write_gds(lib, path)
+    (problem,) = check_written_gds(path, info, masks)
+    assert problem == f"the tile is not placed on the 2 x 2 lattice at {info.array_origin_nm} nm"
+
+
+def test_readback_counts_only_placements_of_the_tile(tmp_path):
+    masks = masks_from_levels(random_levels(8, seed=8), L, STEP)
+    lib, info = build_library(masks, PITCH, (2, 2), "t", marks=False)
+    (top,) = [c for c in lib.cells if c.name == info.top_cell]
+    logo = lib.new_cell("LOGO")
+    logo.add(gdstk.rectangle((0, 0), (1000, 1000), layer=99))
+    top.add(gdstk.Reference(logo, (10**6, 0)))  # another cell placed beside the array
+    path = tmp_path / "logo.gds"
+    write_gds(lib, path)
+    assert check_written_gds(path, info, masks) == []
+
+
+@pytest.mark.parametrize("cell", ["top_cell", "tile_cell"])
+def test_readback_names_a_missing_cell(tmp_path, cell):
+    path, masks, info = write_plate(tmp_path, random_levels(8, seed=8), (2, 2), marks=False)
+    (problem,) = check_written_gds(path, dataclasses.replace(info, **{cell: "NOPE"}), masks)
+    assert problem.startswith(f"{path}: ") and "cell 'NOPE'" in problem
+
+
 def test_tile_image_round_trips_through_openimageio(tmp_path):
     bitmap = np.zeros((7, 9), bool)
     bitmap[0, 0] = True  # top-left pixel etched
