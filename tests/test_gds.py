@@ -460,6 +460,24 @@ def test_tile_image_round_trips_through_openimageio(tmp_path):
     assert path.read_bytes() == first  # pinned DateTime
 
 
+def test_a_2d_image_is_written_as_one_grey_channel(tmp_path):
+    img = np.arange(6 * 5, dtype=np.uint8).reshape(6, 5) * 8  # no two pixels alike
+    write_image(tmp_path / "g.png", img)
+    assert np.array_equal(read_image(tmp_path / "g.png"), img)
+
+
+@pytest.mark.parametrize("name", ["nowhere/m.tif", "m.not-an-image-format"])
+def test_an_image_that_cannot_be_written_raises_naming_the_file(tmp_path, name):
+    with pytest.raises(OSError, match=re.escape(str(tmp_path / name))):
+        write_image(tmp_path / name, tile_image(np.ones((3, 3), bool)))
+    assert not (tmp_path / name).exists()
+
+
+def test_plate_preview_refuses_an_array_larger_than_the_plate():
+    with pytest.raises(ValueError, match="does not fit inside the plate"):
+        plate_preview(np.ones((10, 10), bool), (4, 4), PITCH, 50_000, 40_000, max_px=60)
+
+
 @pytest.mark.parametrize("plate_half", [2_000_000, 12_000_000])  # 1 and 5 mask px per preview px
 def test_layer_images_record_their_pixel_size(tmp_path, plate_half):
     # read by Pillow, not the writer's library: a viewer shows the mask at true scale
