@@ -334,6 +334,45 @@ def test_a_grid_too_coarse_for_the_tiles_pitch_exit_2(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
+def test_a_tile_whose_pitch_rounds_to_no_grid_step_exit_2(tmp_path, capsys):
+    # 100 um grid: the design's N = 9 pixels of its 873 um tile snap to 100 um each,
+    # but N = 20 pixels of 43.7 um round to no grid step at all
+    cfg = tmp_path / "coarse.toml"
+    cfg.write_text(
+        "[fabrication]\ngrid_nm = 100000\nfeature_size_um = 97.0\n[psf]\nkernel_size = 3\n"
+    )
+    d = tmp_path / "design"
+    make_design_dir(d, n=20, target=False)
+    assert main(["fab", str(d), "--out", str(tmp_path / "out"), "--config", str(cfg)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert (
+        f"{d / 'levels.npy'}: N = 20 pixels per tile gives a pixel pitch below the 100000 nm grid"
+        in err
+    )
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("stage", ["tolerance", "report"])
+def test_a_build_without_an_optional_stage_still_writes_the_package(
+    tmp_path, capsys, monkeypatch, stage
+):
+    import sys
+
+    monkeypatch.setitem(sys.modules, f"fab.{stage}", None)  # import fab.<stage> fails
+    make_design_dir(tmp_path / "design", n=15)
+    out = tmp_path / "out"
+    assert main(["fab", str(tmp_path / "design"), "--out", str(out)]) == 0
+    assert f"doefab fab: skipping the {stage}" in capsys.readouterr().err
+    man = json.loads((out / "fab_manifest.json").read_text())
+    assert (out / "mask.gds").is_file() and (out / "fab_report.md").exists() == (stage != "report")
+    if stage == "tolerance":
+        assert man["tolerance_note"] == "fab.tolerance not available in this build"
+        assert man["acceptance"] is None  # verify falls back to its default thresholds
+    else:
+        assert "tolerance_note" not in man and man["acceptance"]["rmse_max"] > 0
+
+
 def test_report_summary_describes_the_fabricated_tile():
     from fab.cli_fab import tile_derived, tile_summary
 
