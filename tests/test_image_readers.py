@@ -404,3 +404,58 @@ def test_default_images_leave_out_a_photo_this_scikit_image_lacks(monkeypatch):
     names, imgs = images.default_images(n_dead_leaves=1, size=16)
     assert names == ["skimage:camera", "dead_leaves:0"]
     assert imgs[0].shape == (512, 512) and imgs[1].shape == (16, 16)
+
+
+def test_a_missing_capture_is_named(tmp_path):
+    with pytest.raises(InputError, match="none.png: no such image file"):
+        read_raw_image(tmp_path / "none.png")
+
+
+def test_a_capture_of_signed_integers_is_refused(tmp_path):
+    import tifffile
+
+    tifffile.imwrite(tmp_path / "signed.tif", np.zeros((8, 8), np.int32))
+    with pytest.raises(InputError, match="signed.tif: unsupported pixel format int; use 8/16"):
+        read_raw_image(tmp_path / "signed.tif")
+
+
+def test_a_capture_too_large_for_memory_is_refused_plainly(good_files, monkeypatch):
+    import OpenImageIO as oiio
+
+    def out_of_memory(*args, **kwargs):
+        raise MemoryError
+
+    monkeypatch.setattr(oiio.ImageInput, "read_image", out_of_memory)
+    path, _ = good_files["png"]
+    with pytest.raises(InputError, match="56 x 40 pixels do not fit in this machine's memory"):
+        read_raw_image(path)
+
+
+def test_a_colour_capture_is_refused_unless_its_channels_agree(tmp_path):
+    from PIL import Image
+
+    grey = np.random.default_rng(5).integers(0, 256, (8, 8), dtype=np.uint8)
+    Image.fromarray(np.stack([grey] * 3, axis=-1), "RGB").save(tmp_path / "grey.png")
+    assert np.array_equal(read_raw_image(tmp_path / "grey.png").data, grey)
+    colour = np.stack([grey, grey, 255 - grey], axis=-1)
+    Image.fromarray(colour, "RGB").save(tmp_path / "colour.png")
+    with pytest.raises(InputError, match="colour.png: 3-channel colour image"):
+        read_raw_image(tmp_path / "colour.png")
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_a_float_capture_with_nan_or_infinite_pixels_is_refused(tmp_path, bad):
+    image = np.ones((8, 8), np.float32)
+    image[3, 4] = bad
+    write_image(tmp_path / "bad.exr", image)
+    with pytest.raises(InputError, match="bad.exr: image has NaN or infinite pixels"):
+        read_raw_image(tmp_path / "bad.exr")
+
+
+def test_write_image_refuses_a_dtype_or_a_path_it_cannot_write(tmp_path):
+    with pytest.raises(ValueError, match="needs uint8, uint16 or float32, got int64"):
+        write_image(tmp_path / "a.png", np.zeros((4, 4), np.int64))
+    for name in ("a.not-an-image-format", "nowhere/a.png"):
+        with pytest.raises(InputError, match=f"{name}: cannot write image"):
+            write_image(tmp_path / name, np.zeros((4, 4), np.uint8))
+        assert not (tmp_path / name).exists()
