@@ -1214,6 +1214,13 @@ def test_plate_phase_overlay_moves_one_mask_up_and_right(supersample):
     _same_phase(plate_phase(lv, L, faults, pitch, supersample), expected)
 
 
+def test_plate_phase_needs_the_pixel_pitch_to_shift_a_mask():
+    lv = np.zeros((4, 4), np.uint8)
+    faults = PlateFaults(overlay_mask=1, overlay_shift=(1e-6, 0.0))
+    with pytest.raises(ValueError, match="an overlay shift needs mask_pixel_pitch"):
+        plate_phase(lv, L, faults)
+
+
 def _blazed():
     """Levels 0..7 along each row: a phase ramp that sends all light into order (0, +1)."""
     return np.tile(np.arange(L, dtype=np.uint8), (L, 1))
@@ -1252,6 +1259,13 @@ def test_a_single_order_lands_where_the_rotated_scaled_lattice_puts_it(orientati
     assert np.allclose(var, 1.0**2 + 1.5**2 + 1 / 12, rtol=0.01)
     # exposure: the brightest pixel at peak_fraction (0.7) of full scale
     assert img.max() == pytest.approx(0.7 * 65535, rel=1e-3)
+
+
+def test_a_capture_that_no_order_reaches_is_refused():
+    # orders 1000 px apart, the zero order 500 px left of a 61 px frame: its neighbour
+    # to the right lands at column 500, 440 px past the frame's last column
+    with pytest.raises(ValueError, match="no order lands in the frame"):
+        simulate_capture(_blazed(), L, shape=(61, 61), pitch_px=1000.0, centre=(30.0, -500.0))
 
 
 def test_every_order_that_reaches_the_frame_is_drawn_even_past_its_far_edge():
