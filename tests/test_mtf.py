@@ -73,6 +73,33 @@ def test_flat_image_has_no_edge():
         slanted_edge_mtf(np.full((50, 50), 7.0))
 
 
+@pytest.mark.parametrize("shape", [(7, 50), (50, 7), (8,)])
+def test_a_region_smaller_than_8x8_is_refused(shape):
+    with pytest.raises(EdgeNotFound, match="at least 8x8 pixels"):
+        slanted_edge_mtf(np.zeros(shape))
+
+
+@pytest.mark.parametrize("crop", [66, 67, 68])
+def test_an_edge_nearer_than_4_px_to_the_border_is_refused(crop):
+    # The edge of gaussian_edge(..., 5 deg) crosses row 0 at x = 80.3 - 100 tan(5 deg)
+    # = 71.55, its point nearest the left border; cropped, it lies 71.55 - crop px from
+    # column 0 along the row, cos(5 deg) times that across the edge.
+    img = gaussian_edge(1.0, 5, noise=0.3)[:, crop:]
+    reach = (80.3 - 100 * np.tan(np.radians(5)) - crop) * np.cos(np.radians(5))
+    if reach < 4:
+        with pytest.raises(EdgeNotFound, match="too close to the image border"):
+            slanted_edge_mtf(img)
+    else:
+        assert slanted_edge_mtf(img)["edge_reach_px"] == pytest.approx(reach, abs=0.02)
+
+
+def test_an_edge_seen_in_fewer_than_4_rows_is_refused():
+    img = np.full((8, 16), 220.0)
+    img[:3, 0] = 20.0  # the corner of a chart: the edge shows in rows 0 to 2 only
+    with pytest.raises(EdgeNotFound, match="fewer than 4 rows show the edge"):
+        slanted_edge_mtf(img)
+
+
 def test_mtf_cli_writes_json_and_plot(tmp_path):
     img = np.clip(gaussian_edge(1.2, 5, high=3000, noise=2.0), 0, 65535).astype(np.uint16)
     write_image(tmp_path / "edge.png", img)
