@@ -124,6 +124,16 @@ def test_mtf_cli_reports_how_the_file_was_read(tmp_path, capsys):
     assert notes[0] in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("oversample", ["0", "17"])
+def test_mtf_cli_refuses_an_oversampling_out_of_range(tmp_path, capsys, oversample):
+    write_image(tmp_path / "edge.png", gaussian_edge(1.2, 5).astype(np.uint8))
+    out = tmp_path / "o"
+    argv = ["mtf", str(tmp_path / "edge.png"), "--out", str(out), "--oversample", oversample]
+    assert main(argv) == 2
+    assert f"--oversample: must be 1..16, got {oversample}" in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_mtf_cli_flat_image_exits_2(tmp_path, capsys):
     write_image(tmp_path / "flat.tif", np.full((40, 40), 100, np.uint16))
     assert main(["mtf", str(tmp_path / "flat.tif"), "--out", str(tmp_path / "o")]) == 2

@@ -498,6 +498,8 @@ def test_blank_capture_exits_2(tmp_path, levels, capsys):
         ({"acceptance": 0.95}, "fab_manifest.json"),  # not a table of thresholds
         ({"lattice_pitch_um": 0}, "fab_manifest.json"),
         ({"acceptance": dict.fromkeys(ACCEPTANCE_KEYS, "0.9")}, "fab_manifest.json"),  # text
+        ({"kernel_size": "eleven"}, "fab_manifest.json: malformed manifest"),
+        ({"masks": [{"etch_depth_nm": 717.6}]}, "fab_manifest.json: malformed manifest"),
     ],
 )
 def test_inconsistent_manifest_exits_2(tmp_path, levels, capsys, change, culprit):
@@ -628,6 +630,41 @@ def test_retrieve_folder_is_accepted(tmp_path, levels):
     expected_um = design.optics.wavelength * design.optics.focal_length / (N * pitch) * 1e6
     report = json.loads((tmp_path / "o" / "verify.json").read_text())
     assert report["design_lattice_pitch_um"] == pytest.approx(expected_um, rel=1e-9)
+
+
+def test_a_design_folder_verify_cannot_read_exits_2_naming_it(tmp_path, levels, capsys):
+    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, shape=(200, 200), seed=20)
+    write_image(tmp_path / "cap.png", sim["capture"])
+    learn = tmp_path / "learn"  # a folder of another stage
+    learn.mkdir()
+    broken = tmp_path / "ret"
+    broken.mkdir()
+    save_npy(broken / "levels.npy", levels)
+    write_json(broken / "retrieval.json", {"levels": L, "kernel_size": K})  # no "design"
+    for folder, problem in (
+        (tmp_path / "none", "none: no such design folder"),
+        (learn, "learn: neither fab_manifest.json nor retrieval.json found"),
+        (broken, "retrieval.json: malformed retrieval.json (KeyError('design')"),
+    ):
+        out = tmp_path / "o"
+        assert main(["verify", str(folder), str(tmp_path / "cap.png"), "--out", str(out)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert problem in err and len(err.splitlines()) == 1 and not out.exists(), err
+
+
+def test_a_saturated_pixel_off_the_dots_is_noted_and_does_not_fail(tmp_path, levels):
+    design = make_design_dir(tmp_path / "design", levels)
+    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, seed=1)
+    capture = sim["capture"].copy()
+    # half a pitch off a lattice site in both directions: as far from any dot as can be
+    row, col = np.round(np.array(sim["zero_order_px"]) + 5.5 * PITCH_PX).astype(int)
+    capture[row, col] = 4095 << 4  # full scale of the 12-bit data, MSB-aligned
+    write_image(tmp_path / "cap.png", capture)
+    out = tmp_path / "o"
+    assert main(["verify", str(design), str(tmp_path / "cap.png"), "--out", str(out)]) == 0
+    report = json.loads((out / "verify.json").read_text())
+    assert report["saturated_dots"] == 0
+    assert "1 saturated pixel(s) outside the dots" in report["notes"]
 
 
 def test_implied_deep_etch_error_inverts_the_simulated_plate(levels):
