@@ -500,6 +500,10 @@ def test_blank_capture_exits_2(tmp_path, levels, capsys):
         ({"acceptance": dict.fromkeys(ACCEPTANCE_KEYS, "0.9")}, "fab_manifest.json"),  # text
         ({"kernel_size": "eleven"}, "fab_manifest.json: malformed manifest"),
         ({"masks": [{"etch_depth_nm": 717.6}]}, "fab_manifest.json: malformed manifest"),
+        (
+            {"acceptance": {"correlation_min": 0.9}},
+            "fab_manifest.json: acceptance lacks ['efficiency_min', 'rmse_max', 'zero_order_max']",
+        ),
     ],
 )
 def test_inconsistent_manifest_exits_2(tmp_path, levels, capsys, change, culprit):
@@ -681,6 +685,8 @@ def test_implied_deep_etch_error_inverts_the_simulated_plate(levels):
 def test_deep_etch_fit_is_none_when_the_deep_mask_is_unused():
     upper = np.random.default_rng(4).integers(L // 2, L, (N, N)).astype(np.uint8)
     assert fit_deep_etch_error(np.ones((K, K)), None, upper, L) is None
+    # nor does the zero order tell an etch error of a mask that etches nothing
+    assert implied_deep_etch_error(upper, L, 0.01) is None
 
 
 def test_zero_order_follows_the_analytic_deep_etch_law():

@@ -18,6 +18,7 @@ from fab.verify import (
     analyse,
     design_order_power,
     diagnose,
+    locate_zero_order,
     resolve_thresholds,
     to_design_frame,
 )
@@ -43,6 +44,11 @@ def test_to_design_frame_undoes_every_camera_orientation(orientation):
             du, dv = fwd(m, n)
             camera[su + du, sv + dv] = design[a + m, b + n]
     assert np.array_equal(to_design_frame(camera, orientation), design)
+
+
+def test_an_orientation_not_in_the_list_is_refused():
+    with pytest.raises(ValueError, match="orientation must be one of"):
+        to_design_frame(np.zeros((3, 3)), "rot45")
 
 
 @pytest.mark.parametrize("name", sorted(_TRANSFORMS))
@@ -96,6 +102,20 @@ def test_window_that_touches_the_frame_edge_is_measured_and_one_past_it_is_not(a
     shape[axis] -= 1
     result, psf = analyse(_grid(levels, shape, zero), levels, L, K, "as-designed", thresholds)
     assert result["window_in_frame"] is False and psf is None
+
+
+def test_locating_the_zero_order_needs_a_valid_order_and_three_to_score():
+    period = design_order_power(_random_design()[0], L)
+    power, sigma = np.arange(25.0).reshape(5, 5), np.full((5, 5), 0.01)
+    with pytest.raises(ValueError, match="no valid dot"):
+        locate_zero_order(power, np.zeros((5, 5), bool), sigma, period)
+    # the zero order and two orders beside it: two points always correlate perfectly,
+    # so fewer than three orders give no score
+    valid = np.zeros((5, 5), bool)
+    valid[2, 1:4] = True
+    search = locate_zero_order(power, valid, sigma, period)
+    assert (search["score"], search["outside_orders"]) == (0.0, 0)
+    assert np.isnan(search["outside_score"])
 
 
 def _good_result(**changes):
@@ -153,6 +173,18 @@ def test_a_deep_etch_fit_under_three_sigma_does_not_fail_the_plate():
     assert diagnose(_good_result(**fit, deep_etch_error_fit_significance=6.0), t) == ["ok"]
     failing = _good_result(**fit, deep_etch_error_fit_significance=12.0)
     assert diagnose(failing, t) == ["deep_etch_error"]
+
+
+def test_a_runner_up_offset_within_25_of_the_best_chi_square_is_ambiguous():
+    # the zero order one place further fits nearly as well: where is the PSF's centre?
+    t = resolve_thresholds(None, design_efficiency=0.80, design_zero_order=0.01)
+
+    def with_margin(margin):
+        search = dict(_good_result()["zero_order_search"], runner_up_margin=margin)
+        return diagnose(_good_result(zero_order_search=search), t)
+
+    assert with_margin(24.0) == ["zero_order_ambiguous"]
+    assert with_margin(26.0) == ["ok"]
 
 
 def test_a_window_under_30_times_its_noise_is_low_signal():
