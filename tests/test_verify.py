@@ -24,7 +24,7 @@ from fab.capture import (
     write_image,
 )
 from fab.capture_sim import PlateFaults, plate_far_field, plate_phase, simulate_capture
-from fab.lattice import Lattice, measure_orders, register_lattice
+from fab.lattice import Lattice, LatticeNotFound, measure_orders, register_lattice
 from fab.verify import (
     analyse,
     design_order_power,
@@ -1095,6 +1095,39 @@ def test_registered_origin_is_the_lattice_point_nearest_the_image_centre(levels)
     lattice, _ = register_lattice(sim["capture"] >> 4, PITCH_PX)
     # the order one step down and right lies 0.3 pitch from the centre on each axis
     assert np.allclose(lattice.origin, zero + PITCH_PX, atol=0.3)
+
+
+def test_a_frame_narrower_than_4_pitches_is_refused():
+    with pytest.raises(LatticeNotFound, match="image 300x40 px holds fewer than 4 dots across"):
+        register_lattice(np.zeros((40, 300)), PITCH_PX)
+
+
+@pytest.mark.parametrize("scale, off", [(1.17, "+17%"), (0.83, "-17%")])
+def test_dots_17_percent_off_the_nominal_pitch_are_refused(levels, scale, off):
+    # within the neighbour search (0.8 to 1.18 pitches), beyond the 15 % allowed: the
+    # camera pixel pitch given is wrong
+    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, scale=scale, shape=(300, 300), seed=1)
+    with pytest.raises(LatticeNotFound, match=f"{re.escape(off)} off the nominal 10.87 px"):
+        register_lattice(sim["capture"], PITCH_PX)
+
+
+def test_dots_found_closer_than_photometry_needs_are_refused(levels):
+    # nominally 4.6 px apart (enough), found 4.2 px apart (within 15 %, too close)
+    sim = simulate_capture(levels, L, pitch_px=4.2, shape=(300, 300), seed=1)
+    with pytest.raises(LatticeNotFound, match="the dots are 4.2 px apart, closer than the 4.5"):
+        register_lattice(sim["capture"], 4.6)
+
+
+def test_a_grating_whose_orders_lie_on_one_line_registers_along_it():
+    # levels vary along x only: every order is (0, n), one lattice row; its step along
+    # the row is measured, the step across it stays the nominal one
+    grating = np.tile(np.random.default_rng(3).integers(0, L, N).astype(np.uint8), (N, 1))
+    sim = simulate_capture(grating, L, pitch_px=PITCH_PX, rotation_deg=3.0, shape=(300, 300))
+    lattice, _ = register_lattice(sim["capture"], PITCH_PX)
+    assert np.allclose(lattice.origin, sim["zero_order_px"], atol=0.1)
+    along = np.array(lattice.positions(0, 1)) - lattice.origin  # (row, col) of one step
+    theta = np.radians(3.0)
+    assert np.allclose(along, PITCH_PX * np.array([-np.sin(theta), np.cos(theta)]), atol=0.02)
 
 
 @pytest.fixture(scope="module")
