@@ -1,5 +1,6 @@
 """Property tests: the image readers accept good files and refuse damaged ones with InputError."""
 
+import re
 import warnings
 
 import numpy as np
@@ -407,7 +408,7 @@ def test_default_images_leave_out_a_photo_this_scikit_image_lacks(monkeypatch):
 
 
 def test_a_missing_capture_is_named(tmp_path):
-    with pytest.raises(InputError, match="none.png: no such image file"):
+    with pytest.raises(InputError, match=re.escape("none.png: no such image file")):
         read_raw_image(tmp_path / "none.png")
 
 
@@ -415,7 +416,9 @@ def test_a_capture_of_signed_integers_is_refused(tmp_path):
     import tifffile
 
     tifffile.imwrite(tmp_path / "signed.tif", np.zeros((8, 8), np.int32))
-    with pytest.raises(InputError, match="signed.tif: unsupported pixel format int; use 8/16"):
+    with pytest.raises(
+        InputError, match=re.escape("signed.tif: unsupported pixel format int; use 8/16")
+    ):
         read_raw_image(tmp_path / "signed.tif")
 
 
@@ -439,7 +442,7 @@ def test_a_colour_capture_is_refused_unless_its_channels_agree(tmp_path):
     assert np.array_equal(read_raw_image(tmp_path / "grey.png").data, grey)
     colour = np.stack([grey, grey, 255 - grey], axis=-1)
     Image.fromarray(colour, "RGB").save(tmp_path / "colour.png")
-    with pytest.raises(InputError, match="colour.png: 3-channel colour image"):
+    with pytest.raises(InputError, match=re.escape("colour.png: 3-channel colour image")):
         read_raw_image(tmp_path / "colour.png")
 
 
@@ -448,7 +451,7 @@ def test_a_float_capture_with_nan_or_infinite_pixels_is_refused(tmp_path, bad):
     image = np.ones((8, 8), np.float32)
     image[3, 4] = bad
     write_image(tmp_path / "bad.exr", image)
-    with pytest.raises(InputError, match="bad.exr: image has NaN or infinite pixels"):
+    with pytest.raises(InputError, match=re.escape("bad.exr: image has NaN or infinite pixels")):
         read_raw_image(tmp_path / "bad.exr")
 
 
@@ -456,6 +459,6 @@ def test_write_image_refuses_a_dtype_or_a_path_it_cannot_write(tmp_path):
     with pytest.raises(ValueError, match="needs uint8, uint16 or float32, got int64"):
         write_image(tmp_path / "a.png", np.zeros((4, 4), np.int64))
     for name in ("a.not-an-image-format", "nowhere/a.png"):
-        with pytest.raises(InputError, match=f"{name}: cannot write image"):
+        with pytest.raises(InputError, match=re.escape(f"{name}: cannot write image")):
             write_image(tmp_path / name, np.zeros((4, 4), np.uint8))
         assert not (tmp_path / name).exists()

@@ -1107,14 +1107,16 @@ def test_dots_17_percent_off_the_nominal_pitch_are_refused(levels, scale, off):
     # within the neighbour search (0.8 to 1.18 pitches), beyond the 15 % allowed: the
     # camera pixel pitch given is wrong
     sim = simulate_capture(levels, L, pitch_px=PITCH_PX, scale=scale, shape=(300, 300), seed=1)
-    with pytest.raises(LatticeNotFound, match=f"{re.escape(off)} off the nominal 10.87 px"):
+    with pytest.raises(LatticeNotFound, match=re.escape(f"{off} off the nominal 10.87 px")):
         register_lattice(sim["capture"], PITCH_PX)
 
 
 def test_dots_found_closer_than_photometry_needs_are_refused(levels):
     # nominally 4.6 px apart (enough), found 4.2 px apart (within 15 %, too close)
     sim = simulate_capture(levels, L, pitch_px=4.2, shape=(300, 300), seed=1)
-    with pytest.raises(LatticeNotFound, match="the dots are 4.2 px apart, closer than the 4.5"):
+    with pytest.raises(
+        LatticeNotFound, match=re.escape("the dots are 4.2 px apart, closer than the 4.5")
+    ):
         register_lattice(sim["capture"], 4.6)
 
 
