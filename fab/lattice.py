@@ -198,12 +198,17 @@ def register_lattice(image, nominal_pitch_px, refine_iterations=2, quantum=0.0):
     x, noise, dots, weight = _dots_of(img, pitch0, quantum)
     if dots.shape[0] == 0:
         raise LatticeNotFound(f"no dot stands {DETECT_SIGMAS:g} sigma above the noise")
-    lattice, notes, partner = _coarse_lattice(dots, weight, pitch0)
+    lattice, notes, partner, measured = _coarse_lattice(dots, weight, pitch0)
     if partner.sum() >= 3:
         # Dots with a neighbour at the pitch: lone noise peaks would pull the fit.
         dots, weight = dots[partner], weight[partner]
+    # A pitch taken from the design (no dot had a neighbour one pitch away: a plate
+    # lighting every other order) may be off by the whole tolerance; a measured one
+    # is within a few per cent.
+    max_step = MAX_BASIS_STEP if measured else PITCH_TOLERANCE + MAX_BASIS_STEP
     for reach in (3, 8, 20, None):  # grow the fitted region while the indices stay right
-        lattice = _fit_dots(lattice, dots, weight, reach)
+        lattice = _fit_dots(lattice, dots, weight, reach, max_step)
+        max_step = MAX_BASIS_STEP
     ratio = lattice.pitch_px / pitch0
     if abs(ratio - 1) > PITCH_TOLERANCE:
         raise LatticeNotFound(
@@ -289,7 +294,8 @@ def _detect_dots(x, pitch, noise):
 def _coarse_lattice(dots, weight, pitch0):
     """Estimate pitch and rotation from nearest-neighbour vectors, origin at the brightest dot.
 
-    Returns the lattice, notes and which dots have a neighbour at the pitch.
+    Returns the lattice, notes, which dots have a neighbour at the pitch, and
+    whether pitch and rotation were measured (else they are the nominal pitch, 0).
 
     A square lattice's four neighbour directions coincide under z -> z^4 (z the
     vector as a complex number), so the mean of z^4 gives the rotation without
@@ -308,7 +314,8 @@ def _coarse_lattice(dots, weight, pitch0):
         keep = (length >= lo) & (length <= hi)
         pairs, d, length = pairs[keep], d[keep], length[keep]
         partner[pairs.ravel()] = True
-    if pairs.shape[0] >= 2:
+    measured = pairs.shape[0] >= 2
+    if measured:
         z = (d[:, 1] - 1j * d[:, 0]) / length  # x right, y up
         wts = np.sqrt(weight[pairs[:, 0]] * weight[pairs[:, 1]])
         theta = float(np.angle(np.sum(wts * z**4)) / 4)
@@ -322,11 +329,15 @@ def _coarse_lattice(dots, weight, pitch0):
     # The brightest dot with a neighbour (a lone bright spot may be a hot pixel).
     candidates = np.nonzero(partner)[0] if partner.any() else np.arange(dots.shape[0])
     origin = dots[candidates[np.argmax(weight[candidates])]]
-    return Lattice(origin.copy(), basis), notes, partner
+    return Lattice(origin.copy(), basis), notes, partner, measured
 
 
-def _fit_dots(lattice, dots, weight, reach):
-    """Least-squares fit of origin and basis to the detected dots within ``reach`` pitches."""
+def _fit_dots(lattice, dots, weight, reach, max_step=MAX_BASIS_STEP):
+    """Least-squares fit of origin and basis to the detected dots within ``reach`` pitches.
+
+    A basis that moves by more than ``max_step`` of the pitch is refused (the
+    origin moves only).
+    """
     u, v = lattice.coordinates(dots[:, 0], dots[:, 1])
     ku, kv = np.round(u), np.round(v)
     near = np.hypot(u - ku, v - kv) < 0.3
@@ -353,7 +364,7 @@ def _fit_dots(lattice, dots, weight, reach):
             break
         use = new
     basis = np.array([[coef_r[1], coef_r[2]], [coef_c[1], coef_c[2]]])
-    if np.abs(basis - lattice.basis).max() > MAX_BASIS_STEP * lattice.pitch_px:
+    if np.abs(basis - lattice.basis).max() > max_step * lattice.pitch_px:
         # A jump this large comes from a stray dot, not from the lattice: keep the basis.
         res = dots[near] - np.stack(lattice.positions(ku[near], kv[near]), axis=1)
         return Lattice(lattice.origin + np.median(res, axis=0), lattice.basis)

@@ -1120,6 +1120,23 @@ def test_dots_found_closer_than_photometry_needs_are_refused(levels):
         register_lattice(sim["capture"], 4.6)
 
 
+@pytest.mark.parametrize(("scale", "rotation_deg"), [(0.87, 0.0), (1.12, 0.0), (1.08, 4.0)])
+def test_a_plate_lighting_every_other_order_registers_off_the_nominal_pitch(scale, rotation_deg):
+    # A tile of 2 x 2 copies has period N / 2: only even orders are lit, no dot has a
+    # neighbour one pitch away, and the fit starts from the design's pitch. Allowed
+    # to move it by 5 % at a time, it stopped between the two: the origin 4-5 px off
+    # at 8-12 % magnification error, a good plate failed as other_design.
+    quarter = np.random.default_rng(5).integers(0, L, (18, 18)).astype(np.uint8)
+    sim = simulate_capture(
+        np.tile(quarter, (2, 2)), L, pitch_px=PITCH_PX, scale=scale,
+        rotation_deg=rotation_deg, shape=(600, 600), seed=2,
+    )  # fmt: skip
+    lattice, notes = register_lattice(sim["capture"], PITCH_PX)
+    assert any("too few neighbouring dots" in n for n in notes)  # the case under test
+    assert lattice.pitch_px == pytest.approx(scale * PITCH_PX, rel=1e-3)
+    assert np.allclose(lattice.origin, sim["zero_order_px"], atol=0.1)
+
+
 def test_a_grating_whose_orders_lie_on_one_line_registers_along_it():
     # levels vary along x only: every order is (0, n), one lattice row; its step along
     # the row is measured, the step across it stays the nominal one
