@@ -418,7 +418,7 @@ def test_a_folder_of_other_files_or_an_unreadable_run_state_is_refused(
     )
     assert sorted(p.name for p in stranger.iterdir()) == [".doefab_run.lock", "thesis.tex"]
     state = stranger / "run_state.json"
-    state.write_text('{"retrieve": ')  # a run killed while writing it
+    state.write_text('{"retrieve": ')  # cut short (not by the run: it writes atomically)
     assert main([*argv, str(stranger)]) == 2
     err = capsys.readouterr().err
     assert f"{state}: unreadable run state" in err and "use --force to start over" in err
