@@ -98,7 +98,7 @@ def read_raw_image(path):
     """
     import OpenImageIO as oiio
 
-    from doe.image_pages import has_more_pages
+    from doe.image_pages import has_more_pages, native_stderr_quiet
 
     path = Path(path)
     if path.is_dir():
@@ -107,7 +107,8 @@ def read_raw_image(path):
         raise InputError(path, "no such image file")
     config = oiio.ImageSpec()
     config.attribute("oiio:UnassociatedAlpha", 1)  # counts as stored, not multiplied by alpha
-    inp = oiio.ImageInput.open(str(path), config)
+    with native_stderr_quiet():  # libpng's own "libpng error: ..." line; geterror() has it
+        inp = oiio.ImageInput.open(str(path), config)
     if inp is None:
         raise InputError(path, f"not a readable image ({_one_line(oiio.geterror())})")
     try:
@@ -120,7 +121,8 @@ def read_raw_image(path):
         else:
             raise InputError(path, f"unsupported pixel format {spec.format}; use 8/16-bit or float")
         try:
-            pixels = inp.read_image(0, 0, 0, spec.nchannels, fmt)
+            with native_stderr_quiet():
+                pixels = inp.read_image(0, 0, 0, spec.nchannels, fmt)
         except MemoryError:
             raise InputError(
                 path, f"{spec.width} x {spec.height} pixels do not fit in this machine's memory"

@@ -320,7 +320,7 @@ def test_a_tiff_orientation_tag_is_noted_and_the_pixels_kept_as_stored(tmp_path)
     assert any("Orientation tag is 3" in n for n in raw.notes)
 
 
-@pytest.mark.parametrize("reader", ["frame", "training image"])
+@pytest.mark.parametrize("reader", ["capture", "frame", "training image"])
 @pytest.mark.parametrize("damage", ["header", "pixels"])
 def test_a_damaged_png_is_refused_in_one_line_with_its_reason(
     good_files, tmp_path, capfd, reader, damage
