@@ -393,49 +393,56 @@ def test_readback_detects_a_single_wrong_pixel(tmp_path):
     assert len(problems) == 1 and "M2_mid" in problems[0] and ": 1 pixels differ" in problems[0]
 
 
+def tampered_plate(tmp_path, tiles, tamper):
+    """Write the seed-8 plate's library after ``tamper(library, top cell)``.
+
+    Returns the file, the layout info and the masks it was built from.
+    """
+    masks = masks_from_levels(random_levels(8, seed=8), L, STEP)
+    lib, info = build_library(masks, PITCH, tiles, "t", marks=False)
+    (top,) = [c for c in lib.cells if c.name == info.top_cell]
+    tamper(lib, top)
+    path = tmp_path / "tampered.gds"
+    write_gds(lib, path)
+    return path, info, masks
+
+
 def test_readback_refuses_a_mirrored_tile_placement(tmp_path):
     # same displacements as the lattice, but every tile etched upside down
-    masks = masks_from_levels(random_levels(8, seed=8), L, STEP)
-    lib, info = build_library(masks, PITCH, (2, 2), "t", marks=False)
-    (top,) = [c for c in lib.cells if c.name == info.top_cell]
-    top.references[0].x_reflection = True
-    path = tmp_path / "mirrored.gds"
-    write_gds(lib, path)
+    def mirror(lib, top):
+        top.references[0].x_reflection = True
+
+    path, info, masks = tampered_plate(tmp_path, (2, 2), mirror)
     (problem,) = check_written_gds(path, info, masks)
     assert "mirror" in problem and str(path) in problem
 
 
 def test_readback_refuses_a_database_unit_other_than_1_nm(tmp_path):
-    masks = masks_from_levels(random_levels(8, seed=8), L, STEP)
-    lib, info = build_library(masks, PITCH, (1, 1), "t", marks=False)
-    lib.precision = 1e-10  # 0.1 nm database unit: every coordinate read 10 times too large
-    path = tmp_path / "dbu.gds"
-    write_gds(lib, path)
+    def finer_unit(lib, top):
+        lib.precision = 1e-10  # 0.1 nm database unit: every coordinate read 10 times too large
+
+    path, info, masks = tampered_plate(tmp_path, (1, 1), finer_unit)
     (problem,) = check_written_gds(path, info, masks)
     assert "DBU" in problem and str(path) in problem
 
 
 def test_readback_refuses_a_tile_off_its_lattice(tmp_path):
-    masks = masks_from_levels(random_levels(8, seed=8), L, STEP)
-    lib, info = build_library(masks, PITCH, (2, 2), "t", marks=False)
-    (top,) = [c for c in lib.cells if c.name == info.top_cell]
-    x, y = top.references[0].origin
-    top.references[0].origin = (x + 8 * PITCH, y)  # one tile to the right, onto its neighbour
-    path = tmp_path / "shifted.gds"
-    write_gds(lib, path)
+    def shift(lib, top):
+        x, y = top.references[0].origin
+        top.references[0].origin = (x + 8 * PITCH, y)  # one tile to the right, onto its neighbour
+
+    path, info, masks = tampered_plate(tmp_path, (2, 2), shift)
     (problem,) = check_written_gds(path, info, masks)
     assert problem == f"the tile is not placed on the 2 x 2 lattice at {info.array_origin_nm} nm"
 
 
 def test_readback_counts_only_placements_of_the_tile(tmp_path):
-    masks = masks_from_levels(random_levels(8, seed=8), L, STEP)
-    lib, info = build_library(masks, PITCH, (2, 2), "t", marks=False)
-    (top,) = [c for c in lib.cells if c.name == info.top_cell]
-    logo = lib.new_cell("LOGO")
-    logo.add(gdstk.rectangle((0, 0), (1000, 1000), layer=99))
-    top.add(gdstk.Reference(logo, (10**6, 0)))  # another cell placed beside the array
-    path = tmp_path / "logo.gds"
-    write_gds(lib, path)
+    def add_logo(lib, top):
+        logo = lib.new_cell("LOGO")
+        logo.add(gdstk.rectangle((0, 0), (1000, 1000), layer=99))
+        top.add(gdstk.Reference(logo, (10**6, 0)))  # another cell placed beside the array
+
+    path, info, masks = tampered_plate(tmp_path, (2, 2), add_logo)
     assert check_written_gds(path, info, masks) == []
 
 

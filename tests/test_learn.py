@@ -1226,16 +1226,22 @@ def test_a_batch_the_torchrun_processes_cannot_share_is_refused(tmp_path, capsys
     assert not out.exists()
 
 
-def test_a_rank_other_than_0_trains_but_writes_nothing(trained, tmp_path, capsys, monkeypatch):
-    # A torchrun job: every rank trains, rank 0 alone writes, and all leave together.
-    # The process group is faked: rank 1 of a group of one.
+def fake_process_group(monkeypatch, rank, size):
+    """Make torch.distributed report a process group; return the list of collective calls."""
     calls = []
     dist = torch.distributed
     monkeypatch.setattr(dist, "is_initialized", lambda: True)
-    monkeypatch.setattr(dist, "get_rank", lambda: 1)
-    monkeypatch.setattr(dist, "get_world_size", lambda: 1)
+    monkeypatch.setattr(dist, "get_rank", lambda: rank)
+    monkeypatch.setattr(dist, "get_world_size", lambda: size)
     monkeypatch.setattr(dist, "barrier", lambda: calls.append("barrier"))
     monkeypatch.setattr(dist, "destroy_process_group", lambda: calls.append("destroy"))
+    return calls
+
+
+def test_a_rank_other_than_0_trains_but_writes_nothing(trained, tmp_path, capsys, monkeypatch):
+    # A torchrun job: every rank trains, rank 0 alone writes, and all leave together.
+    # The process group is faked: rank 1 of a group of one.
+    calls = fake_process_group(monkeypatch, rank=1, size=1)
     out = tmp_path / "out"
     assert main(["learn", "--out", str(out), "--images", str(trained[1]), *SMALL]) == 0
     assert calls == ["barrier", "destroy"]
@@ -1315,10 +1321,7 @@ def test_super_resolve_takes_a_model_folder_and_refuses_a_row(trained):
 def test_train_refuses_a_batch_its_processes_cannot_share(monkeypatch):
     # The Python API's own guard (learn checks --batch first); the process group of
     # two is faked, as no process stands beside this one.
-    dist = torch.distributed
-    monkeypatch.setattr(dist, "is_initialized", lambda: True)
-    monkeypatch.setattr(dist, "get_rank", lambda: 0)
-    monkeypatch.setattr(dist, "get_world_size", lambda: 2)
+    fake_process_group(monkeypatch, rank=0, size=2)
     odd = TrainConfig(**{**TINY.__dict__, "batch": 3})
     with pytest.raises(ValueError, match="batch 3 is not divisible by 2 processes"):
         train(odd, _images(), SensorModel(POINT, 200.0), gaussian_psf(K))
