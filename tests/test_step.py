@@ -183,6 +183,28 @@ def test_cli_step_writes_checked_solid_and_assembly(tmp_path):
     assert lows == [(0.0, 0.0), (0.0, round(t, 6)), (round(t, 6), 0.0), (round(t, 6), round(t, 6))]
 
 
+def test_cli_step_with_a_crop_writes_the_crop_in_the_mesh_formats_only(tmp_path):
+    # The merged crop is a mesh: with step among the formats it is written in the
+    # others, beside the STEP tile and aperture (a STEP crop has no encoder).
+    relief = relief_of(4, seed=7)
+    fab = write_fab_dir(tmp_path / "fab", relief.levels)
+    out = tmp_path / "out"
+    args = ["mesh", str(fab), "--out", str(out), "--formats", "step,ply", "--crop", "2"]
+    assert main(args) == 0
+    assert sorted(p.name for p in out.iterdir()) == [
+        "aperture.step",
+        "crop_2x2.ply",
+        "mesh_report.json",
+        "preview.png",
+        "tile.ply",
+        "tile.step",
+    ]
+    report = json.loads((out / "mesh_report.json").read_text())
+    assert report["step"]["ok"]
+    assert report["crop"]["volume_mm3"] == pytest.approx(4 * analytic_mm3(relief), rel=1e-12)
+    assert sorted(report["files"]) == sorted(p.name for p in out.iterdir() if p.suffix != ".json")
+
+
 def test_cli_step_solid_with_a_wrong_volume_fails_the_check(tmp_path, monkeypatch):
     # A closed single solid whose heights are 0.1 % off must not pass: exit 1, ok false.
     relief = relief_of(4, seed=6)
