@@ -289,3 +289,20 @@ def test_dot_lattice_outlines_each_active_area_in_its_shape(tmp_path, saved_figu
     else:
         assert isinstance(area, Rectangle) and area.get_xy() == pytest.approx((-5.0, -20.0))
         assert (area.get_width(), area.get_height()) == pytest.approx((30.0, 30.0))
+
+
+@pytest.mark.parametrize("description", ["", "a plate for the SPAD array"])
+def test_a_design_without_a_description_gets_no_empty_paragraph(tmp_path, description):
+    # description = "" in a design file: the title goes straight on to the report's
+    # own first paragraph; a description stands right under the title.
+    from fab.report import render_markdown, report_blocks
+
+    context = make_context(tmp_path, with_tolerance=False)
+    context["design"]["description"] = description
+    blocks = report_blocks(context)
+    own = blocks[2] if description else blocks[1]
+    assert own[0] == "p" and own[1].startswith("Written by doefab fab")
+    assert ("p", "") not in blocks and (blocks[1] == ("p", description)) == bool(description)
+    text = render_markdown(blocks)
+    title = f"# Fabrication report: {context['design']['name']}\n\n"
+    assert text.startswith(title + (f"{description}\n\n" if description else "") + "Written by")
