@@ -591,6 +591,24 @@ def test_correlation_target_compares_the_measured_psf_with_the_target_psf(tmp_pa
     assert report["correlation_target"] < 0.5 < report["correlation"]
 
 
+def test_a_plate_the_deep_mask_leaves_whole_verified_without_a_target_psf(tmp_path):
+    # Levels 4..7 only: the deepest mask etches no pixel, so the zero order does not
+    # depend on its depth (no implied error, nor its nm). The folder has no target PSF
+    # (none named either): the plate is judged against its levels, with no
+    # correlation_target. One run for the two, as each is a key left out.
+    upper = np.random.default_rng(7).integers(L // 2, L, (N, N)).astype(np.uint8)
+    design = make_design_dir(tmp_path / "design", upper)
+    (design / "target_psf.npy").unlink()
+    man = json.loads((design / "fab_manifest.json").read_text())
+    del man["target_psf_file"]
+    write_json(design / "fab_manifest.json", man)
+    report, out = verified_without_dark(tmp_path, design, upper)
+    assert report["pass"] is True and report["implied_deep_etch_error"] is None
+    assert "implied_deep_etch_error_nm" not in report and "correlation_target" not in report
+    assert report["inputs"]["design_files"] == ["fab_manifest.json", "levels.npy"]
+    assert (out / "verify_report.html").is_file()
+
+
 def test_manifest_without_lattice_pitch_takes_it_from_the_optics(tmp_path, levels):
     # the contract's keys only: lattice pitch = lambda f / (N p)
     design = make_design_dir(tmp_path / "design", levels)
