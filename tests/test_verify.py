@@ -1096,6 +1096,22 @@ def test_spike_repair_leaves_the_wings_of_blurred_dots_alone(levels):
     assert np.array_equal(fixed, image)
 
 
+def test_spike_repair_leaves_a_bright_scene_alone(levels):
+    # Stray light (2000 DN, shot noise) over 40 % of the frame: over a quarter of the
+    # pixels stand out of the dark noise, a scene rather than a dot lattice, and its
+    # grain (a local maximum every few pixels) is not hot pixels: nothing repaired.
+    from fab.lattice import repair_stray_spikes
+
+    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, seed=29, shape=(300, 300), bits=16)
+    image = sim["capture"].astype(np.float32)
+    lattice, _ = register_lattice(image, PITCH_PX)
+    lit = image.copy()
+    lit[:, :120] += np.random.default_rng(5).poisson(2000.0, (300, 120)).astype(np.float32)
+    fixed, repaired = repair_stray_spikes(lit, lattice)
+    assert not repaired.any()
+    assert np.array_equal(fixed, lit)
+
+
 def test_pixel_noise_is_at_least_the_rounding_noise_of_the_codes():
     from fab.lattice import pixel_noise
 
