@@ -94,6 +94,20 @@ def test_an_interrupt_during_publishing_completes_the_package_first(tmp_path, mo
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no staging folder
 
 
+def test_an_interrupt_in_nested_deferred_blocks_waits_for_the_outermost():
+    # deferred() counts its depth: the end of an inner block must not raise the
+    # signal while the outer block (a package half moved into place) still runs.
+    done = []
+    with interrupts.handled(), pytest.raises(KeyboardInterrupt):
+        with interrupts.deferred():
+            with interrupts.deferred():
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(0.05)  # the handler runs here, and only records it
+            done.append("inner")
+            done.append("outer")
+    assert done == ["inner", "outer"]
+
+
 def test_a_swallowed_interrupt_publishes_nothing_and_exits_130(tmp_path, monkeypatch, capsys):
     # nlopt and matplotlib can swallow the KeyboardInterrupt: retrieve then finished,
     # exit 0, with a design the seed does not give.
