@@ -379,6 +379,22 @@ def test_quantised_gs_lands_on_the_levels():
     np.testing.assert_allclose(steps, np.round(steps), atol=1e-12)
 
 
+def test_unweighted_gs_keeps_its_gains_and_reads_them_as_target_weights():
+    # weighted=False is plain GS: the gains stay as given, and the order-plane
+    # projection sqrt(target) * gains is that of plain GS towards target * gains^2
+    target = targets.asymmetric(7)
+    start = np.random.default_rng(17).uniform(-np.pi, np.pi, (29, 29))
+    gains = np.random.default_rng(18).uniform(0.5, 2.0, (7, 7))
+    phase, out_gains = retrieval.gerchberg_saxton(
+        target, 29, 4, phase=start, weighted=False, gains=gains
+    )
+    np.testing.assert_array_equal(out_gains, gains)
+    reweighted = target * gains**2 / (target * gains**2).sum()
+    plain, ones = retrieval.gerchberg_saxton(reweighted, 29, 4, phase=start, weighted=False)
+    np.testing.assert_array_equal(ones, 1.0)
+    np.testing.assert_allclose(np.exp(1j * phase), np.exp(1j * plain), atol=1e-9)
+
+
 def test_quantised_gs_projects_onto_the_nearest_level():
     # catches a projection that rounds down: one quantised iteration lies within half a
     # step of the plain iteration from the same start (the same first order-plane step)
@@ -476,6 +492,25 @@ def test_several_finishes_keep_the_most_efficient_design_within_the_cap():
     # the first finish of both runs is the same computation; the second can only add
     assert retrieval.fidelity(fraunhofer.level_phase(two.levels, 8), target) <= retrieval.CAP
     assert two.quality_quantised["efficiency"] >= one.quality_quantised["efficiency"] - 1e-12
+
+
+def test_the_finish_with_the_best_rank_wins_and_a_tie_keeps_the_first(monkeypatch):
+    # _rank keys, smaller first: the finish over the cap loses to any within it, the
+    # most efficient within it wins, and a later finish only as good does not replace it
+    keys = [(1, 2.0), (0, -0.6), (0, -0.5), (0, -0.6)]
+    phases = []
+
+    def finish(phase, gains, target, n_levels, rng, cd_weights, cap, iterations, bar):
+        phases.append(phase)
+        return keys[len(phases) - 1], np.full(phase.shape, len(phases) - 1, np.uint8)
+
+    monkeypatch.setattr(retrieval, "_finish", finish)
+    res = retrieval.retrieve_phase(
+        targets.compact_blob(5), 17, 8, starts=4, finishes=4, gs_iterations=5, lbfgs_evals=3
+    )
+    assert len(phases) == 4
+    np.testing.assert_array_equal(res.levels, 1)
+    np.testing.assert_array_equal(res.phase, np.mod(phases[1], 2 * np.pi))
 
 
 def test_retrieval_refuses_bad_arguments():
