@@ -4,6 +4,7 @@ import json
 import subprocess
 import sys
 import types
+import warnings
 from math import erf, sqrt
 
 import numpy as np
@@ -386,6 +387,21 @@ def test_an_irf_tail_of_two_decays_is_extended_along_its_last_slope():
     assert h.start == 0.0
 
 
+def test_an_irf_tail_with_zeros_among_its_last_samples_is_extended_through_the_others():
+    # Background-subtracted noise clips tail samples to 0: of the last four only two
+    # are positive, too few for the parabola; h goes on along the straight line (in
+    # log h) through those two, 2 shifts apart: h(t_end + d) = h(t_end) 2^(-d / 2 shift).
+    # (A parabola through two points is underdetermined: numpy warns, RankWarning.)
+    irf = np.array([0.0, 0.1, 0.5, 1.0, 0.5, 0.1, 0.0, 0.04, 0.0, 0.02])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        h = response_from_irf(irf, SHIFT)
+    t_end = 9 * SHIFT
+    d = np.array([20.0, 100.0, 500.0]) * PS
+    np.testing.assert_allclose(h(t_end + d) / h(t_end), 2.0 ** (-d / (2 * SHIFT)), rtol=1e-3)
+    assert h.start == 0.0  # the early edge starts at 0: no extension
+
+
 def test_irf_reference_time_shifts_the_response(response):
     irf = response(scan_times(T, SHIFT) - 500 * PS)  # reference target at 500 ps
     from_irf = response_from_irf(irf, SHIFT, t_ref=500 * PS)
@@ -436,6 +452,23 @@ def test_cli_depth_of_a_dark_scene_reports_no_returns(tmp_path, capsys):
     line = capsys.readouterr().out
     assert "0/20 pixels with a return, no timing" in line and "nan" not in line
     assert not np.load(tmp_path / "out" / "valid.npy").any()
+
+
+def test_example_fits_show_each_pixel_once_and_a_non_return_only_if_there_is_one():
+    # pixel_fits.png: brightest, median and dimmest return, then the first non-return;
+    # with one or two returns some of these are the same pixel, shown once
+    from psf_learn.cli_depth import _example_pixels
+
+    def picks(valid, amplitude):
+        fit = types.SimpleNamespace(valid=np.array(valid), amplitude=np.array(amplitude, float))
+        return [(int(r), int(c), why) for r, c, why in _example_pixels(fit)]
+
+    every = picks([[True, True], [True, True]], [[3, 1], [4, 2]])  # every pixel returns
+    assert every == [(1, 0, "brightest"), (0, 0, "median"), (0, 1, "dimmest")]
+    one = picks([[False, True], [False, False]], [[0, 7], [0, 0]])
+    assert one == [(0, 1, "brightest"), (0, 0, "no return")]
+    two = picks([[True, True]], [[5, 2]])  # the median of two is the brightest
+    assert two == [(0, 0, "brightest"), (0, 1, "dimmest")]
 
 
 def test_cli_depth_with_irf(tmp_path, response, capsys):
