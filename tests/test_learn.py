@@ -962,6 +962,24 @@ def test_an_unwritable_out_is_refused_before_training(tmp_path, capsys):
         out.chmod(0o755)
 
 
+def test_a_rank_other_than_0_resumes_in_silence(tmp_path, capsys, monkeypatch):
+    # Every rank of a torchrun job resumes the checkpoint that rank 0 wrote, or ignores
+    # another run's; rank 0 alone says so. The process group is faked: rank 1 of one.
+    torch.set_num_threads(1)
+    images, sensor, ckpt = _images(), SensorModel(POINT, 200.0), tmp_path / "ckpt.pt"
+    part = train(TINY, images, sensor, gaussian_psf(K), checkpoint=ckpt, stop_at_step=3)
+    capsys.readouterr()
+    dist = torch.distributed
+    monkeypatch.setattr(dist, "is_initialized", lambda: True)
+    monkeypatch.setattr(dist, "get_rank", lambda: 1)
+    monkeypatch.setattr(dist, "get_world_size", lambda: 1)
+    resumed = train(TINY, images, sensor, gaussian_psf(K), checkpoint=ckpt)
+    assert resumed.steps == 6 and resumed.history[:3] == part.history
+    other = train(TINY, images, SensorModel(POINT, 50.0), gaussian_psf(K), checkpoint=ckpt)
+    assert other.steps == 6 and other.history[:3] != part.history  # started afresh
+    assert capsys.readouterr().err == ""
+
+
 def test_resuming_with_another_thread_count_says_so(tmp_path, capsys):
     before = torch.get_num_threads()
     ckpt = tmp_path / "ckpt.pt"
@@ -1246,6 +1264,35 @@ def test_a_rank_other_than_0_trains_but_writes_nothing(trained, tmp_path, capsys
     assert main(["learn", "--out", str(out), "--images", str(trained[1]), *SMALL]) == 0
     assert calls == ["barrier", "destroy"]
     assert list(out.iterdir()) == [] and "trained" not in capsys.readouterr().out
+
+
+def test_rank_0_of_a_job_writes_the_model_and_leaves_with_the_others(
+    trained, tmp_path, monkeypatch
+):
+    # The other side of the test above: rank 0 writes the package, after the barrier.
+    # In a group of one it trains what a lone process does (the trained fixture's run).
+    calls = []
+    dist = torch.distributed
+    monkeypatch.setattr(dist, "is_initialized", lambda: True)
+    monkeypatch.setattr(dist, "get_rank", lambda: 0)
+    monkeypatch.setattr(dist, "get_world_size", lambda: 1)
+    monkeypatch.setattr(dist, "barrier", lambda: calls.append("barrier"))
+    monkeypatch.setattr(dist, "destroy_process_group", lambda: calls.append("destroy"))
+    out = tmp_path / "out"
+    assert main(["learn", "--out", str(out), "--images", str(trained[1]), *SMALL]) == 0
+    assert calls == ["barrier", "destroy"]
+    assert sorted(p.name for p in out.iterdir()) == ["learn.json", "model.pt", "psf.npy"]
+    assert (out / "psf.npy").read_bytes() == (trained[0] / "psf.npy").read_bytes()
+
+
+def test_learn_for_minutes_trains_until_the_time_is_spent(trained, tmp_path):
+    # Without --steps (the default), --minutes is the budget of training time.
+    out = tmp_path / "out"
+    budget = ["--minutes", "0.005", "--threads", "1"]  # 0.3 s
+    assert main(["learn", "--out", str(out), "--images", str(trained[1]), *budget, *SMALL[2:]]) == 0
+    info = json.loads((out / "learn.json").read_text())
+    assert info["config"]["steps"] is None and info["config"]["minutes"] == 0.005
+    assert info["steps"] >= 1 and info["seconds"] >= 0.3
 
 
 def test_idle_cores_take_omp_num_threads_or_the_cores_not_busy(monkeypatch):
