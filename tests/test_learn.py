@@ -962,6 +962,18 @@ def test_an_unwritable_out_is_refused_before_training(tmp_path, capsys):
         out.chmod(0o755)
 
 
+def fake_process_group(monkeypatch, rank, size):
+    """Make torch.distributed report a process group; return the list of collective calls."""
+    calls = []
+    dist = torch.distributed
+    monkeypatch.setattr(dist, "is_initialized", lambda: True)
+    monkeypatch.setattr(dist, "get_rank", lambda: rank)
+    monkeypatch.setattr(dist, "get_world_size", lambda: size)
+    monkeypatch.setattr(dist, "barrier", lambda: calls.append("barrier"))
+    monkeypatch.setattr(dist, "destroy_process_group", lambda: calls.append("destroy"))
+    return calls
+
+
 def test_a_rank_other_than_0_resumes_in_silence(tmp_path, capsys, monkeypatch):
     # Every rank of a torchrun job resumes the checkpoint that rank 0 wrote, or ignores
     # another run's; rank 0 alone says so. The process group is faked: rank 1 of one.
@@ -969,10 +981,7 @@ def test_a_rank_other_than_0_resumes_in_silence(tmp_path, capsys, monkeypatch):
     images, sensor, ckpt = _images(), SensorModel(POINT, 200.0), tmp_path / "ckpt.pt"
     part = train(TINY, images, sensor, gaussian_psf(K), checkpoint=ckpt, stop_at_step=3)
     capsys.readouterr()
-    dist = torch.distributed
-    monkeypatch.setattr(dist, "is_initialized", lambda: True)
-    monkeypatch.setattr(dist, "get_rank", lambda: 1)
-    monkeypatch.setattr(dist, "get_world_size", lambda: 1)
+    fake_process_group(monkeypatch, rank=1, size=1)
     resumed = train(TINY, images, sensor, gaussian_psf(K), checkpoint=ckpt)
     assert resumed.steps == 6 and resumed.history[:3] == part.history
     other = train(TINY, images, SensorModel(POINT, 50.0), gaussian_psf(K), checkpoint=ckpt)
@@ -1244,18 +1253,6 @@ def test_a_batch_the_torchrun_processes_cannot_share_is_refused(tmp_path, capsys
     assert not out.exists()
 
 
-def fake_process_group(monkeypatch, rank, size):
-    """Make torch.distributed report a process group; return the list of collective calls."""
-    calls = []
-    dist = torch.distributed
-    monkeypatch.setattr(dist, "is_initialized", lambda: True)
-    monkeypatch.setattr(dist, "get_rank", lambda: rank)
-    monkeypatch.setattr(dist, "get_world_size", lambda: size)
-    monkeypatch.setattr(dist, "barrier", lambda: calls.append("barrier"))
-    monkeypatch.setattr(dist, "destroy_process_group", lambda: calls.append("destroy"))
-    return calls
-
-
 def test_a_rank_other_than_0_trains_but_writes_nothing(trained, tmp_path, capsys, monkeypatch):
     # A torchrun job: every rank trains, rank 0 alone writes, and all leave together.
     # The process group is faked: rank 1 of a group of one.
@@ -1271,13 +1268,7 @@ def test_rank_0_of_a_job_writes_the_model_and_leaves_with_the_others(
 ):
     # The other side of the test above: rank 0 writes the package, after the barrier.
     # In a group of one it trains what a lone process does (the trained fixture's run).
-    calls = []
-    dist = torch.distributed
-    monkeypatch.setattr(dist, "is_initialized", lambda: True)
-    monkeypatch.setattr(dist, "get_rank", lambda: 0)
-    monkeypatch.setattr(dist, "get_world_size", lambda: 1)
-    monkeypatch.setattr(dist, "barrier", lambda: calls.append("barrier"))
-    monkeypatch.setattr(dist, "destroy_process_group", lambda: calls.append("destroy"))
+    calls = fake_process_group(monkeypatch, rank=0, size=1)
     out = tmp_path / "out"
     assert main(["learn", "--out", str(out), "--images", str(trained[1]), *SMALL]) == 0
     assert calls == ["barrier", "destroy"]
