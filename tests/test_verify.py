@@ -1171,6 +1171,21 @@ def test_a_plate_lighting_every_other_order_registers_off_the_nominal_pitch(scal
     assert np.allclose(lattice.origin, sim["zero_order_px"], atol=0.1)
 
 
+def test_a_fit_step_larger_than_allowed_keeps_the_basis():
+    # Three dots, one a quarter pitch off its site along v: their exact fit stretches v
+    # by 25 %. From a measured pitch (steps of 5 % allowed) that is a stray dot: the
+    # basis stays, the origin moves by the median residual (none). From the design's
+    # pitch the whole tolerance is allowed, and the fit follows the dots.
+    from fab.lattice import MAX_BASIS_STEP, _fit_dots
+
+    prior = Lattice(np.array([50.0, 50.0]), 10.0 * np.eye(2))
+    dots = np.array([[50.0, 50.0], [60.0, 50.0], [50.0, 62.5]])
+    kept = _fit_dots(prior, dots, np.ones(3), reach=3, max_step=MAX_BASIS_STEP)
+    assert np.array_equal(kept.basis, prior.basis) and np.allclose(kept.origin, prior.origin)
+    followed = _fit_dots(prior, dots, np.ones(3), reach=3, max_step=0.3)
+    assert np.allclose(followed.basis, [[10.0, 0.0], [0.0, 12.5]])
+
+
 def test_a_grating_whose_orders_lie_on_one_line_registers_along_it():
     # levels vary along x only: every order is (0, n), one lattice row; its step along
     # the row is measured, the step across it stays the nominal one
