@@ -120,7 +120,8 @@ def load_state(run_dir):
     """Return ``run_state.json``: {stage: {"key", "files", "replaces", "seconds"}}, or {}.
 
     Raises InputError for a file that is no such record (edited, or another
-    tool's): read as one, a stage named "../x" would have its folder replaced.
+    tool's), such as a stage named "../x": finish_swaps joins the names to the run
+    folder, and that one points outside it.
     """
     path = Path(run_dir) / STATE_FILE
     if not path.exists():
