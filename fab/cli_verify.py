@@ -147,11 +147,16 @@ def read_design_dir(path):
         grid = float(design["fabrication"].get("grid_nm", 1)) * 1e-9
         pitch = round(float(derived["tile_size_nominal_um"]) * 1e-6 / n / grid) * grid
         lattice = wavelength * focal / (n * pitch)
-    if kernel > levels.shape[0] or kernel % 2 == 0:
-        raise InputError(source, f"kernel_size {kernel} must be odd and <= N {levels.shape[0]}")
+    if not 1 <= kernel <= levels.shape[0] or kernel % 2 == 0:
+        raise InputError(source, f"kernel_size {kernel} must be odd, 1 .. N = {levels.shape[0]}")
     if target_named and not target_file.is_file():
         raise InputError(target_file, f"named by {source.name} but missing")
     target = read_psf(target_file) if target_file.is_file() else None
+    if target is not None and target.shape[0] != kernel:  # compared to nothing, silently
+        raise InputError(
+            target_file,
+            f"is {target.shape[0]}x{target.shape[0]}, not the {source.name}'s kernel_size {kernel}",
+        )
     if acceptance is not None and not isinstance(acceptance, dict):
         raise InputError(source, "acceptance must be a table of thresholds")
     if not (math.isfinite(lattice) and lattice > 0):
@@ -273,7 +278,7 @@ def _verify(args):
         report["implied_deep_etch_error_nm"] = (
             result["implied_deep_etch_error"] * design.deep_etch_depth * 1e9
         )
-    if design.target_psf is not None and design.target_psf.shape == measured.shape:
+    if design.target_psf is not None:
         report["correlation_target"] = correlation(measured, design.target_psf)
     with staged_output(args.out, args.force, names=VERIFY_FILES) as stage:
         from fab.verify_figures import write_verify_report

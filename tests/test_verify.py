@@ -495,6 +495,10 @@ def test_blank_capture_exits_2(tmp_path, levels, capsys):
         ({"target_psf_file": "gone.npy"}, "gone.npy"),
         ({"kernel_size": 10}, "fab_manifest.json"),  # even: no centre order
         ({"kernel_size": N + 2}, "fab_manifest.json"),  # a window wider than the tile
+        # odd, but no window: a traceback (exit 3) from an empty PSF
+        ({"kernel_size": -1}, "fab_manifest.json: kernel_size -1 must be odd, 1 .. N"),
+        # the 11 x 11 target was left out of the verdict without a word
+        ({"kernel_size": 9}, "target_psf.npy: is 11x11, not the fab_manifest.json's kernel_size 9"),
         ({"acceptance": 0.95}, "fab_manifest.json"),  # not a table of thresholds
         ({"lattice_pitch_um": 0}, "fab_manifest.json"),
         ({"acceptance": dict.fromkeys(ACCEPTANCE_KEYS, "0.9")}, "fab_manifest.json"),  # text
