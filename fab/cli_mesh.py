@@ -89,7 +89,7 @@ def read_fab_dir(fab_dir, thickness_mm=None):
         step, pitch = float(man["level_step_nm"]) * 1e-9, float(man["pixel_pitch_nm"]) * 1e-9
         tiles = [int(t) for t in man["tiles"]]
         origin = [float(v) * 1e-6 for v in man.get("array_origin_nm", [0.0, 0.0])]
-    except (TypeError, ValueError) as e:
+    except (TypeError, ValueError, OverflowError) as e:  # int(1e400): OverflowError
         raise InputError(path, f"malformed value ({e})") from None
     if len(tiles) != 2 or min(tiles) < 1 or len(origin) != 2:
         raise InputError(path, "tiles must be [nx, ny] >= 1 and array_origin_nm [x0, y0]")
@@ -108,7 +108,7 @@ def read_fab_dir(fab_dir, thickness_mm=None):
         where = "--thickness-mm"
     try:
         thickness = float(thickness_mm) * 1e-3
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise InputError(where, f"not a number: {thickness_mm!r}") from None
     if not np.isfinite(thickness):
         raise InputError(where, f"must be a finite number of mm, got {thickness_mm!r}")

@@ -111,7 +111,7 @@ def read_design_dir(path):
             acceptance = man.get("acceptance")
             target_file = path / man.get("target_psf_file", "target_psf.npy")
             target_named = "target_psf_file" in man
-        except (KeyError, TypeError, ValueError) as e:
+        except (KeyError, TypeError, ValueError, OverflowError) as e:  # int(1e400) overflows
             raise InputError(source, f"malformed manifest ({e!r} missing or wrong)") from None
         kind = "fab"
     elif retrieval_path.is_file():
@@ -129,7 +129,7 @@ def read_design_dir(path):
             target_file = path / "target_psf.npy"
             target_named = False
             acceptance = None
-        except (KeyError, TypeError, ValueError, IndexError) as e:
+        except (KeyError, TypeError, ValueError, IndexError, OverflowError) as e:
             raise InputError(source, f"malformed retrieval.json ({e!r} missing or wrong)") from None
         kind = "retrieve"
     else:

@@ -467,6 +467,10 @@ def test_cli_refuses_crop_beyond_aperture(tmp_path, capsys, tiles):
         ({"levels": 6}, "levels 6 must be"),
         ({"pixel_pitch_nm": 0}, "pixel_pitch_nm > 0"),
         ({"substrate_thickness_mm": "thick"}, "substrate_thickness_mm: not a number"),
+        # numbers past any float: int(inf) and float(10**400) overflowed (exit 3)
+        ({"tile_pixels": float("inf")}, "malformed value"),
+        ({"level_step_nm": 10**400}, "malformed value"),
+        ({"substrate_thickness_mm": 10**400}, "substrate_thickness_mm: not a number"),
     ],
 )
 def test_cli_bad_manifest_exits_2_naming_the_file(tmp_path, capsys, change, needle):

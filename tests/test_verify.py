@@ -488,6 +488,24 @@ def test_blank_capture_exits_2(tmp_path, levels, capsys):
     assert code == 2 and "blank.tif" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("key", ["levels", "kernel_size", "lattice_pitch_um"])
+def test_a_manifest_number_beyond_any_float_exits_2(tmp_path, levels, capsys, key):
+    # JSON reads 1e400 as infinity, and int() of it raised OverflowError: exit 3
+    design = make_design_dir(tmp_path / "design", levels)
+    text = (design / "fab_manifest.json").read_text()
+    manifest = json.loads(text)
+    (design / "fab_manifest.json").write_text(
+        text.replace(f'"{key}": {json.dumps(manifest[key])}', f'"{key}": 1e400')
+    )
+    assert json.loads((design / "fab_manifest.json").read_text())[key] == float("inf")
+    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, shape=(200, 200), seed=20)
+    write_image(tmp_path / "cap.png", sim["capture"])
+    out = tmp_path / "o"
+    assert main(["verify", str(design), str(tmp_path / "cap.png"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "fab_manifest.json" in err and len(err.splitlines()) == 1 and not out.exists()
+
+
 @pytest.mark.parametrize(
     "change, culprit",
     [
