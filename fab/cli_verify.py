@@ -126,10 +126,14 @@ def read_design_dir(path):
             wavelength = float(design["optics"]["wavelength_nm"]) * 1e-9
             focal = float(design["optics"]["focal_length_mm"]) * 1e-3
             deep = float(derived["etch_depths_nm"][0]) * 1e-9
+            grid = float(design["fabrication"].get("grid_nm", 1)) * 1e-9
+            tile_nominal = float(derived["tile_size_nominal_um"]) * 1e-6
+            if not (grid > 0 and tile_nominal > 0 and math.isfinite(grid * tile_nominal)):
+                raise ValueError("grid_nm and tile_size_nominal_um must be finite and > 0")
             target_file = path / "target_psf.npy"
             target_named = False
             acceptance = None
-        except (KeyError, TypeError, ValueError, IndexError, OverflowError) as e:
+        except (KeyError, TypeError, ValueError, IndexError, OverflowError, AttributeError) as e:
             raise InputError(source, f"malformed retrieval.json ({e!r} missing or wrong)") from None
         kind = "retrieve"
     else:
@@ -144,8 +148,9 @@ def read_design_dir(path):
     if kind == "retrieve":
         # The mask pixel pitch snaps to the GDS grid for this N (as doe.design.derive does).
         n = levels.shape[0]
-        grid = float(design["fabrication"].get("grid_nm", 1)) * 1e-9
-        pitch = round(float(derived["tile_size_nominal_um"]) * 1e-6 / n / grid) * grid
+        pitch = round(tile_nominal / n / grid) * grid
+        if pitch == 0:
+            raise InputError(source, f"its grid_nm is coarser than the mask pixels of N = {n}")
         lattice = wavelength * focal / (n * pitch)
     if not 1 <= kernel <= levels.shape[0] or kernel % 2 == 0:
         raise InputError(source, f"kernel_size {kernel} must be odd, 1 .. N = {levels.shape[0]}")

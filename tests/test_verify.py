@@ -696,6 +696,39 @@ def test_a_design_folder_verify_cannot_read_exits_2_naming_it(tmp_path, levels, 
         assert problem in err and len(err.splitlines()) == 1 and not out.exists(), err
 
 
+@pytest.mark.parametrize(
+    ("section", "key", "value", "problem"),
+    [
+        ("fabrication", None, 8, "malformed retrieval.json (AttributeError"),
+        ("fabrication", "grid_nm", 0, "malformed retrieval.json (ValueError('grid_nm and"),
+        ("fabrication", "grid_nm", [1], "malformed retrieval.json (TypeError"),
+        ("derived", "tile_size_nominal_um", {}, "malformed retrieval.json (TypeError"),
+        ("fabrication", "grid_nm", 10**5, "its grid_nm is coarser than the mask pixels of N = 35"),
+    ],
+)
+def test_a_retrieval_json_of_a_design_verify_cannot_use_exits_2(
+    tmp_path, levels, capsys, section, key, value, problem
+):
+    # each of these ended in a traceback (exit 3): read after the checks, or divided by 0
+    from doe.design import design_summary, load_design
+
+    summary = design_summary(load_design())
+    if key is None:
+        summary[section] = value
+    else:
+        summary[section][key] = value
+    folder = tmp_path / "ret"
+    folder.mkdir()
+    save_npy(folder / "levels.npy", levels)
+    write_json(folder / "retrieval.json", {"levels": L, "kernel_size": K, "design": summary})
+    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, shape=(200, 200), seed=20)
+    write_image(tmp_path / "cap.png", sim["capture"])
+    out = tmp_path / "o"
+    assert main(["verify", str(folder), str(tmp_path / "cap.png"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert f"retrieval.json: {problem}" in err and len(err.splitlines()) == 1 and not out.exists()
+
+
 def test_a_saturated_pixel_off_the_dots_is_noted_and_does_not_fail(tmp_path, levels):
     design = make_design_dir(tmp_path / "design", levels)
     sim = simulate_capture(levels, L, pitch_px=PITCH_PX, seed=1)
