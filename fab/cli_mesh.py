@@ -97,6 +97,13 @@ def read_fab_dir(fab_dir, thickness_mm=None):
         raise InputError(path, f"levels {n_levels} must be {LEVEL_COUNT_RULE}")
     if not (step > 0 and pitch > 0 and n >= 1):
         raise InputError(path, "level_step_nm > 0, pixel_pitch_nm > 0 required")
+    # as every length of a design (doe.design); 1e-300 nm once divided a volume by 0
+    if not (1e-12 <= step <= 1 and 1e-12 <= pitch <= 1 and np.isfinite(origin).all()):
+        raise InputError(
+            path,
+            "level_step_nm and pixel_pitch_nm must lie between 1 pm and 1 m, "
+            "array_origin_nm be finite",
+        )
     if thickness_mm is None:
         if "substrate_thickness_mm" not in man:
             raise InputError(
@@ -118,7 +125,9 @@ def read_fab_dir(fab_dir, thickness_mm=None):
             f"{thickness * 1e3:g} mm is not thicker than the deepest etch "
             f"{(n_levels - 1) * step * 1e3:g} mm",
         )
-    levels_path = fab_dir / str(man["levels_file"])
+    if not isinstance(man["levels_file"], str):
+        raise InputError(path, f"levels_file must be a file name, got {man['levels_file']!r}")
+    levels_path = fab_dir / man["levels_file"]
     levels = read_levels(levels_path, n_levels)
     if levels.shape[0] != n:
         raise InputError(

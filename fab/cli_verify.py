@@ -166,6 +166,8 @@ def read_design_dir(path):
         raise InputError(source, "acceptance must be a table of thresholds")
     if not (math.isfinite(lattice) and lattice > 0):
         raise InputError(source, f"lattice pitch {lattice} m is not positive")
+    if deep is not None and not (math.isfinite(deep) and deep > 0):  # its error's scale
+        raise InputError(source, f"the deep mask's etch depth {deep * 1e9:g} nm is not positive")
     files = [source.name, levels_file.name] + ([target_file.name] if target is not None else [])
     return DesignRef(
         np.asarray(levels), n_levels, kernel, lattice, deep, acceptance, target, kind, tuple(files)

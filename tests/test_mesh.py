@@ -471,6 +471,11 @@ def test_cli_refuses_crop_beyond_aperture(tmp_path, capsys, tiles):
         ({"tile_pixels": float("inf")}, "malformed value"),
         ({"level_step_nm": 10**400}, "malformed value"),
         ({"substrate_thickness_mm": 10**400}, "substrate_thickness_mm: not a number"),
+        # pixels of 1e-300 nm divided a volume by 0 (exit 3); a plate placed at infinity
+        # was written (exit 0)
+        ({"pixel_pitch_nm": 1e-300}, "must lie between 1 pm and 1 m"),
+        ({"pixel_pitch_nm": float("inf")}, "must lie between 1 pm and 1 m"),
+        ({"array_origin_nm": [float("inf"), 0.0]}, "array_origin_nm be finite"),
     ],
 )
 def test_cli_bad_manifest_exits_2_naming_the_file(tmp_path, capsys, change, needle):
