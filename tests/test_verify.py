@@ -488,6 +488,20 @@ def test_blank_capture_exits_2(tmp_path, levels, capsys):
     assert code == 2 and "blank.tif" in capsys.readouterr().err
 
 
+def verify_refusal(tmp_path, design, levels, capsys):
+    """Verify a capture of ``levels`` against ``design``: exit 2, one line, nothing left.
+
+    Returns the line.
+    """
+    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, shape=(200, 200), seed=20)
+    write_image(tmp_path / "cap.png", sim["capture"])
+    out = tmp_path / "o"
+    assert main(["verify", str(design), str(tmp_path / "cap.png"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and not out.exists(), err
+    return err
+
+
 @pytest.mark.parametrize("key", ["levels", "kernel_size", "lattice_pitch_um"])
 def test_a_manifest_number_beyond_any_float_exits_2(tmp_path, levels, capsys, key):
     # JSON reads 1e400 as infinity, and int() of it raised OverflowError: exit 3
@@ -498,12 +512,7 @@ def test_a_manifest_number_beyond_any_float_exits_2(tmp_path, levels, capsys, ke
         text.replace(f'"{key}": {json.dumps(manifest[key])}', f'"{key}": 1e400')
     )
     assert json.loads((design / "fab_manifest.json").read_text())[key] == float("inf")
-    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, shape=(200, 200), seed=20)
-    write_image(tmp_path / "cap.png", sim["capture"])
-    out = tmp_path / "o"
-    assert main(["verify", str(design), str(tmp_path / "cap.png"), "--out", str(out)]) == 2
-    err = capsys.readouterr().err.strip()
-    assert "fab_manifest.json" in err and len(err.splitlines()) == 1 and not out.exists()
+    assert "fab_manifest.json" in verify_refusal(tmp_path, design, levels, capsys)
 
 
 @pytest.mark.parametrize(
@@ -534,12 +543,7 @@ def test_inconsistent_manifest_exits_2(tmp_path, levels, capsys, change, culprit
     design = make_design_dir(tmp_path / "design", levels)
     manifest = json.loads((design / "fab_manifest.json").read_text())
     write_json(design / "fab_manifest.json", {**manifest, **change})
-    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, shape=(200, 200), seed=20)
-    write_image(tmp_path / "cap.png", sim["capture"])
-    out = tmp_path / "o"
-    assert main(["verify", str(design), str(tmp_path / "cap.png"), "--out", str(out)]) == 2
-    err = capsys.readouterr().err.strip()
-    assert culprit in err and len(err.splitlines()) == 1 and not out.exists()
+    assert culprit in verify_refusal(tmp_path, design, levels, capsys)
 
 
 def test_manifest_acceptance_is_used(tmp_path, levels):
@@ -721,12 +725,7 @@ def test_a_retrieval_json_of_a_design_verify_cannot_use_exits_2(
     folder.mkdir()
     save_npy(folder / "levels.npy", levels)
     write_json(folder / "retrieval.json", {"levels": L, "kernel_size": K, "design": summary})
-    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, shape=(200, 200), seed=20)
-    write_image(tmp_path / "cap.png", sim["capture"])
-    out = tmp_path / "o"
-    assert main(["verify", str(folder), str(tmp_path / "cap.png"), "--out", str(out)]) == 2
-    err = capsys.readouterr().err.strip()
-    assert f"retrieval.json: {problem}" in err and len(err.splitlines()) == 1 and not out.exists()
+    assert f"retrieval.json: {problem}" in verify_refusal(tmp_path, folder, levels, capsys)
 
 
 def test_a_saturated_pixel_off_the_dots_is_noted_and_does_not_fail(tmp_path, levels):
@@ -1078,12 +1077,19 @@ def test_hot_pixels_without_a_dark_frame_do_not_fail_a_good_plate(tmp_path, desi
     assert report["efficiency"] == pytest.approx(report["design_efficiency"], abs=0.03)
 
 
-def test_spike_repair_keeps_dots_and_removes_stray_pixels(levels):
-    from fab.lattice import repair_stray_spikes
-
+@pytest.fixture(scope="module")
+def registered_capture(levels):
+    """A 16-bit capture of the plate (float32, read-only) and its registered lattice."""
     sim = simulate_capture(levels, L, pitch_px=PITCH_PX, seed=29, shape=(300, 300), bits=16)
     image = sim["capture"].astype(np.float32)
-    lattice, _ = register_lattice(image, PITCH_PX)
+    image.flags.writeable = False  # shared: each test works on its own copy
+    return image, register_lattice(image, PITCH_PX)[0]
+
+
+def test_spike_repair_keeps_dots_and_removes_stray_pixels(registered_capture):
+    from fab.lattice import repair_stray_spikes
+
+    image, lattice = registered_capture
     spiked = image.copy()
     spiked[150 + 5, 150 + 5] += 5000  # half a pitch from every dot
     fixed, repaired = repair_stray_spikes(spiked, lattice)
@@ -1151,15 +1157,13 @@ def test_spike_repair_leaves_the_wings_of_blurred_dots_alone(levels):
     assert np.array_equal(fixed, image)
 
 
-def test_spike_repair_leaves_a_bright_scene_alone(levels):
+def test_spike_repair_leaves_a_bright_scene_alone(registered_capture):
     # Stray light (2000 DN, shot noise) over 40 % of the frame: over a quarter of the
     # pixels stand out of the dark noise, a scene rather than a dot lattice, and its
     # grain (a local maximum every few pixels) is not hot pixels: nothing repaired.
     from fab.lattice import repair_stray_spikes
 
-    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, seed=29, shape=(300, 300), bits=16)
-    image = sim["capture"].astype(np.float32)
-    lattice, _ = register_lattice(image, PITCH_PX)
+    image, lattice = registered_capture
     lit = image.copy()
     lit[:, :120] += np.random.default_rng(5).poisson(2000.0, (300, 120)).astype(np.float32)
     fixed, repaired = repair_stray_spikes(lit, lattice)
