@@ -106,7 +106,7 @@ class Derived:
 # (section, key) -> (type, unit scale to SI or None, check, explanation)
 _POSITIVE = (lambda v: v > 0, "must be > 0")
 _NONNEG = (lambda v: v >= 0, "must be >= 0")
-_SHORTEST, _LONGEST = 1e-12, 1.0  # m, the range of every length in a design
+SHORTEST_LENGTH, LONGEST_LENGTH = 1e-12, 1.0  # m, the range of every length in a design
 _SCHEMA = {
     "sensor": {
         "columns": (int, None, _POSITIVE),
@@ -311,7 +311,7 @@ def _check_value(where, value, typ, scale, ok, why):
         # lengths outside 1 pm .. 1 m are typing errors, and would overflow the
         # derived quantities (a pitch squared) rather than fail a physical check
         sizes = [abs(v) for v in value if v != 0] if typ is list else [value]
-        if not all(_SHORTEST <= v <= _LONGEST for v in sizes):
+        if not all(SHORTEST_LENGTH <= v <= LONGEST_LENGTH for v in sizes):
             raise InputError(where, f"must lie between 1 pm and 1 m, got {given!r}")
     return value
 

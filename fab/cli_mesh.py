@@ -71,6 +71,7 @@ def read_fab_dir(fab_dir, thickness_mm=None):
     """
     import numpy as np
 
+    from doe.design import LONGEST_LENGTH, SHORTEST_LENGTH
     from doe.files import LEVEL_COUNT_RULE, is_level_count, read_json, read_levels
     from fab.mesh import Relief
 
@@ -97,8 +98,9 @@ def read_fab_dir(fab_dir, thickness_mm=None):
         raise InputError(path, f"levels {n_levels} must be {LEVEL_COUNT_RULE}")
     if not (step > 0 and pitch > 0 and n >= 1):
         raise InputError(path, "level_step_nm > 0, pixel_pitch_nm > 0 required")
-    # as every length of a design (doe.design); 1e-300 nm once divided a volume by 0
-    if not (1e-12 <= step <= 1 and 1e-12 <= pitch <= 1 and np.isfinite(origin).all()):
+    # as every length of a design; 1e-300 nm once divided a volume by 0
+    lengths_ok = all(SHORTEST_LENGTH <= x <= LONGEST_LENGTH for x in (step, pitch))
+    if not (lengths_ok and np.isfinite(origin).all()):
         raise InputError(
             path,
             "level_step_nm and pixel_pitch_nm must lie between 1 pm and 1 m, "
