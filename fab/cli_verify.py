@@ -189,7 +189,13 @@ def _verify(args):
         repair_hot_pixels,
         repair_stray_spikes,
     )
-    from fab.verify import analyse, design_order_power, is_judged, resolve_thresholds
+    from fab.verify import (
+        analyse,
+        best_frame_correlation,
+        design_order_power,
+        is_judged,
+        resolve_thresholds,
+    )
 
     flags.positive("--pixel-pitch-um", args.pixel_pitch_um)
     flags.positive("--lattice-pitch-um", args.lattice_pitch_um)
@@ -242,7 +248,7 @@ def _verify(args):
         why = (
             "too little signal to find the zero order: no order stands out of the noise; "
             "lengthen the exposure"
-            if max(result["frame_correlation"].values()) < 0.5 or result["window_in_frame"]
+            if best_frame_correlation(result) < 0.5 or result["window_in_frame"]
             else f"the {design.kernel_size}x{design.kernel_size} window around the zero order "
             f"at row {r:.0f}, col {c:.0f} runs off the frame; centre the zero order"
         )

@@ -291,21 +291,27 @@ def _frame_score(meas, valid, sigma, period_power, m0, n0, half):
     Returns
     -------
     (score, outside_score, outside_orders)
-        The correlation; that over the orders with signal outside the window
-        alone (NaN when fewer than 3) and their count.
+        The correlation (NaN when the design predicts no order but the zero
+        order above the noise: nothing to correlate, a flat plate); that over
+        the orders with signal outside the window alone (NaN when fewer than
+        3) and their count.
     """
     shape = meas.shape
     sig = np.where(valid, sigma, np.inf)
     detected = valid & (meas > SIGNAL_SIGMAS * sig)
     model = _model(period_power, m0, n0, shape)
     scale = _scale(meas, model, detected, valid)
-    use = detected | (valid & (model * scale > PREDICTED_SIGMAS * sig))
+    predicted = valid & (model * scale > PREDICTED_SIGMAS * sig)
+    predicted[m0, n0] = False
+    use = detected | predicted
     # The window always counts: its dark orders are as telling as its bright ones.
     win = (slice(max(m0 - half, 0), m0 + half + 1), slice(max(n0 - half, 0), n0 + half + 1))
     use[win] |= valid[win]
     use[m0, n0] = False
     if use.sum() < 3:
         return 0.0, float("nan"), 0
+    if not predicted.any():
+        return float("nan"), float("nan"), 0
     env = np.maximum(_model(np.ones_like(period_power), m0, n0, shape)[use], 0.0025)
     r = _pearson(meas[use] / env, model[use] / env)
     out = use.copy()
@@ -694,6 +700,16 @@ def beam_power(meas, sigma, valid, model, window):
     }
 
 
+def best_frame_correlation(result):
+    """Return the best frame correlation of the design and its reflections (NaN if none).
+
+    None is defined for a design with light in its zero order alone; NaN then
+    compares False with any threshold, so the frame decides nothing.
+    """
+    scores = [s for s in result["frame_correlation"].values() if np.isfinite(s)]
+    return max(scores, default=float("nan"))
+
+
 def _other_design(result):
     """Whether neither the design nor the design with a deep-etch error explains the plate.
 
@@ -701,7 +717,7 @@ def _other_design(result):
     unrelated to another design's); a compact one only in the window, where a
     plate of this design with a depth error still matches the fitted model.
     """
-    if max(result["frame_correlation"].values()) < OTHER_DESIGN_MAX:
+    if best_frame_correlation(result) < OTHER_DESIGN_MAX:
         return True
     explained = max(result["correlation"], result["correlation_with_fitted_etch"] or -1.0)
     return explained < EXPLAINED_MIN

@@ -168,7 +168,9 @@ def _html(report):
             " / ".join(
                 f"{report['frame_correlation'][k]:.3f}"
                 for k in ("design", "rot180", "mirror-x", "mirror-y")
-            ),
+            )
+            if np.isfinite(report["frame_correlation"]["design"])
+            else "none: the design lights its zero order alone",
         ),
         (
             "zero-order search: chi-square gain of rot180 / mirror-x / mirror-y over the "

@@ -280,6 +280,26 @@ def test_ambiguous_zero_order_is_reported_not_passed(tmp_path, half_order_levels
     assert report["measured_psf_usable"] is False
 
 
+def test_a_flat_design_passes_its_flat_plate(tmp_path):
+    # A flat tile lights the zero order alone: there is no frame of orders to
+    # correlate, and the noise between the dots failed a perfect plate as other_design.
+    flat = np.zeros((N, N), np.uint8)
+    code, report, _ = run_verify(tmp_path, flat, dict(seed=1))
+    assert code == 0 and report["diagnosis"] == ["ok"]
+    assert set(report["frame_correlation"].values()) == {None}  # undefined, written as null
+    assert report["correlation"] > 0.999
+    html = (tmp_path / "out" / "verify_report.html").read_text()
+    assert "none: the design lights its zero order alone" in html
+
+
+@pytest.mark.parametrize("plate", ["flat", "design"])
+def test_a_flat_plate_of_a_design_and_a_plate_of_a_flat_design_fail(tmp_path, levels, plate):
+    flat = np.zeros((N, N), np.uint8)
+    plate_levels, design_levels = (flat, levels) if plate == "flat" else (levels, flat)
+    code, report, _ = run_verify(tmp_path, plate_levels, dict(seed=2), design_levels=design_levels)
+    assert code == 1 and report["diagnosis"] == ["other_design"]
+
+
 def test_other_design_fails(tmp_path, levels):
     other = np.random.default_rng(99).integers(0, L, (N, N)).astype(np.uint8)
     code, report, _ = run_verify(
