@@ -74,6 +74,7 @@ class DesignRef:
     target_psf: object
     kind: str
     files: tuple[str, ...]
+    mask_pixel_pitch: float | None = None  # None: the manifest does not say
 
 
 def read_design_dir(path):
@@ -107,6 +108,7 @@ def read_design_dir(path):
                     float(man["wavelength_nm"]) * 1e-9 * float(man["focal_length_mm"]) * 1e-3 / tile
                 )
             masks = sorted(man.get("masks", []), key=lambda mk: mk["exposure_order"])
+            pitch = float(man["pixel_pitch_nm"]) * 1e-9 if "pixel_pitch_nm" in man else None
             deep = float(masks[0]["etch_depth_nm"]) * 1e-9 if masks else None
             acceptance = man.get("acceptance")
             target_file = path / man.get("target_psf_file", "target_psf.npy")
@@ -168,9 +170,20 @@ def read_design_dir(path):
         raise InputError(source, f"lattice pitch {lattice} m is not positive")
     if deep is not None and not (math.isfinite(deep) and deep > 0):  # its error's scale
         raise InputError(source, f"the deep mask's etch depth {deep * 1e9:g} nm is not positive")
+    if pitch is not None and not (math.isfinite(pitch) and pitch > 0):
+        raise InputError(source, f"the mask pixel pitch {pitch * 1e9:g} nm is not positive")
     files = [source.name, levels_file.name] + ([target_file.name] if target is not None else [])
     return DesignRef(
-        np.asarray(levels), n_levels, kernel, lattice, deep, acceptance, target, kind, tuple(files)
+        np.asarray(levels),
+        n_levels,
+        kernel,
+        lattice,
+        deep,
+        acceptance,
+        target,
+        kind,
+        tuple(files),
+        pitch,
     )
 
 
@@ -280,9 +293,13 @@ def _verify(args):
         },
         "notes": capture.notes + lattice_notes + _notes(result, capture, design),
     }
+    overlay = report["overlay_error_fit"]
+    if overlay is not None and design.mask_pixel_pitch:
+        overlay["shift_um"] = [v * design.mask_pixel_pitch * 1e6 for v in overlay["shift_px"]]
     hints = [
         _pitch_hint(result, on_lattice, lattice.pitch_px, args),
         _orientation_hint(result, grid, design, args.orientation),
+        _overlay_hint(report),
     ]
     for hint in filter(None, hints):
         report["notes"].append(hint)
@@ -308,6 +325,19 @@ def _verify(args):
         f"  zero order {report['zero_order']:.4g} -> {args.out}"
     )
     return 0 if report["pass"] else 1
+
+
+def _overlay_hint(result):
+    """Return a note naming the shifted mask when an overlay error explains the PSF."""
+    if "overlay_error" not in result["diagnosis"]:
+        return None
+    fit = result["overlay_error_fit"]
+    unit, shift = ("um", fit["shift_um"]) if "shift_um" in fit else ("mask pixels", fit["shift_px"])
+    return (
+        f"the window is the design's with mask {fit['mask']} printed off the other masks by "
+        f"{shift[0]:+.2f} {unit} in y (up) and {shift[1]:+.2f} {unit} in x (right) (correlation "
+        f"{fit['correlation']:.4f} with that plate): check that exposure's alignment"
+    )
 
 
 def _pitch_hint(result, on_lattice, pitch_px, args):

@@ -33,6 +33,8 @@ from doe.fraunhofer import (
     window_indices,
 )
 from fab.masks import masks_from_levels
+from fab.overlay import REACH_PX as OVERLAY_REACH_PX
+from fab.overlay import fit_overlay_error
 
 ORIENTATIONS = (
     "as-designed",
@@ -607,6 +609,9 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
             "correlation_with_fitted_etch": None
             if etch_fit is None
             else correlation(measured_psf, etch_fit["psf"]),
+            "overlay_error_fit": _overlay_fit(
+                measured_psf, design_psf, window, sigma[sl], levels, n_levels, thresholds
+            ),
             "power_outside_window": 1 - w_sum / beam["signal"],
             "power_outside_window_sigma": float(
                 np.sqrt(max(beam["signal_var"] - w_var, 0)) / beam["signal"]
@@ -627,6 +632,33 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
     result["diagnosis"] = diagnose(result, thresholds)
     result["pass"] = result["diagnosis"] == ["ok"]
     return result, measured_psf
+
+
+def _overlay_fit(measured_psf, design_psf, window, sigma, levels, n_levels, thresholds):
+    """Return the JSON-ready overlay fit of a window whose PSF fails, else None.
+
+    Fitted only then (a second or so at N = 175): it is there to explain a failure.
+    """
+    if _psf_passes(measured_psf, design_psf, thresholds):
+        return None
+    fit = fit_overlay_error(window, sigma, levels, n_levels)
+    if fit is None:
+        return None
+    return {
+        "mask": fit["mask"],
+        "shift_px": fit["shift_px"],
+        "significance": fit["chi2_drop"],
+        "correlation": correlation(measured_psf, fit["psf"]),
+        "rmse": rmse(measured_psf, fit["psf"]),
+    }
+
+
+def _psf_passes(measured_psf, reference_psf, thresholds):
+    """Whether a measured PSF matches a reference within the correlation and rmse thresholds."""
+    return (
+        correlation(measured_psf, reference_psf) >= thresholds["correlation_min"]
+        and rmse(measured_psf, reference_psf) <= thresholds["rmse_max"]
+    )
 
 
 def _search_summary(searches, valid, rows, cols, period, design_psf):
@@ -711,16 +743,45 @@ def best_frame_correlation(result):
 
 
 def _other_design(result):
-    """Whether neither the design nor the design with a deep-etch error explains the plate.
+    """Whether neither the design nor the design with a fitted fault explains the plate.
 
     A dense design shows it in the whole frame (its speckle of weak orders is
     unrelated to another design's); a compact one only in the window, where a
-    plate of this design with a depth error still matches the fitted model.
+    plate of this design with a depth or overlay error still matches the fitted model.
     """
     if best_frame_correlation(result) < OTHER_DESIGN_MAX:
         return True
-    explained = max(result["correlation"], result["correlation_with_fitted_etch"] or -1.0)
+    overlay = _significant_overlay(result)
+    explained = max(
+        result["correlation"],
+        result["correlation_with_fitted_etch"] or -1.0,
+        overlay["correlation"] if overlay else -1.0,
+    )
     return explained < EXPLAINED_MIN
+
+
+def _significant_overlay(result):
+    """Return the overlay fit when it explains the window decisively better than no shift.
+
+    Not one pinned to the edge of the fitted range: the shift may lie beyond it,
+    and the window's few orders then fit a wrong shift within it all too well.
+    """
+    fit = result["overlay_error_fit"]
+    if fit is None or max(abs(v) for v in fit["shift_px"]) >= OVERLAY_REACH_PX:
+        return None
+    return fit if fit["significance"] > (SIGNIFICANCE + 1) ** 2 else None
+
+
+def _overlay_explains(result, thresholds):
+    """Whether a mask shifted explains the failing PSF: within the thresholds, and better
+    than a deep-etch error does."""
+    fit = _significant_overlay(result)
+    return (
+        fit is not None
+        and fit["correlation"] >= thresholds["correlation_min"]
+        and fit["rmse"] <= thresholds["rmse_max"]
+        and fit["correlation"] > (result["correlation_with_fitted_etch"] or -1.0)
+    )
 
 
 def _ambiguous(search, thresholds):
@@ -755,9 +816,10 @@ def diagnose(result, thresholds):
     """Return the list of short diagnosis codes (["ok"] when every check holds).
 
     Codes: "saturated", "low_signal", "conjugate_plate", "mirrored",
-    "other_design", "zero_order_ambiguous", "zero_order_excess", "deep_etch_error", "psf_mismatch",
-    "low_efficiency". A check on a noisy figure (zero order, efficiency) fails
-    only when it misses its threshold by ``SIGNIFICANCE`` sigma.
+    "other_design", "zero_order_ambiguous", "zero_order_excess", "overlay_error",
+    "deep_etch_error", "psf_mismatch", "low_efficiency". A check on a noisy
+    figure (zero order, efficiency) fails only when it misses its threshold by
+    ``SIGNIFICANCE`` sigma.
     """
     codes = []
     if result["saturated_dots"]:
@@ -781,7 +843,9 @@ def diagnose(result, thresholds):
     ):
         process.append("zero_order_excess")
     fit = result["deep_etch_error_fit"]
-    if (
+    if _overlay_explains(result, thresholds):  # a depth error fitted to it would be spurious
+        process.append("overlay_error")
+    elif (
         fit is not None
         and abs(fit) > thresholds["deep_etch_error_max"]
         and result["deep_etch_error_fit_significance"] > (SIGNIFICANCE + 1) ** 2

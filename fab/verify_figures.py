@@ -163,6 +163,7 @@ def _html(report):
             f"{report['aperture_radius_px']:.2f}, {report['orders_with_signal']} / "
             f"{report['orders_measured']}",
         ),
+        ("overlay fit: one mask shifted (fitted when the PSF fails)", _overlay_text(report)),
         (
             "frame correlation with design / rot180 / mirror-x / mirror-y",
             " / ".join(
@@ -223,6 +224,18 @@ whole window (the zero order alone cannot tell too deep from too shallow).</p>
 <img src="verify.png" alt="capture, measured and design PSF">
 </body></html>
 """
+
+
+def _overlay_text(report):
+    fit = report["overlay_error_fit"]
+    if fit is None:
+        return "not fitted"
+    dy, dx = fit["shift_px"]
+    um = " ({:+.2f} um, {:+.2f} um)".format(*fit["shift_um"]) if "shift_um" in fit else ""
+    return (
+        f"{fit['mask']} by y {dy:+.2f}, x {dx:+.2f} mask pixels{um}; correlation "
+        f"{fit['correlation']:.4f} with that plate, chi-square gain {fit['significance']:.3g}"
+    )
 
 
 def _fmt(v):

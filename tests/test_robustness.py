@@ -131,6 +131,7 @@ VERIFY_MANIFEST = {
     "levels": 8,
     "kernel_size": 5,
     "lattice_pitch_um": 37.5,
+    "pixel_pitch_nm": 4990,
     "levels_file": "levels.npy",
     "target_psf_file": "target_psf.npy",
     "masks": [
@@ -171,6 +172,8 @@ def test_verify_reads_a_design_folder_it_can_use_or_refuses_it(tmp_path_factory,
     assert d.deep_etch_depth is None or (np.isfinite(d.deep_etch_depth) and d.deep_etch_depth > 0)
     assert d.acceptance is None or isinstance(d.acceptance, dict)
     assert d.target_psf is None or d.target_psf.shape == (d.kernel_size, d.kernel_size)
+    pitch = d.mask_pixel_pitch
+    assert pitch is None or (np.isfinite(pitch) and pitch > 0)
 
 
 MESH_MANIFEST = {

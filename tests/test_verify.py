@@ -37,6 +37,10 @@ N, K, L = 35, 11, 8
 PITCH_UM, CAMERA_UM = 37.504, 3.45
 PITCH_PX = PITCH_UM / CAMERA_UM
 ACCEPTANCE_KEYS = ("correlation_min", "rmse_max", "efficiency_min", "zero_order_max")
+# A lab's acceptance tighter than the defaults: a 2 um overlay error fails it.
+STRICT_ACCEPTANCE = dict(
+    correlation_min=0.99, rmse_max=0.02, efficiency_min=0.5, zero_order_max=0.05
+)
 
 
 @pytest.fixture(scope="module")
@@ -993,13 +997,51 @@ def test_designed_plate_of_another_design_fails(tmp_path, designed):
 
 
 def test_an_orientation_hint_never_names_the_orientation_given(tmp_path, designed):
-    # The deep mask 8 um off: the orders outside the window still match the design as
-    # seen, the window does not (other_design). "Verify again with --orientation
-    # as-designed", the flag just used, would send the lab round in a circle.
-    faults = PlateFaults(overlay_mask=1, overlay_shift=(8e-6, 0.0))
+    # The deep mask 12 um off, beyond the overlay fit's reach: the orders outside the
+    # window still match the design as seen, the window does not (other_design).
+    # "Verify again with --orientation as-designed", the flag just used, would send
+    # the lab round in a circle.
+    faults = PlateFaults(overlay_mask=0, overlay_shift=(12e-6, 0.0))
     code, report, _ = run_verify(tmp_path, designed, dict(seed=11, faults=faults, supersample=4))
     assert code == 1 and report["diagnosis"] == ["other_design"]
+    assert report["frame_correlation"]["design"] >= 0.8  # as-designed matches the frame
     assert not any("--orientation as-designed" in n for n in report["notes"])
+
+
+@pytest.mark.parametrize("mask, name", [(0, "M1_deep"), (1, "M2_mid")])
+def test_a_mask_8um_off_is_diagnosed_as_an_overlay_error(tmp_path, designed, mask, name, capsys):
+    # It failed as other_design: the lab was told the wrong plate had arrived.
+    faults = PlateFaults(overlay_mask=mask, overlay_shift=(8e-6, -3e-6))
+    design = make_design_dir(tmp_path / "design", designed, acceptance=STRICT_ACCEPTANCE)
+    manifest = json.loads((design / "fab_manifest.json").read_text())
+    write_json(design / "fab_manifest.json", {**manifest, "pixel_pitch_nm": 4990})
+    sim = simulate_capture(designed, L, pitch_px=PITCH_PX, seed=11, faults=faults, supersample=4)
+    write_image(tmp_path / "c.png", sim["capture"], exposure=0.01)
+    write_image(tmp_path / "d.png", sim["dark"], exposure=0.01)
+    out = tmp_path / "out"
+    code = main(["verify", str(design), str(tmp_path / "c.png"), "--dark", str(tmp_path / "d.png"),
+                 "--out", str(out)])  # fmt: skip
+    report = json.loads((out / "verify.json").read_text())
+    assert code == 1 and report["diagnosis"][:2] == ["overlay_error", "psf_mismatch"]
+    fit = report["overlay_error_fit"]
+    # the simulation rounds the shift to quarter pixels: 8 um -> 1.5 px, -3 um -> -0.5 px
+    assert fit["mask"] == name and fit["shift_px"] == pytest.approx([1.5, -0.5], abs=0.05)
+    assert np.allclose(fit["shift_um"], np.multiply(fit["shift_px"], 4.99))
+    assert fit["correlation"] > 0.999 > report["correlation"]
+    err = capsys.readouterr().err
+    assert re.search(rf"mask {name} printed off the other masks by \+7\.\d\d um in y \(up\) "
+                     r"and -2\.\d\d um in x \(right\)", err)  # fmt: skip
+    html = (out / "verify_report.html").read_text()
+    assert f"{name} by y +1.5" in html
+
+
+def test_an_overlay_within_the_thresholds_is_not_fitted(tmp_path, designed):
+    # 1 um of the mid mask: the PSF passes, so nothing needs explaining.
+    faults = PlateFaults(overlay_mask=1, overlay_shift=(1e-6, 0.0))
+    code, report, _ = run_verify(tmp_path, designed, dict(seed=12, faults=faults, supersample=4))
+    assert code == 0 and report["overlay_error_fit"] is None
+    html = (tmp_path / "out" / "verify_report.html").read_text()
+    assert "not fitted" in html
 
 
 def test_clipped_14bit_capture_is_flagged_saturated(tmp_path, levels):

@@ -138,6 +138,7 @@ def _good_result(**changes):
         "zero_order_sigma": 0.001,
         "deep_etch_error_fit": 0.0,
         "deep_etch_error_fit_significance": 0.0,
+        "overlay_error_fit": None,
     }
     result.update(changes)
     return result
@@ -173,6 +174,40 @@ def test_a_deep_etch_fit_under_three_sigma_does_not_fail_the_plate():
     assert diagnose(_good_result(**fit, deep_etch_error_fit_significance=6.0), t) == ["ok"]
     failing = _good_result(**fit, deep_etch_error_fit_significance=12.0)
     assert diagnose(failing, t) == ["deep_etch_error"]
+
+
+def _overlay(**changes):
+    fit = {"mask": "M2_mid", "shift_px": [1.5, 0.0], "significance": 1e4, "correlation": 0.999,
+           "rmse": 0.005}  # fmt: skip
+    return {**fit, **changes}
+
+
+def test_an_overlay_fit_names_a_failing_plate_only_when_it_explains_it_decisively():
+    t = resolve_thresholds(None, design_efficiency=0.80, design_zero_order=0.01)
+    failing = dict(correlation=0.6, correlation_with_fitted_etch=0.6, rmse=0.1)
+    assert diagnose(_good_result(**failing), t) == ["other_design"]
+    explained = _good_result(**failing, overlay_error_fit=_overlay())
+    assert diagnose(explained, t) == ["overlay_error", "psf_mismatch"]
+    for weak in (
+        _overlay(significance=8.0),  # under 3 sigma
+        _overlay(shift_px=[2.0, 0.3]),  # pinned to the edge of the fitted range
+        _overlay(shift_px=[0.2, -2.0]),
+        _overlay(correlation=0.94),  # not within the thresholds either
+    ):
+        assert diagnose(_good_result(**failing, overlay_error_fit=weak), t) == ["other_design"]
+    # within the thresholds but no better than a deep-etch error: that is named instead
+    etch = dict(failing, correlation_with_fitted_etch=0.999, deep_etch_error_fit=0.2,
+                deep_etch_error_fit_significance=1e4)  # fmt: skip
+    assert diagnose(_good_result(**etch, overlay_error_fit=_overlay()), t) == [
+        "deep_etch_error", "psf_mismatch"
+    ]  # fmt: skip
+    better = _good_result(**etch, overlay_error_fit=_overlay(correlation=0.9995))
+    assert diagnose(better, t) == ["overlay_error", "psf_mismatch"]
+    # a fitted rmse beyond the threshold: this design (correlation 0.999), but the
+    # overlay is no explanation within the thresholds
+    assert diagnose(_good_result(**failing, overlay_error_fit=_overlay(rmse=0.09)), t) == [
+        "psf_mismatch"
+    ]  # fmt: skip
 
 
 def test_a_runner_up_offset_within_25_of_the_best_chi_square_is_ambiguous():

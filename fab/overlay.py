@@ -1,0 +1,163 @@
+"""Fit of an overlay error: one mask of the plate printed off its place.
+
+A mask exposed (dy, dx) off its alignment etches its pattern there; the tile
+the plate repeats is then the design's with that mask's bitmap shifted
+(periodically). Its orders are exact for any shift, sub-pixel ones included:
+a shift of p + f pixels along an axis (p whole, 0 <= f < 1) cuts every pixel
+into a part of width f that the mask's pixel i - p - 1 covers and a part of
+width 1 - f that its pixel i - p covers, so each order is a sum of four
+whole-pixel shifts weighted by the Fourier integrals over those parts.
+
+Shifts are in mask pixels in the layout's axes (+y up, +x right; row 0 of a
+level map is the top edge), as ``fab.capture_sim.PlateFaults`` states them.
+"""
+
+import numpy as np
+
+from fab.masks import mask_name, masks_from_levels
+
+# Fitted shifts reach this far each way (10 um at the default 4.99 um pixel):
+# farther, the plate is not this design aligned by any lab's process.
+REACH_PX = 2.0
+# The search: a grid at COARSE_PX, then one at FINE_PX around its best point.
+COARSE_PX = 0.1
+FINE_PX = 0.01
+
+
+def _part_integrals(orders, n, frac):
+    """Return the integrals of exp(-2 pi i m t / N) over t in [0, f) and [f, 1).
+
+    ``frac`` of any shape S; each integral has the shape S + (len(orders),).
+    """
+    m = np.asarray(orders, float)
+    f = np.asarray(frac, float)[..., None]
+
+    def integral(t0, t1):
+        k = -2j * np.pi * m / n
+        with np.errstate(divide="ignore", invalid="ignore"):
+            value = (np.exp(k * t1) - np.exp(k * t0)) / k
+        return np.where(m == 0, t1 - t0, value)
+
+    return integral(0.0, f), integral(f, 1.0)
+
+
+class OverlayModel:
+    """Window orders of the design with one mask shifted, for any shift within ``REACH_PX``."""
+
+    def __init__(self, levels, n_levels, kernel_size):
+        levels = np.asarray(levels)
+        n = levels.shape[0]
+        self.n, self.orders = n, np.arange(kernel_size) - kernel_size // 2
+        masks = masks_from_levels(levels, n_levels, level_step=1.0)
+        self.names = [mask_name(j, len(masks)) for j in range(len(masks))]
+        self.used = [0 < mk.bitmap.mean() < 1 for mk in masks]
+        depth = [2 * np.pi * mk.steps / n_levels for mk in masks]
+        phase = -sum(d * mk.bitmap for d, mk in zip(depth, masks, strict=True))
+        dft = np.exp(-2j * np.pi * np.outer(self.orders, np.arange(n)) / n) / n
+        self.whole = np.arange(int(np.floor(-REACH_PX)), int(np.ceil(REACH_PX)) + 2)
+        self.rest, self.etched, self.contrast = [], [], []
+        for d, mk in zip(depth, masks, strict=True):
+            # The plate is A (1 + c M): A the other masks' transmission, c what this one adds.
+            rest = np.exp(1j * (phase + d * mk.bitmap))
+            self.rest.append(dft @ rest @ dft.T)
+            self.etched.append(
+                np.array(
+                    [
+                        [dft @ (rest * np.roll(mk.bitmap, (p, q), axis=(0, 1))) @ dft.T
+                         for q in self.whole]
+                        for p in self.whole
+                    ]
+                )
+            )  # fmt: skip
+            self.contrast.append(np.exp(-1j * d) - 1)
+
+    def amplitudes(self, mask, dy, dx):
+        """Return the complex window orders with mask ``mask`` shifted by (dy, dx) px.
+
+        ``dy`` and ``dx`` of one shape S (scalars too); the result has S + (K, K).
+        """
+        rows, cols = -np.asarray(dy, float), np.asarray(dx, float)  # +y is up: towards row 0
+        if not (
+            np.abs(rows).max(initial=0) <= REACH_PX and np.abs(cols).max(initial=0) <= REACH_PX
+        ):
+            raise ValueError(f"a shift beyond the model's reach of {REACH_PX} px")
+        p, q = np.floor(rows).astype(int), np.floor(cols).astype(int)
+        r0, r1 = (r[..., :, None] for r in _part_integrals(self.orders, self.n, rows - p))
+        c0, c1 = (c[..., None, :] for c in _part_integrals(self.orders, self.n, cols - q))
+        i, j = p - self.whole[0], q - self.whole[0]
+        g = self.etched[mask]
+        # Part [0, f) of a pixel sees the mask pixel one further back: the shift p + 1.
+        etched = (
+            r0 * c0 * g[i + 1, j + 1]
+            + r0 * c1 * g[i + 1, j]
+            + r1 * c0 * g[i, j + 1]
+            + r1 * c1 * g[i, j]
+        )
+        return (r0 + r1) * (c0 + c1) * self.rest[mask] + self.contrast[mask] * etched
+
+    def power(self, mask, dy, dx):
+        """Return the order powers (fractions of the beam) of that plate, S + (K, K)."""
+        return np.abs(self.amplitudes(mask, dy, dx)) ** 2
+
+
+def fit_overlay_error(window, sigma, levels, n_levels):
+    """Fit the mask and shift that best explain the measured window.
+
+    Weighted least squares with a free overall scale, over every mask and
+    shifts within ``REACH_PX`` each way (grid search, then a finer grid).
+
+    Parameters
+    ----------
+    window : (K, K) float array
+        Measured order powers in the design frame (any units).
+    sigma : (K, K) float array or None
+        Their 1-sigma errors (None: equal weights).
+    levels : (N, N) integer array
+    n_levels : int
+
+    Returns
+    -------
+    dict or None
+        "mask" (name, e.g. "M2_mid"), "shift_px" ([dy, dx], mask pixels, +y
+        up), "chi2_drop" (how much better than no shift, in chi-square units
+        when ``sigma`` is given) and "psf" (the fitted window, sum 1); None
+        when no mask has both etched and unetched pixels (a shift leaves no trace).
+    """
+    model = OverlayModel(levels, n_levels, window.shape[0])
+    if not any(model.used):
+        return None
+    wts = np.ones(window.shape) if sigma is None else 1 / np.maximum(np.asarray(sigma), 1e-30)
+    meas = np.asarray(window, float) * wts
+
+    def chi2(mask, dy, dx):
+        p = model.power(mask, dy, dx) * wts
+        scale = (p * meas).sum(axis=(-2, -1)) / (p * p).sum(axis=(-2, -1))
+        return ((p * scale[..., None, None] - meas) ** 2).sum(axis=(-2, -1))
+
+    def best_on(offsets, mask, centre):
+        dy, dx = (
+            np.clip(c + g, -REACH_PX, REACH_PX)
+            for c, g in zip(centre, np.meshgrid(offsets, offsets, indexing="ij"), strict=True)
+        )
+        values = chi2(mask, dy, dx)
+        best = np.unravel_index(np.argmin(values), values.shape)
+        return float(values[best]), (float(dy[best]), float(dx[best]))
+
+    def grid(reach, step):  # whole multiples of the step: no shift is exactly 0
+        n = round(reach / step)
+        return step * np.arange(-n, n + 1)
+
+    coarse, fine = grid(REACH_PX, COARSE_PX), grid(COARSE_PX, FINE_PX)
+    fits = []
+    for j in np.flatnonzero(model.used):
+        _, centre = best_on(coarse, j, (0.0, 0.0))
+        value, shift = best_on(fine, j, centre)
+        fits.append((value, int(j), shift))
+    value, j, (dy, dx) = min(fits)
+    fitted = model.power(j, dy, dx)
+    return {
+        "mask": model.names[j],
+        "shift_px": [dy, dx],
+        "chi2_drop": float(chi2(j, 0.0, 0.0)) - value,
+        "psf": fitted / fitted.sum(),
+    }

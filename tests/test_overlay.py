@@ -1,0 +1,95 @@
+"""Tests of the overlay-error model and fit (fab.overlay) against a supersampled plate."""
+
+import numpy as np
+import pytest
+
+from doe.fraunhofer import order_amplitudes, pixel_envelope, window_indices
+from fab.capture_sim import PlateFaults, plate_far_field, plate_phase
+from fab.overlay import REACH_PX, OverlayModel, fit_overlay_error
+
+N, K, L = 24, 7, 8
+
+
+@pytest.fixture(scope="module")
+def levels():
+    return np.random.default_rng(3).integers(0, L, (N, N)).astype(np.uint8)
+
+
+@pytest.fixture(scope="module")
+def model(levels):
+    return OverlayModel(levels, L, K)
+
+
+def supersampled_window(levels, mask, shift, supersample):
+    """The window orders of a plate with ``mask`` shifted, sampled ``supersample`` times finer."""
+    faults = PlateFaults(overlay_mask=mask, overlay_shift=shift)
+    orders = plate_far_field(plate_phase(levels, L, faults, 1.0, supersample))
+    m = np.arange(K) - K // 2
+    return orders(m[:, None], m[None, :])
+
+
+@pytest.mark.parametrize("mask", [0, 1, 2])
+@pytest.mark.parametrize(
+    "shift", [(0.25, 0.0), (0.0, -0.5), (1.75, -1.25), (-2.0, 0.75), (1.0, 1.0), (-0.2, 0.6)]
+)
+def test_a_shifted_mask_gives_the_orders_of_the_supersampled_plate(levels, model, mask, shift):
+    # Exact for sub-pixel shifts: the same orders as the plate cut into 20 x 20
+    # sub-pixels per mask pixel, with the shift (+y up) applied to that mask's bitmap.
+    expected = supersampled_window(levels, mask, (shift[0] * 1.0, shift[1] * 1.0), 20)
+    assert np.allclose(model.power(mask, *shift), expected, rtol=1e-9, atol=1e-15)
+
+
+def test_no_shift_gives_the_design_with_its_pixel_envelope(levels, model):
+    amp = order_amplitudes(2 * np.pi * levels / L)
+    idx = window_indices(N, K)
+    env = pixel_envelope(np.arange(K) - K // 2, N)
+    design = np.abs(amp[np.ix_(idx, idx)]) ** 2 * np.outer(env, env)
+    for mask in range(3):
+        assert np.allclose(model.power(mask, 0.0, 0.0), design, rtol=1e-12)
+
+
+def test_whole_pixel_shift_rolls_the_mask_bitmap_towards_row_0_for_plus_y(levels, model):
+    # Independent of capture_sim: rebuild the level map with the deep mask moved one
+    # row up (+y) and one column right, and compare with the design frame's FFT.
+    from fab.masks import masks_from_levels
+
+    masks = masks_from_levels(levels, L, 1.0)
+    code = sum(
+        mk.steps * np.roll(mk.bitmap, (-1, 1), axis=(0, 1)) if j == 0 else mk.steps * mk.bitmap
+        for j, mk in enumerate(masks)
+    )
+    shifted = (L - 1) - code
+    amp = order_amplitudes(2 * np.pi * shifted / L)
+    idx = window_indices(N, K)
+    env = pixel_envelope(np.arange(K) - K // 2, N)
+    expected = np.abs(amp[np.ix_(idx, idx)]) ** 2 * np.outer(env, env)
+    assert np.allclose(model.power(0, 1.0, 1.0), expected, rtol=1e-12)
+    assert not np.allclose(model.power(0, -1.0, 1.0), expected, rtol=1e-3)
+
+
+def test_shifts_beyond_the_reach_are_refused(model):
+    with pytest.raises(ValueError, match="reach"):
+        model.power(1, REACH_PX + 0.1, 0.0)
+    with pytest.raises(ValueError, match="reach"):
+        model.power(1, 0.0, -REACH_PX - 0.1)
+
+
+@pytest.mark.parametrize("mask, shift", [(0, (0.73, -0.41)), (1, (-1.62, 0.3)), (2, (0.0, 1.18))])
+def test_the_fit_finds_the_shifted_mask_and_its_shift(levels, mask, shift):
+    window = supersampled_window(levels, mask, shift, 100)  # shifts on the 0.01 px grid
+    fit = fit_overlay_error(window, None, levels, L)
+    assert fit["mask"] == ("M1_deep", "M2_mid", "M3_shallow")[mask]
+    assert fit["shift_px"] == pytest.approx(shift, abs=0.011)
+    assert fit["chi2_drop"] > 0
+    assert np.allclose(fit["psf"], window / window.sum(), atol=1e-4)
+
+
+def test_the_fit_of_an_aligned_plate_is_no_shift(levels):
+    window = supersampled_window(levels, 0, (0.0, 0.0), 1)
+    fit = fit_overlay_error(window, np.full(window.shape, 1e-6), levels, L)
+    assert fit["shift_px"] == [0.0, 0.0] and fit["chi2_drop"] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_a_design_no_mask_structures_has_no_overlay_fit():
+    # Every mask etches all pixels or none: a shift leaves no trace.
+    assert fit_overlay_error(np.ones((K, K)), None, np.full((N, N), 5, np.uint8), L) is None
