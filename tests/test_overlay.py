@@ -39,11 +39,16 @@ def test_a_shifted_mask_gives_the_orders_of_the_supersampled_plate(levels, model
     assert np.allclose(model.power(mask, *shift), expected, rtol=1e-9, atol=1e-15)
 
 
-def test_no_shift_gives_the_design_with_its_pixel_envelope(levels, model):
+def square_pixel_window(levels):
+    """The window orders of a level map made with square pixels (the sinc^2 envelope)."""
     amp = order_amplitudes(2 * np.pi * levels / L)
     idx = window_indices(N, K)
     env = pixel_envelope(np.arange(K) - K // 2, N)
-    design = np.abs(amp[np.ix_(idx, idx)]) ** 2 * np.outer(env, env)
+    return np.abs(amp[np.ix_(idx, idx)]) ** 2 * np.outer(env, env)
+
+
+def test_no_shift_gives_the_design_with_its_pixel_envelope(levels, model):
+    design = square_pixel_window(levels)
     for mask in range(3):
         assert np.allclose(model.power(mask, 0.0, 0.0), design, rtol=1e-12)
 
@@ -58,11 +63,7 @@ def test_whole_pixel_shift_rolls_the_mask_bitmap_towards_row_0_for_plus_y(levels
         mk.steps * np.roll(mk.bitmap, (-1, 1), axis=(0, 1)) if j == 0 else mk.steps * mk.bitmap
         for j, mk in enumerate(masks)
     )
-    shifted = (L - 1) - code
-    amp = order_amplitudes(2 * np.pi * shifted / L)
-    idx = window_indices(N, K)
-    env = pixel_envelope(np.arange(K) - K // 2, N)
-    expected = np.abs(amp[np.ix_(idx, idx)]) ** 2 * np.outer(env, env)
+    expected = square_pixel_window((L - 1) - code)
     assert np.allclose(model.power(0, 1.0, 1.0), expected, rtol=1e-12)
     assert not np.allclose(model.power(0, -1.0, 1.0), expected, rtol=1e-3)
 
