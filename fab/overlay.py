@@ -8,6 +8,11 @@ into a part of width f that the mask's pixel i - p - 1 covers and a part of
 width 1 - f that its pixel i - p covers, so each order is a sum of four
 whole-pixel shifts weighted by the Fourier integrals over those parts.
 
+This is ``fab.tolerance``'s continuous plate (tested equal) restricted to one
+mask shifted: the whole-pixel shifts are computed once, so a shift then costs
+K^2 operations, and a grid search over thousands takes a fraction of a second
+where the general model takes ~10 ms a shift at N = 175.
+
 Shifts are in mask pixels in the layout's axes (+y up, +x right; row 0 of a
 level map is the top edge), as ``fab.capture_sim.PlateFaults`` states them.
 """

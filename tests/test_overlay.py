@@ -39,6 +39,22 @@ def test_a_shifted_mask_gives_the_orders_of_the_supersampled_plate(levels, model
     assert np.allclose(model.power(mask, *shift), expected, rtol=1e-9, atol=1e-15)
 
 
+@pytest.mark.parametrize("mask", [0, 1, 2])
+def test_the_model_is_fab_tolerance_s_plate_with_one_mask_shifted(levels, model, mask):
+    # The tolerance budget's general model (continuous plate, any error), built
+    # independently; this one is it restricted to a single shifted mask, made fast.
+    from fab.masks import masks_from_levels
+    from fab.tolerance import PlateErrors, plate_model, window_amplitudes
+
+    masks = masks_from_levels(levels, L, 1.0)
+    general = plate_model(masks, 1.0, 1.0, L, wavelength=1.0, refractive_index=1 + 1 / L, k=K)
+    for dy, dx in [(0.37, -1.91), (-1.3, 0.05), (2.0, 2.0)]:
+        shift = [(0.0, 0.0)] * len(masks)
+        shift[mask] = (dx, dy)  # (x, y) there
+        expected = np.abs(window_amplitudes(general, PlateErrors(shift=tuple(shift)))) ** 2
+        assert np.allclose(model.power(mask, dy, dx), expected, rtol=1e-9, atol=1e-15)
+
+
 def square_pixel_window(levels):
     """The window orders of a level map made with square pixels (the sinc^2 envelope)."""
     amp = order_amplitudes(2 * np.pi * levels / L)
