@@ -123,9 +123,10 @@ def fit_overlay_error(window, sigma, levels, n_levels):
     Returns
     -------
     dict or None
-        "mask" (name, e.g. "M2_mid"), "shift_px" ([dy, dx], mask pixels, +y
-        up), "chi2_drop" (how much better than no shift, in chi-square units
-        when ``sigma`` is given) and "psf" (the fitted window, sum 1); None
+        "mask" (name, e.g. "M2_mid"), "mask_index" (0 = deepest), "shift_px"
+        ([dy, dx], mask pixels, +y up), "chi2_drop" (how much better than no
+        shift, in chi-square units when ``sigma`` is given) and "psf" (the
+        fitted window, sum 1); None
         when no mask has both etched and unetched pixels (a shift leaves no trace).
     """
     model = OverlayModel(levels, n_levels, window.shape[0])
@@ -162,6 +163,7 @@ def fit_overlay_error(window, sigma, levels, n_levels):
     fitted = model.power(j, dy, dx)
     return {
         "mask": model.names[j],
+        "mask_index": j,
         "shift_px": [dy, dx],
         "chi2_drop": float(chi2(j, 0.0, 0.0)) - value,
         "psf": fitted / fitted.sum(),

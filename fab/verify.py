@@ -32,6 +32,7 @@ from doe.fraunhofer import (
     simulate_levels,
     window_indices,
 )
+from fab.capture_sim import PlateFaults, plate_phase
 from fab.masks import masks_from_levels
 from fab.overlay import REACH_PX as OVERLAY_REACH_PX
 from fab.overlay import fit_overlay_error
@@ -610,7 +611,13 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
             if etch_fit is None
             else correlation(measured_psf, etch_fit["psf"]),
             "overlay_error_fit": _overlay_fit(
-                measured_psf, design_psf, window, sigma[sl], levels, n_levels, thresholds
+                measured_psf,
+                design_psf,
+                (window, sigma[sl]),
+                lambda period: _frame_score(meas, valid, sigma, period, m0, n0, half)[0],
+                levels,
+                n_levels,
+                thresholds,
             ),
             "power_outside_window": 1 - w_sum / beam["signal"],
             "power_outside_window_sigma": float(
@@ -634,22 +641,30 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
     return result, measured_psf
 
 
-def _overlay_fit(measured_psf, design_psf, window, sigma, levels, n_levels, thresholds):
+def _overlay_fit(measured_psf, design_psf, window, frame_score, levels, n_levels, thresholds):
     """Return the JSON-ready overlay fit of a window whose PSF fails, else None.
 
     Fitted only then (a second or so at N = 175): it is there to explain a failure.
+    ``window`` is (powers, sigma); ``frame_score`` maps an order-power period to
+    the frame correlation, which is also taken for the fitted plate: a dense
+    design's every order changes with the overlay, not only the window's.
     """
     if _psf_passes(measured_psf, design_psf, thresholds):
         return None
-    fit = fit_overlay_error(window, sigma, levels, n_levels)
+    fit = fit_overlay_error(*window, levels, n_levels)
     if fit is None:
         return None
+    # The plate cut into 8 x 8 sub-pixels (its shift rounded to 1/8 px): exact orders
+    # at any distance, aliases and envelope included.
+    faults = PlateFaults(overlay_mask=fit["mask_index"], overlay_shift=tuple(fit["shift_px"]))
+    plate = plate_phase(levels, n_levels, faults, mask_pixel_pitch=1.0, supersample=8)
     return {
         "mask": fit["mask"],
         "shift_px": fit["shift_px"],
         "significance": fit["chi2_drop"],
         "correlation": correlation(measured_psf, fit["psf"]),
         "rmse": rmse(measured_psf, fit["psf"]),
+        "frame_correlation": frame_score(np.abs(order_amplitudes(plate)) ** 2),
     }
 
 
@@ -749,9 +764,12 @@ def _other_design(result):
     unrelated to another design's); a compact one only in the window, where a
     plate of this design with a depth or overlay error still matches the fitted model.
     """
-    if best_frame_correlation(result) < OTHER_DESIGN_MAX:
-        return True
     overlay = _significant_overlay(result)
+    frame = best_frame_correlation(result)
+    if overlay is not None:  # NaN (no frame to judge) loses to any number
+        frame = float(np.fmax(frame, overlay["frame_correlation"]))
+    if frame < OTHER_DESIGN_MAX:
+        return True
     explained = max(
         result["correlation"],
         result["correlation_with_fitted_etch"] or -1.0,

@@ -1035,6 +1035,18 @@ def test_a_mask_8um_off_is_diagnosed_as_an_overlay_error(tmp_path, designed, mas
     assert f"{name} by y +1.5" in html
 
 
+def test_a_dense_design_with_a_mask_off_is_an_overlay_error_not_another_design(tmp_path, levels):
+    # Every order of a dense design changes with the overlay: its frame correlation
+    # with the design (0.44) called a 2 um overlay another design. The fitted plate's
+    # frame correlation is taken too.
+    faults = PlateFaults(overlay_mask=1, overlay_shift=(2e-6, -1e-6))
+    code, report, _ = run_verify(tmp_path, levels, dict(seed=13, faults=faults, supersample=4))
+    assert code == 1 and report["diagnosis"][:2] == ["overlay_error", "psf_mismatch"]
+    fit = report["overlay_error_fit"]
+    assert report["frame_correlation"]["design"] < 0.8 < 0.99 < fit["frame_correlation"]
+    assert fit["mask"] == "M2_mid" and fit["shift_px"] == pytest.approx([0.5, -0.25], abs=0.05)
+
+
 def test_an_overlay_within_the_thresholds_is_not_fitted(tmp_path, designed):
     # 1 um of the mid mask: the PSF passes, so nothing needs explaining.
     faults = PlateFaults(overlay_mask=1, overlay_shift=(1e-6, 0.0))

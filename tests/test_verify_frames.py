@@ -178,7 +178,7 @@ def test_a_deep_etch_fit_under_three_sigma_does_not_fail_the_plate():
 
 def _overlay(**changes):
     fit = {"mask": "M2_mid", "shift_px": [1.5, 0.0], "significance": 1e4, "correlation": 0.999,
-           "rmse": 0.005}  # fmt: skip
+           "rmse": 0.005, "frame_correlation": 0.99}  # fmt: skip
     return {**fit, **changes}
 
 
@@ -203,6 +203,15 @@ def test_an_overlay_fit_names_a_failing_plate_only_when_it_explains_it_decisivel
     ]  # fmt: skip
     better = _good_result(**etch, overlay_error_fit=_overlay(correlation=0.9995))
     assert diagnose(better, t) == ["overlay_error", "psf_mismatch"]
+    # a dense design: an overlay changes every order, so the design's frame fails but
+    # the fitted plate's frame must hold too
+    dense = dict(failing, frame_correlation=dict(_good_result()["frame_correlation"], design=0.4))
+    assert diagnose(_good_result(**dense), t) == ["other_design"]
+    assert diagnose(_good_result(**dense, overlay_error_fit=_overlay()), t) == [
+        "overlay_error", "psf_mismatch"
+    ]  # fmt: skip
+    unlike = _overlay(frame_correlation=0.5)
+    assert diagnose(_good_result(**dense, overlay_error_fit=unlike), t) == ["other_design"]
     # a fitted rmse beyond the threshold: this design (correlation 0.999), but the
     # overlay is no explanation within the thresholds
     assert diagnose(_good_result(**failing, overlay_error_fit=_overlay(rmse=0.09)), t) == [
