@@ -1028,6 +1028,7 @@ def test_a_mask_8um_off_is_diagnosed_as_an_overlay_error(tmp_path, designed, mas
     assert fit["mask"] == name and fit["shift_px"] == pytest.approx([1.5, -0.5], abs=0.05)
     assert np.allclose(fit["shift_um"], np.multiply(fit["shift_px"], 4.99))
     assert fit["correlation"] > 0.999 > report["correlation"]
+    assert report["measured_psf_usable"] is True  # the real plate's PSF, to calibrate with
     err = capsys.readouterr().err
     assert re.search(rf"mask {name} printed off the other masks by \+7\.\d\d um in y \(up\) "
                      r"and -2\.\d\d um in x \(right\)", err)  # fmt: skip
