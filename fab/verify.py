@@ -32,7 +32,6 @@ from doe.fraunhofer import (
     simulate_levels,
     window_indices,
 )
-from fab.capture_sim import PlateFaults, plate_phase
 from fab.masks import masks_from_levels
 from fab.overlay import REACH_PX as OVERLAY_REACH_PX
 from fab.overlay import fit_overlay_error
@@ -649,6 +648,8 @@ def _overlay_fit(measured_psf, design_psf, window, frame_score, levels, n_levels
     the frame correlation, which is also taken for the fitted plate: a dense
     design's every order changes with the overlay, not only the window's.
     """
+    from fab.capture_sim import PlateFaults, plate_phase  # the faulty plate's model
+
     if _psf_passes(measured_psf, design_psf, thresholds):
         return None
     fit = fit_overlay_error(*window, levels, n_levels)
