@@ -234,7 +234,8 @@ def _overlay_text(report):
     um = " ({:+.2f} um, {:+.2f} um)".format(*fit["shift_um"]) if "shift_um" in fit else ""
     return (
         f"{fit['mask']} by y {dy:+.2f}, x {dx:+.2f} mask pixels{um}; correlation "
-        f"{fit['correlation']:.4f} with that plate, chi-square gain {fit['significance']:.3g}"
+        f"{fit['correlation']:.4f} with that plate (frame {fit['frame_correlation']:.3f}), "
+        f"chi-square gain {fit['significance']:.3g}"
     )
 
 

@@ -1033,7 +1033,10 @@ def test_a_mask_8um_off_is_diagnosed_as_an_overlay_error(tmp_path, designed, mas
     assert re.search(rf"mask {name} printed off the other masks by \+7\.\d\d um in y \(up\) "
                      r"and -2\.\d\d um in x \(right\)", err)  # fmt: skip
     html = (out / "verify_report.html").read_text()
-    assert f"{name} by y +1.5" in html
+    assert re.search(rf"{name} by y \+1\.5\d, x -0\.\d\d mask pixels "
+                     r"\(\+7\.\d\d um, -2\.\d\d um\); correlation 0\.99\d\d with that "
+                     r"plate \(frame [01]\.\d\d\d\)", html)  # fmt: skip
+    assert fit["frame_correlation"] > 0.99
 
 
 def test_a_dense_design_with_a_mask_off_is_an_overlay_error_not_another_design(tmp_path, levels):
