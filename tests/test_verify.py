@@ -1308,6 +1308,28 @@ def test_a_plate_lighting_every_other_order_registers_off_the_nominal_pitch(scal
     assert np.allclose(lattice.origin, sim["zero_order_px"], atol=0.1)
 
 
+@pytest.mark.parametrize("every_other", [True, False])
+def test_only_the_first_fit_of_a_pitch_not_measured_may_move_it_by_the_tolerance(
+    monkeypatch, levels, every_other
+):
+    # Once fitted to the dots, the pitch is as good as a measured one: later fits over
+    # more dots step by MAX_BASIS_STEP, so a stray dot cannot drag the lattice 20 %.
+    from fab import lattice as lattice_module
+
+    steps, fit = [], lattice_module._fit_dots
+
+    def spy(lattice, dots, weight, reach, max_step=lattice_module.MAX_BASIS_STEP):
+        steps.append(max_step)
+        return fit(lattice, dots, weight, reach, max_step)
+
+    monkeypatch.setattr(lattice_module, "_fit_dots", spy)
+    plate = np.tile(levels[:18, :18], (2, 2)) if every_other else levels
+    sim = simulate_capture(plate, L, pitch_px=PITCH_PX, scale=1.1, shape=(600, 600), seed=2)
+    register_lattice(sim["capture"], PITCH_PX)
+    small, large = lattice_module.MAX_BASIS_STEP, lattice_module.PITCH_TOLERANCE
+    assert steps == [large + small if every_other else small] + [small] * 3
+
+
 def test_a_fit_step_larger_than_allowed_keeps_the_basis():
     # Three dots, one a quarter pitch off its site along v: their exact fit stretches v
     # by 25 %. From a measured pitch (steps of 5 % allowed) that is a stray dot: the
