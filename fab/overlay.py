@@ -126,8 +126,8 @@ def fit_overlay_error(window, sigma, levels, n_levels):
         "mask" (name, e.g. "M2_mid"), "mask_index" (0 = deepest), "shift_px"
         ([dy, dx], mask pixels, +y up), "chi2_drop" (how much better than no
         shift, in chi-square units when ``sigma`` is given) and "psf" (the
-        fitted window, sum 1); None
-        when no mask has both etched and unetched pixels (a shift leaves no trace).
+        fitted window, sum 1); None when no mask has both etched and unetched
+        pixels (a shift leaves no trace).
     """
     model = OverlayModel(levels, n_levels, window.shape[0])
     if not any(model.used):
@@ -149,7 +149,7 @@ def fit_overlay_error(window, sigma, levels, n_levels):
         best = np.unravel_index(np.argmin(values), values.shape)
         return float(values[best]), (float(dy[best]), float(dx[best]))
 
-    def grid(reach, step):  # whole multiples of the step: no shift is exactly 0
+    def grid(reach, step):  # whole multiples of the step, so no shift reads 1e-15 for 0
         n = round(reach / step)
         return step * np.arange(-n, n + 1)
 
