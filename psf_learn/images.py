@@ -88,17 +88,18 @@ def decode(path):
                 pages = sum(not page.is_reduced for page in tif.pages)  # thumbnails aside
                 first = tif.pages[0]
                 separated = first.photometric == tifffile.PHOTOMETRIC.SEPARATED
+                white = first.photometric == tifffile.PHOTOMETRIC.MINISWHITE
                 planar = first.planarconfig == tifffile.PLANARCONFIG.SEPARATE
                 a = tif.series[0].asarray()
             if planar and first.samplesperpixel > 1:
                 a = np.moveaxis(a, -3, -1)  # channel planes: channels last, as elsewhere
         elif _png_bit_depth(path) == 16:
-            separated, pages, a = False, 1, _decode_oiio(path)
+            separated, white, pages, a = False, False, 1, _decode_oiio(path)
         else:
             import imageio.v3 as iio
             from PIL import Image
 
-            separated = False
+            separated = white = False
             with Image.open(path) as im:  # reads the header only
                 pages = getattr(im, "n_frames", 1)
                 # imageio hands a CMYK JPEG's ink planes over as RGBA; Pillow makes light of them
@@ -113,6 +114,8 @@ def decode(path):
         raise InputError(path, f"holds {pages} images (pages or frames); give one per file")
     if separated:
         a = _ink_to_rgb(a, path)
+    if white:
+        a = _white_to_black(a, first.bitspersample, path)
     return a
 
 
@@ -146,6 +149,20 @@ def _decode_oiio(path):
     finally:
         inp.close()
     return a[..., 0] if a.shape[-1] == 1 else a
+
+
+def _white_to_black(a, bits, path):
+    """Values of a MinIsWhite TIFF (0 = white: scans, fax) as light, 0 = black.
+
+    tifffile hands the codes over as stored; read as they were, the picture and a
+    frame's counts came out as their negative.
+    """
+    if a.dtype != bool and a.dtype.kind != "u":  # no code is white: OpenImageIO keeps them
+        raise InputError(path, f"MinIsWhite (inverted) image of {a.dtype}: give MinIsBlack")
+    a = a.copy()
+    grey = a if a.ndim == 2 else a[..., 0]  # an alpha channel beside it stays as stored
+    grey[...] = ~grey if a.dtype == bool else (1 << bits) - 1 - grey
+    return a
 
 
 def _ink_to_rgb(cmyk, path):

@@ -297,6 +297,24 @@ def test_cmyk_images_are_read_as_light_not_as_ink(tmp_path):
     np.testing.assert_allclose(read_image(tmp_path / "ink.tif"), expected, atol=1e-5)
 
 
+def test_min_is_white_tiffs_are_read_as_light_not_as_their_negative(tmp_path):
+    # A MinIsWhite TIFF (scanners, fax: 0 = white) stores each code inverted; tifffile
+    # hands them over as stored, so a picture came out as its negative and a frame's
+    # counts as 255 - count. The capture reader (OpenImageIO) read them right.
+    import tifffile
+
+    light = np.random.default_rng(6).integers(0, 256, (24, 32), dtype=np.uint8)
+    tifffile.imwrite(tmp_path / "white.tif", 255 - light, photometric="miniswhite")
+    np.testing.assert_array_equal(read_raw(tmp_path / "white.tif"), light)
+    np.testing.assert_allclose(read_image(tmp_path / "white.tif"), light / 255, atol=1e-7)
+    assert np.array_equal(read_raw_image(tmp_path / "white.tif").data, light)
+    tifffile.imwrite(tmp_path / "bits.tif", light > 127, photometric="miniswhite")
+    np.testing.assert_array_equal(read_image(tmp_path / "bits.tif"), light <= 127)
+    tifffile.imwrite(tmp_path / "float.tif", light / 255.0, photometric="miniswhite")
+    with pytest.raises(InputError, match=r"float\.tif.*MinIsWhite"):
+        read_image(tmp_path / "float.tif")
+
+
 @pytest.mark.parametrize("reader", [*READERS, "raw frames"])
 def test_a_folder_is_named_as_a_folder(tmp_path, reader):
     # Readers once said "no such image file" of a folder that exists, or passed on
