@@ -1,7 +1,8 @@
 """Image input for learning: folders of grayscale images, the embedded default set, raw frames.
 
 The only module of ``psf_learn`` that opens image files. Images come back as
-float32 (H, W) arrays scaled to [0, 1] (8-bit / 255, 16-bit / 65535); colour
+float32 (H, W) arrays scaled to [0, 1] (8-bit / 255, 16-bit / 65535, a TIFF of
+fewer bits by its own white: 12-bit / 4095); colour
 images are converted to full-range luminance (ITU-R BT.601 weights; SR benchmarks
 often take MATLAB's 16-235 Y instead, whose PSNR reads 1.32 dB higher).
 """
@@ -65,11 +66,21 @@ def to_gray(image, source):
 def read_image(path):
     """Read one image file as float32 (H, W) in [0, 1] (raises InputError if unreadable)."""
     path = Path(path)
-    return to_gray(decode(path), path)
+    a, bits = _decode(path)
+    if bits and a.dtype.kind == "u" and bits < 8 * a.dtype.itemsize:
+        # A 12-bit TIFF's white is 4095, not the 65535 of its uint16 container
+        # (it read 16 times too dark); a 4-bit one's 15, not 255.
+        a = a.astype(np.float32) / ((1 << bits) - 1)
+    return to_gray(a, path)
 
 
 def decode(path):
-    """Decode an image file as stored (uint8/uint16/float, (H, W) or (H, W, C)).
+    """Decode an image file as stored (uint8/uint16/float, (H, W) or (H, W, C))."""
+    return _decode(path)[0]
+
+
+def _decode(path):
+    """Return (the image as stored, the bits per sample of a TIFF or None).
 
     The decoder follows the suffix: tifffile for TIFF, Pillow for everything
     else. Naming it keeps imageio from trying its other plugins (DICOM, ...)
@@ -93,13 +104,15 @@ def decode(path):
                 a = tif.series[0].asarray()
             if planar and first.samplesperpixel > 1:
                 a = np.moveaxis(a, -3, -1)  # channel planes: channels last, as elsewhere
+            bits = first.bitspersample
         elif _png_bit_depth(path) == 16:
-            separated, white, pages, a = False, False, 1, _decode_oiio(path)
+            separated, white, pages, a, bits = False, False, 1, _decode_oiio(path), None
         else:
             import imageio.v3 as iio
             from PIL import Image
 
             separated = white = False
+            bits = None  # Pillow widens 1-, 2- and 4-bit PNGs to 8 bits itself
             with Image.open(path) as im:  # reads the header only
                 pages = getattr(im, "n_frames", 1)
                 # imageio hands a CMYK JPEG's ink planes over as RGBA; Pillow makes light of them
@@ -115,8 +128,8 @@ def decode(path):
     if separated:
         a = _ink_to_rgb(a, path)
     if white:
-        a = _white_to_black(a, first.bitspersample, path)
-    return a
+        a = _white_to_black(a, bits, path)
+    return a, bits
 
 
 def _png_bit_depth(path):

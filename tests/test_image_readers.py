@@ -315,6 +315,22 @@ def test_min_is_white_tiffs_are_read_as_light_not_as_their_negative(tmp_path):
         read_image(tmp_path / "float.tif")
 
 
+def test_a_12_bit_tiff_is_scaled_by_its_own_white(tmp_path):
+    # A 12-bit TIFF holds codes up to 4095 in a uint16: divided by 65535 a training
+    # image read 16 times too dark. Raw frames keep the codes as counts.
+    import OpenImageIO as oiio
+
+    codes = np.linspace(0, 4095, 24 * 32).astype(np.uint16).reshape(24, 32)
+    path = str(tmp_path / "twelve.tif")
+    spec = oiio.ImageSpec(32, 24, 1, "uint16")
+    spec.attribute("oiio:BitsPerSample", 12)
+    out = oiio.ImageOutput.create(path)
+    assert out.open(path, spec) and out.write_image(codes[..., None] << 4)  # stored >> 4
+    out.close()
+    np.testing.assert_array_equal(read_raw(path), codes)
+    np.testing.assert_allclose(read_image(path), codes / 4095, atol=1e-6)
+
+
 @pytest.mark.parametrize("reader", [*READERS, "raw frames"])
 def test_a_folder_is_named_as_a_folder(tmp_path, reader):
     # Readers once said "no such image file" of a folder that exists, or passed on
