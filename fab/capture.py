@@ -23,6 +23,10 @@ HOT_PIXEL_SIGMAS = 10.0
 PLATEAU_PIXELS = 3
 # Exposure times (from the files' metadata) may differ by this fraction.
 EXPOSURE_RTOL = 0.02
+# Float pixels beyond this are refused: the analysis sums pixels times squared
+# distances in float32 (largest 3.4e38); a capture at 2e38 overflowed there, printed
+# numpy's warnings and read no signal. No camera counts within 1e20 of it.
+FLOAT_PIXEL_MAX = 1e30
 
 
 @dataclass(frozen=True)
@@ -167,6 +171,12 @@ def read_raw_image(path):
         quantum = 0.0
         if not np.all(np.isfinite(data)):
             raise InputError(path, "image has NaN or infinite pixels")
+        if np.any(np.abs(data) > FLOAT_PIXEL_MAX):
+            raise InputError(
+                path,
+                f"float pixels reach {np.abs(data).max():.3g}, beyond {FLOAT_PIXEL_MAX:g}: "
+                "the sums over a dot would overflow; scale the image down",
+            )
     elif fmt == "uint16" and data.any() and not np.any(data & 0xF):
         # 12-bit sensors written MSB-aligned leave the four low bits zero; a 10-bit
         # one leaves six, 8-bit data scaled by 256 eight. The codes are shifted

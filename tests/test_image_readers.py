@@ -489,6 +489,19 @@ def test_a_float_capture_with_nan_or_infinite_pixels_is_refused(tmp_path, bad):
         read_raw_image(tmp_path / "bad.exr")
 
 
+def test_a_float_capture_near_the_largest_float_is_refused(tmp_path):
+    # Values of 3.4e38 (float32's largest, where some writers put a clipped pixel)
+    # overflowed the sums over a dot: numpy's RuntimeWarnings on stderr beside a
+    # refusal, or a pass. 1e29 is read.
+    image = np.ones((8, 8), np.float32)
+    write_image(tmp_path / "ok.exr", image * np.float32(1e29))
+    assert read_raw_image(tmp_path / "ok.exr").data.max() == np.float32(1e29)
+    image[3, 4] = np.finfo(np.float32).max
+    write_image(tmp_path / "big.exr", image)
+    with pytest.raises(InputError, match=re.escape("big.exr: float pixels reach 3.4e+38")):
+        read_raw_image(tmp_path / "big.exr")
+
+
 def test_write_image_refuses_a_dtype_or_a_path_it_cannot_write(tmp_path):
     with pytest.raises(ValueError, match="needs uint8, uint16 or float32, got int64"):
         write_image(tmp_path / "a.png", np.zeros((4, 4), np.int64))
