@@ -91,6 +91,8 @@ def _decode(path):
     path = Path(path)
     if path.is_dir():
         raise InputError(path, "is a folder, not an image file")
+    if path.exists() and not path.is_file():  # opening a FIFO waits for a writer, for ever
+        raise InputError(path, "is not a regular file (a pipe or a device)")
     try:
         if path.suffix.lower() in (".tif", ".tiff"):
             import tifffile

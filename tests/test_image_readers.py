@@ -374,6 +374,28 @@ def test_a_damaged_png_is_refused_in_one_line_with_its_reason(
     assert capfd.readouterr().err == ""
 
 
+def test_a_pipe_named_like_an_image_is_refused_not_waited_on(tmp_path):
+    # Opening a FIFO blocks until something writes to it: sr and evaluate hung for
+    # ever on one named x.png. The capture reader refused it already.
+    import os
+    import signal
+
+    os.mkfifo(tmp_path / "pipe.png")
+
+    def hung(*args):
+        raise TimeoutError("the reader waited on the pipe")
+
+    previous = signal.signal(signal.SIGALRM, hung)
+    signal.alarm(10)
+    try:
+        for read in (read_image, read_raw):
+            with pytest.raises(InputError, match=r"pipe\.png: is not a regular file"):
+                read(tmp_path / "pipe.png")
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
+
+
 def test_a_one_bit_image_is_black_and_white(tmp_path):
     from PIL import Image
 
