@@ -7,6 +7,8 @@ images are converted to full-range luminance (ITU-R BT.601 weights; SR benchmark
 often take MATLAB's 16-235 Y instead, whose PSNR reads 1.32 dB higher).
 """
 
+import warnings
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -115,12 +117,13 @@ def _decode(path):
 
             separated = white = False
             bits = None  # Pillow widens 1-, 2- and 4-bit PNGs to 8 bits itself
-            with Image.open(path) as im:  # reads the header only
-                pages = getattr(im, "n_frames", 1)
-                # imageio hands a CMYK JPEG's ink planes over as RGBA; Pillow makes light of them
-                a = np.asarray(im.convert("RGB")) if im.mode == "CMYK" else None
-            if a is None:
-                a = iio.imread(path, plugin="pillow")
+            with _pillow_quiet(Image):
+                with Image.open(path) as im:  # reads the header only
+                    pages = getattr(im, "n_frames", 1)
+                    # imageio hands a CMYK JPEG's ink planes over as RGBA; Pillow makes light
+                    a = np.asarray(im.convert("RGB")) if im.mode == "CMYK" else None
+                if a is None:
+                    a = iio.imread(path, plugin="pillow")
     except FileNotFoundError:
         raise InputError(path, "no such file") from None
     except Exception as e:  # the decoders raise many types on corrupt data
@@ -132,6 +135,19 @@ def _decode(path):
     if white:
         a = _white_to_black(a, bits, path)
     return a, bits
+
+
+@contextmanager
+def _pillow_quiet(Image):
+    """Keep Pillow's warnings about a file off stderr: the file is read or refused anyway.
+
+    A header past 89 Mpx (Pillow's "decompression bomb") and a palette with byte
+    transparency each printed two lines beside the one-line refusal or the result.
+    """
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+        warnings.filterwarnings("ignore", "Palette images with Transparency", UserWarning)
+        yield
 
 
 def _png_bit_depth(path):

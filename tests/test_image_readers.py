@@ -396,6 +396,38 @@ def test_a_pipe_named_like_an_image_is_refused_not_waited_on(tmp_path):
         signal.signal(signal.SIGALRM, previous)
 
 
+def test_pillow_warns_of_nothing_on_stderr(tmp_path):
+    # A PNG header of 100 Mpx (Pillow's "decompression bomb" warning) over a few
+    # bytes, and a palette with byte transparency: Pillow's two-line warnings went
+    # to stderr beside sr's and evaluate's one-line refusal, or beside the result.
+    import struct
+    import zlib
+
+    from PIL import Image
+
+    def chunk(kind, data):
+        crc = struct.pack(">I", zlib.crc32(kind + data))
+        return struct.pack(">I", len(data)) + kind + data + crc
+
+    header = struct.pack(">IIBBBBB", 10000, 10000, 8, 0, 0, 0, 0)
+    (tmp_path / "bomb.png").write_bytes(
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", header)
+        + chunk(b"IDAT", zlib.compress(bytes(100)))
+        + chunk(b"IEND", b"")
+    )
+    grey = np.random.default_rng(7).integers(0, 256, (8, 8), dtype=np.uint8)
+    Image.fromarray(grey, "L").convert("P").save(tmp_path / "clear.png", transparency=bytes(4))
+    for read in (read_image, read_raw):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            with pytest.raises(InputError, match=r"bomb\.png: not a readable image.*truncated"):
+                read(tmp_path / "bomb.png")
+            scale = 255 if read is read_image else 1
+            np.testing.assert_allclose(read(tmp_path / "clear.png"), grey / scale, atol=1e-6)
+        assert [str(w.message) for w in caught] == []
+
+
 def test_a_one_bit_image_is_black_and_white(tmp_path):
     from PIL import Image
 
