@@ -9,6 +9,7 @@ steps (dark subtraction, hot-pixel repair, noise estimate) are plain functions
 on arrays.
 """
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -134,7 +135,7 @@ def read_raw_image(path):
         alpha = spec.alpha_channel
         if pixels is None or inp.has_error:
             raise InputError(path, f"truncated or corrupt image ({_one_line(inp.geterror())})")
-        exposure = spec.get_float_attribute("ExposureTime", 0.0) or None
+        exposure = spec.get_float_attribute("ExposureTime", 0.0)
         file_orientation = spec.get_int_attribute("Orientation", 1)
         if has_more_pages(inp):  # a multi-page TIFF: which page is the capture?
             raise InputError(path, "holds several images (pages); give one capture per file")
@@ -146,6 +147,10 @@ def read_raw_image(path):
     if 0 <= alpha < pixels.shape[2] and pixels.shape[2] > 1:  # grey or colour + alpha
         pixels = np.delete(pixels, alpha, axis=2)
     notes = []
+    if not 0 < exposure < math.inf:  # unknown (0, absent) or no time at all (-0.01 s, NaN)
+        if exposure != 0:
+            notes.append(f"the file's ExposureTime {exposure:g} s is no exposure time: ignored")
+        exposure = None
     if file_orientation != 1:
         # Viewers turn such an image; the pixels are used as stored, and
         # --orientation describes the stored image.

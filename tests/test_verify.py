@@ -504,6 +504,18 @@ def test_dark_frame_of_another_size_or_exposure_exits_2(tmp_path, levels, capsys
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize("seconds", [-0.01, float("nan"), float("inf")])
+def test_an_exposure_time_that_is_no_time_is_ignored_and_noted(tmp_path, seconds):
+    # Equal negative ExposureTimes were refused as "dark exposure -0.01 s differs from
+    # the capture's -0.01 s"; a NaN one passed every comparison, an infinite one failed it.
+    image = np.full((8, 8), 100, np.float32)
+    write_image(tmp_path / "cap.exr", image, exposure=seconds)
+    write_image(tmp_path / "dark.exr", image, exposure=seconds)
+    capture = read_capture(tmp_path / "cap.exr", tmp_path / "dark.exr")
+    assert read_raw_image(tmp_path / "cap.exr").exposure is None
+    assert f"cap.exr: the file's ExposureTime {seconds:g} s is no exposure time" in capture.notes[0]
+
+
 def test_blank_capture_exits_2(tmp_path, levels, capsys):
     design = make_design_dir(tmp_path / "design", levels)
     rng = np.random.default_rng(16)
