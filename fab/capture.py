@@ -108,6 +108,10 @@ def read_raw_image(path):
     path = Path(path)
     if path.is_dir():
         raise InputError(path, "is a folder, not an image file")
+    if path.exists() and not path.is_file():  # "no such image file" of /dev/zero misled
+        raise InputError(path, "is not a regular file (a pipe or a device)")
+    if path.is_symlink() and not path.exists():
+        raise InputError(path, "is a symbolic link to nothing (dangling, or a loop)")
     if not path.is_file():
         raise InputError(path, "no such image file")
     config = oiio.ImageSpec()

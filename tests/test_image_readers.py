@@ -500,6 +500,24 @@ def test_a_missing_capture_is_named(tmp_path):
         read_raw_image(tmp_path / "none.png")
 
 
+def test_a_capture_that_is_no_file_says_what_it_is(tmp_path):
+    # A pipe, a device, a dangling link and a link loop were each "no such image file".
+    import os
+
+    os.mkfifo(tmp_path / "pipe.png")
+    os.symlink("/dev/zero", tmp_path / "zero.png")
+    os.symlink(tmp_path / "gone.png", tmp_path / "dangling.png")
+    os.symlink(tmp_path / "loop.png", tmp_path / "loop.png")
+    for name, problem in (
+        ("pipe.png", "is not a regular file"),
+        ("zero.png", "is not a regular file"),
+        ("dangling.png", "is a symbolic link to nothing"),
+        ("loop.png", "is a symbolic link to nothing"),
+    ):
+        with pytest.raises(InputError, match=re.escape(f"{name}: {problem}")):
+            read_raw_image(tmp_path / name)
+
+
 def test_a_capture_of_signed_integers_is_refused(tmp_path):
     import tifffile
 
