@@ -101,6 +101,7 @@ def _learn(args):
     from doe.files import read_psf, save_npy, sha256_file, staged_output, write_json
     from psf_learn import images as imgio
     from psf_learn import store
+    from psf_learn.network import FEATURES_MAX, STAGES_MAX
     from psf_learn.psf import baseline_psf, gaussian_psf
     from psf_learn.sensor import sensor_from_design
     from psf_learn.train import (
@@ -116,7 +117,8 @@ def _learn(args):
     for flag in ("steps", "minutes", "batch", "patch", "features", "stages", "threads"):
         flags.positive(f"--{flag}", getattr(args, flag))
     # Sizes past these exhaust a workstation's memory (a traceback, not a message).
-    for flag, limit in (("batch", 1024), ("patch", 512), ("features", 512), ("stages", 64)):
+    limits = (("batch", 1024), ("patch", 512), ("features", FEATURES_MAX), ("stages", STAGES_MAX))
+    for flag, limit in limits:
         flags.at_most(f"--{flag}", getattr(args, flag), limit, "larger runs out of memory")
     flags.at_most("--minutes", args.minutes, flags.MINUTES_MAX, "two years")
     flags.at_most("--steps", args.steps, flags.STEPS_MAX, "years of training")

@@ -20,6 +20,12 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+ARCHS = ("resnet", "dbpn")
+# The largest networks learn trains (its --features and --stages); larger ones exhaust
+# a workstation's memory, and a model.pt asking for more is refused before it is built.
+FEATURES_MAX = 512
+STAGES_MAX = 64
+
 
 class ResBlock(nn.Module):
     """conv-ReLU-conv with an identity skip (EDSR style, no batch norm)."""

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from psf_learn.network import SRNet
+from psf_learn.network import ARCHS, FEATURES_MAX, STAGES_MAX, SRNet
 from psf_learn.sensor import SensorModel
 
 
@@ -33,17 +33,40 @@ def load_model(model_dir):
 
     record, psf, learn = store.load_model_dir(model_dir)
     try:
-        net = SRNet(**record["network"])
-        net.load_state_dict(record["state_dict"])
+        _check_network(record["network"])
         s = record["sensor"]
         sensor = SensorModel(
             tuple(tuple(r) for r in s["weights"]), float(s["photons"]), float(s["dark_counts"])
         )
-        _check_sensor(sensor, net.factor)
+        _check_sensor(sensor, record["network"]["factor"])
+        net = SRNet(**record["network"])
+        net.load_state_dict(record["state_dict"])
     except (KeyError, TypeError, RuntimeError, ValueError) as e:
         raise InputError(Path(model_dir) / "model.pt", f"inconsistent model ({e})") from None
     net.eval()
     return SRModel(net, psf, sensor, learn)
+
+
+def _check_network(network):
+    """Raise ValueError unless ``network`` is a configuration ``learn`` writes.
+
+    Checked before the network is built: 10**6 features asked torch for terabytes,
+    10**6 stages built modules for minutes, and a missing key took SRNet's default.
+    """
+    keys = ("factor", "features", "stages", "arch")
+    if not isinstance(network, dict) or set(network) != set(keys):
+        raise ValueError(f"network must hold {', '.join(keys)} and nothing else")
+    for key, limit in (("factor", None), ("features", FEATURES_MAX), ("stages", STAGES_MAX)):
+        value = network[key]
+        if not _is_int(value) or value < 1 or (limit is not None and value > limit):
+            upto = f" to {limit}" if limit is not None else ""
+            raise ValueError(f"network {key} must be a whole number from 1{upto}, got {value!r}")
+    if network["arch"] not in ARCHS:
+        raise ValueError(f"network arch must be one of {', '.join(ARCHS)}, got {network['arch']!r}")
+
+
+def _is_int(value):
+    return isinstance(value, int) and not isinstance(value, bool)
 
 
 def _check_sensor(sensor, factor):

@@ -1133,20 +1133,63 @@ def test_evaluate_and_sr_refuse_bad_inputs(trained, tmp_path, capsys):
     ],
 )
 def test_a_damaged_model_record_is_refused_in_one_line(trained, tmp_path, capsys, damage):
-    import shutil
-
-    out, _ = trained
-    model = tmp_path / "model"
-    shutil.copytree(out, model)
-    (model / "learn.json").unlink()  # its hashes would catch the edit first
-    record = torch.load(model / "model.pt", weights_only=True)
-    damage(record)
-    torch.save(record, model / "model.pt")
+    model = _damaged_model(trained[0], tmp_path / "model", damage)
     np.save(tmp_path / "raw.npy", np.ones((6, 6)))
     assert main(["sr", str(model), str(tmp_path / "raw.npy"), "--out", str(tmp_path / "sr")]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and str(model / "model.pt") in err
     assert not (tmp_path / "sr").exists()
+
+
+def _damaged_model(out, model, damage):
+    """A copy of model folder ``out`` whose model.pt record went through ``damage``."""
+    import shutil
+
+    shutil.copytree(out, model)
+    (model / "learn.json").unlink()  # its hashes would catch the edit first
+    record = torch.load(model / "model.pt", weights_only=True)
+    damage(record)
+    torch.save(record, model / "model.pt")
+    return model
+
+
+@pytest.mark.parametrize(
+    "network",
+    [
+        {"features": 10**6},  # torch was asked for terabytes before shapes were compared
+        {"stages": 10**6},  # a million blocks were built, for minutes
+        {"features": 0},  # built, and torch's warnings went to stderr beside the refusal
+        {"stages": True},
+        {"arch": None},  # missing: SRNet's default stood in for it
+        {"kernel_size": 11},
+    ],
+)
+def test_a_network_learn_cannot_write_is_refused_before_it_is_built(
+    trained, tmp_path, monkeypatch, network
+):
+    from doe.errors import InputError
+
+    def build(**config):
+        raise AssertionError(f"built the network {config}")
+
+    def damage(record):
+        record["network"].update(network)
+        record["network"] = {k: v for k, v in record["network"].items() if v is not None}
+
+    model = _damaged_model(trained[0], tmp_path / "model", damage)
+    monkeypatch.setattr("psf_learn.sr.SRNet", build)
+    with pytest.raises(InputError, match=r"model\.pt: inconsistent model \(network"):
+        load_model(model)
+
+
+def test_an_init_model_without_its_arch_is_refused_in_one_line(trained, tmp_path, capsys):
+    out, images = trained
+    model = _damaged_model(out, tmp_path / "model", lambda r: r["network"].pop("arch"))
+    args = ["learn", "--init", str(model), "--out", str(tmp_path / "m"), "--images", str(images)]
+    assert main([*args, *SMALL]) == 2  # SRNet's default arch, then a KeyError: exit 3
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(model / "model.pt") in err
+    assert not (tmp_path / "m").exists()
 
 
 def test_dark_counts_without_noise_are_refused(tmp_path, capsys):
