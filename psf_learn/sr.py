@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from doe.flags import PHOTONS_MAX
 from psf_learn.network import ARCHS, FEATURES_MAX, STAGES_MAX, SRNet
 from psf_learn.sensor import SensorModel
 
@@ -36,7 +37,7 @@ def load_model(model_dir):
         _check_network(record["network"])
         s = record["sensor"]
         sensor = SensorModel(
-            tuple(tuple(r) for r in s["weights"]), float(s["photons"]), float(s["dark_counts"])
+            tuple(tuple(r) for r in s["weights"]), _count(s, "photons"), _count(s, "dark_counts")
         )
         _check_sensor(sensor, record["network"]["factor"])
         net = SRNet(**record["network"])
@@ -78,8 +79,25 @@ def _check_sensor(sensor, factor):
         raise ValueError(f"sensor weights sum to {w.sum():g}, not 1")
     for name in ("photons", "dark_counts"):
         value = getattr(sensor, name)
-        if not (np.isfinite(value) and value >= 0):
-            raise ValueError(f"sensor {name} must be a finite number >= 0, got {value}")
+        # learn's own limit: past it numpy's Poisson draws fail (evaluate, exit 3)
+        if not (np.isfinite(value) and 0 <= value <= PHOTONS_MAX):
+            raise ValueError(
+                f"sensor {name} must be a number from 0 to {PHOTONS_MAX:g}, got {value}"
+            )
+
+
+def _count(record, name):
+    """Return ``record[name]`` as a float, or raise ValueError unless it is a number.
+
+    float() took "100" and True, and raised OverflowError (exit 3) on a 400-digit integer.
+    """
+    value = record[name]
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"sensor {name} must be a number, got {value!r}")
+    try:
+        return float(value)
+    except OverflowError:
+        raise ValueError(f"sensor {name} is past any float") from None
 
 
 def white_counts(model, photons=None):

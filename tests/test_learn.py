@@ -1128,6 +1128,9 @@ def test_evaluate_and_sr_refuse_bad_inputs(trained, tmp_path, capsys):
         lambda r: r["sensor"].update(weights=[[1 / 9] * 3] * 3),  # for a factor-4 network
         lambda r: r["sensor"].update(weights=[[1 / 8] * 4] * 4),  # twice the light
         lambda r: r["sensor"].update(dark_counts=-1.0),
+        lambda r: r["sensor"].update(photons=10**400),  # float() overflowed: exit 3
+        lambda r: r["sensor"].update(photons="100"),  # taken as 100
+        lambda r: r["sensor"].update(dark_counts=True),  # taken as 1
         lambda r: r["network"].update(factor=3),  # six lines of torch's size mismatches
         lambda r: r["network"].update(arch="transformer"),  # no such network
     ],
@@ -1139,6 +1142,16 @@ def test_a_damaged_model_record_is_refused_in_one_line(trained, tmp_path, capsys
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and str(model / "model.pt") in err
     assert not (tmp_path / "sr").exists()
+
+
+@pytest.mark.parametrize("name", ["photons", "dark_counts"])
+def test_counts_past_learns_limit_are_refused_before_evaluating(trained, tmp_path, capsys, name):
+    # numpy's Poisson draw refused them: a traceback, exit 3
+    out, images = trained
+    model = _damaged_model(out, tmp_path / "model", lambda r: r["sensor"].update({name: 1e300}))
+    assert main(["evaluate", str(model), "--images", str(images)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(model / "model.pt") in err and name in err
 
 
 def _damaged_model(out, model, damage):
