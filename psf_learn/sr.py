@@ -40,6 +40,7 @@ def load_model(model_dir):
             tuple(tuple(r) for r in s["weights"]), _count(s, "photons"), _count(s, "dark_counts")
         )
         _check_sensor(sensor, record["network"]["factor"])
+        _check_weights(record["state_dict"])
         net = SRNet(**record["network"])
         net.load_state_dict(record["state_dict"])
     except (KeyError, TypeError, RuntimeError, ValueError) as e:
@@ -64,6 +65,22 @@ def _check_network(network):
             raise ValueError(f"network {key} must be a whole number from 1{upto}, got {value!r}")
     if network["arch"] not in ARCHS:
         raise ValueError(f"network arch must be one of {', '.join(ARCHS)}, got {network['arch']!r}")
+
+
+def _check_weights(state):
+    """Raise ValueError unless every entry of ``state`` is a tensor of finite floats.
+
+    load_state_dict takes what it is given: NaN weights wrote NaN images (exit 0),
+    complex ones lost their imaginary part and integer ones their fractions.
+    """
+    if not isinstance(state, dict):
+        raise ValueError(f"state_dict must be a table of tensors, got {type(state).__name__}")
+    for name, value in state.items():
+        if not (isinstance(value, torch.Tensor) and value.is_floating_point()):
+            kind = value.dtype if isinstance(value, torch.Tensor) else type(value).__name__
+            raise ValueError(f"state_dict {name} must be a float tensor, got {kind}")
+        if not bool(torch.isfinite(value).all()):
+            raise ValueError(f"state_dict {name} holds NaN or infinite weights")
 
 
 def _is_int(value):

@@ -1132,6 +1132,12 @@ def test_evaluate_and_sr_refuse_bad_inputs(trained, tmp_path, capsys):
         lambda r: r["sensor"].update(photons="100"),  # taken as 100
         lambda r: r["sensor"].update(dark_counts=True),  # taken as 1
         lambda r: r["network"].update(factor=3),  # six lines of torch's size mismatches
+        lambda r: r["state_dict"]["tail.0.bias"].fill_(float("nan")),  # wrote NaN, exit 0
+        lambda r: r["state_dict"]["head.weight"].fill_(float("-inf")),
+        lambda r: r["state_dict"].update({"head.bias": r["state_dict"]["head.bias"].int()}),
+        lambda r: r["state_dict"].update(
+            {"head.bias": r["state_dict"]["head.bias"].to(torch.complex64)}
+        ),  # its imaginary part dropped, with a warning
         lambda r: r["network"].update(arch="transformer"),  # no such network
     ],
 )
