@@ -101,7 +101,7 @@ def _learn(args):
     from doe.files import read_psf, save_npy, sha256_file, staged_output, write_json
     from psf_learn import images as imgio
     from psf_learn import store
-    from psf_learn.network import FEATURES_MAX, STAGES_MAX
+    from psf_learn.network import FEATURES_MAX, STAGES_MAX, check_arch
     from psf_learn.psf import baseline_psf, gaussian_psf
     from psf_learn.sensor import sensor_from_design
     from psf_learn.train import (
@@ -152,6 +152,10 @@ def _learn(args):
     )
     if args.steps:
         config = with_overrides(config, minutes=0.0)
+    try:
+        check_arch(config.arch, sensor.factor)  # found now, not by a step of the training
+    except ValueError as e:
+        raise InputError("--arch", str(e)) from None
     if config.patch % sensor.factor:
         raise InputError("--patch", f"must be a multiple of {sensor.factor}, got {config.patch}")
     world = int(os.environ.get("WORLD_SIZE", "1"))  # torchrun's processes share each batch

@@ -27,6 +27,18 @@ FEATURES_MAX = 512
 STAGES_MAX = 64
 
 
+def check_arch(arch, factor):
+    """Raise ValueError unless network ``arch`` can super-resolve by ``factor``.
+
+    A DBPN projection (kernel 2 f, stride f, padding f // 2) maps h to f h + 1 at an odd
+    f: its output then missed the bicubic base by a row (a RuntimeError in training).
+    """
+    if arch not in ARCHS:
+        raise ValueError(f"arch must be 'resnet' or 'dbpn', got {arch!r}")
+    if arch == "dbpn" and factor % 2:
+        raise ValueError(f"dbpn needs an even super-resolution factor, not {factor}")
+
+
 class ResBlock(nn.Module):
     """conv-ReLU-conv with an identity skip (EDSR style, no batch norm)."""
 
@@ -72,6 +84,7 @@ class SRNet(nn.Module):
 
     def __init__(self, factor=4, features=24, stages=4, arch="resnet"):
         super().__init__()
+        check_arch(arch, factor)
         self.factor, self.arch = factor, arch
         self.head = nn.Conv2d(1, features, 3, padding=1)
         if arch == "resnet":
@@ -79,14 +92,12 @@ class SRNet(nn.Module):
             self.tail = nn.Sequential(
                 nn.Conv2d(features, factor**2, 3, padding=1), nn.PixelShuffle(factor)
             )
-        elif arch == "dbpn":
+        else:  # dbpn
             self.ups = nn.ModuleList(_Projection(features, factor, True) for _ in range(stages))
             self.downs = nn.ModuleList(
                 _Projection(features, factor, False) for _ in range(stages - 1)
             )
             self.tail = nn.Conv2d(features * stages, 1, 3, padding=1)
-        else:
-            raise ValueError(f"arch must be 'resnet' or 'dbpn', got {arch!r}")
         # start as plain bicubic upsampling: the residual branch learns from zero
         last = self.tail[0] if arch == "resnet" else self.tail
         nn.init.zeros_(last.weight)

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from doe.flags import PHOTONS_MAX
-from psf_learn.network import ARCHS, FEATURES_MAX, STAGES_MAX, SRNet
+from psf_learn.network import FEATURES_MAX, STAGES_MAX, SRNet, check_arch
 from psf_learn.sensor import SensorModel
 
 
@@ -63,8 +63,7 @@ def _check_network(network):
         if not _is_int(value) or value < 1 or (limit is not None and value > limit):
             upto = f" to {limit}" if limit is not None else ""
             raise ValueError(f"network {key} must be a whole number from 1{upto}, got {value!r}")
-    if network["arch"] not in ARCHS:
-        raise ValueError(f"network arch must be one of {', '.join(ARCHS)}, got {network['arch']!r}")
+    check_arch(network["arch"], network["factor"])
 
 
 def _check_weights(state):

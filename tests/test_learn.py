@@ -1201,6 +1201,36 @@ def test_a_network_learn_cannot_write_is_refused_before_it_is_built(
         load_model(model)
 
 
+def test_dbpn_at_an_odd_factor_is_refused_before_training_or_running(
+    trained, tmp_path, capsys, monkeypatch
+):
+    # Its projections map h to f h + 1 at an odd f: a RuntimeError in the first step (exit
+    # 3), and in sr for a model.pt of such a network.
+    out, images = trained
+    factor3 = tmp_path / "factor3.toml"
+    factor3.write_text("[sensor]\nsuperres_factor = 3\n")
+    args = ["learn", "--out", str(tmp_path / "m"), "--images", str(images), *SMALL]
+    assert main([*args[:-1], "18", "--arch", "dbpn", "--config", str(factor3)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--arch: dbpn needs an even" in err
+    assert not (tmp_path / "m").exists()
+    monkeypatch.setattr("psf_learn.network.check_arch", lambda arch, factor: None, raising=False)
+    network = SRNet(factor=3, features=4, stages=1, arch="dbpn")  # as a model.pt would hold
+    monkeypatch.undo()
+
+    def damage(record):
+        record["network"].update(factor=3, arch="dbpn")
+        record["sensor"]["weights"] = [[1 / 9] * 3] * 3
+        record["state_dict"] = network.state_dict()
+
+    model = _damaged_model(out, tmp_path / "model", damage)
+    np.save(tmp_path / "raw.npy", np.ones((6, 6)))
+    assert main(["sr", str(model), str(tmp_path / "raw.npy"), "--out", str(tmp_path / "sr")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(model / "model.pt") in err and "even" in err
+    assert not (tmp_path / "sr").exists()
+
+
 def test_an_init_model_without_its_arch_is_refused_in_one_line(trained, tmp_path, capsys):
     out, images = trained
     model = _damaged_model(out, tmp_path / "model", lambda r: r["network"].pop("arch"))
