@@ -1,6 +1,7 @@
 """``doefab learn``, ``doefab evaluate`` and ``doefab sr`` (torch is imported inside handlers)."""
 
 import json
+import math
 import os
 import platform
 import sys
@@ -351,6 +352,8 @@ def _evaluate(args):
     names, images = imgio.read_folder(args.images, min_size=max(4 * model.sensor.factor, k))
     seed = EVAL_SEED if args.seed is None else args.seed
     res = evaluate(model, names, images, psf, seed, progress=sys.stderr.isatty())
+    if not math.isfinite(res["psnr"]):  # images in [0, 1]: the weights overflowed float32
+        raise InputError(Path(args.model_dir) / "model.pt", "gives non-finite estimates")
     for name, v in res["images"].items():
         print(f"{name:32s} PSNR {v['psnr']:6.2f} dB  SSIM {v['ssim']:.4f}")
     print(f"{'mean':32s} PSNR {res['psnr']:6.2f} dB  SSIM {res['ssim']:.4f}")
@@ -369,6 +372,7 @@ def _evaluate(args):
 
 
 def _sr(args):
+    import numpy as np
     import torch
     from tqdm import tqdm
 
@@ -381,6 +385,7 @@ def _sr(args):
     flags.at_most("--photons", args.photons, flags.PHOTONS_MAX, "counts per pixel")
     torch.set_num_threads(1)
     model = load_model(args.model_dir)
+    model_file = Path(args.model_dir) / "model.pt"
     stems = [Path(r).stem for r in args.raw]
     for i, stem in enumerate(stems):
         if stem in stems[:i]:
@@ -393,7 +398,7 @@ def _sr(args):
     names = [f"{s}_sr{ext}" for s in stems for ext in (".npy", ".png", ".json")]
     record = {
         "model": str(args.model_dir),
-        "model_sha256": sha256_file(Path(args.model_dir) / "model.pt"),
+        "model_sha256": sha256_file(model_file),
         "photons": white_counts(model, args.photons),
         "dark_counts": model.sensor.dark_counts,
         "doefab": _version(),
@@ -402,6 +407,8 @@ def _sr(args):
         bar = tqdm(frames, desc="sr", unit="input", disable=None)
         for raw_path, stem, raw in zip(args.raw, stems, bar, strict=True):
             hr = super_resolve(model, raw, photons=args.photons)
+            if not np.isfinite(hr).all():  # weights (or counts) past float32's range
+                raise InputError(model_file, f"gives non-finite values on {raw_path}")
             made = (f"{stem}_sr.npy", f"{stem}_sr.png")
             save_npy(stage / made[0], hr)
             _write_preview(stage / made[1], hr if hr.ndim == 2 else hr.mean(axis=0))

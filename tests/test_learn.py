@@ -1160,6 +1160,25 @@ def test_counts_past_learns_limit_are_refused_before_evaluating(trained, tmp_pat
     assert len(err.splitlines()) == 1 and str(model / "model.pt") in err and name in err
 
 
+def test_weights_that_overflow_float32_write_no_images_or_scores(trained, tmp_path, capsys):
+    # finite weights, yet white frames came out NaN: written, and NaN dB printed, exit 0
+    out, images = trained
+    model = _damaged_model(
+        out, tmp_path / "model", lambda r: r["state_dict"]["head.weight"].fill_(3e38)
+    )
+    white = json.loads((out / "learn.json").read_text())["config"]["photons_per_pixel"]
+    np.save(tmp_path / "raw.npy", np.full((6, 6), white))
+    results = tmp_path / "e.json"
+    for args in (
+        ["sr", str(model), str(tmp_path / "raw.npy"), "--out", str(tmp_path / "sr")],
+        ["evaluate", str(model), "--images", str(images), "--out", str(results)],
+    ):
+        assert main(args) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and f"{model / 'model.pt'}: gives non-finite" in err
+    assert not (tmp_path / "sr").exists() and not results.exists()
+
+
 def _damaged_model(out, model, damage):
     """A copy of model folder ``out`` whose model.pt record went through ``damage``."""
     import shutil
