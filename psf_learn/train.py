@@ -28,6 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from doe.errors import InputError
 from psf_learn.network import SRNet
 from psf_learn.psf import LearnedPSF
 from psf_learn.sensor import simulate_capture
@@ -250,9 +251,7 @@ def train(
     if checkpoint is not None and os.path.exists(checkpoint):
         state = store.load_checkpoint(checkpoint)
         if state.get("identity") == identity:
-            camera.load_state_dict(state["camera"])
-            opt.load_state_dict(state["optimizer"])
-            step, elapsed, history = state["step"], state["elapsed"], list(state["history"])
+            step, elapsed, history = _resume(state, camera, opt, checkpoint)
             if rank == 0:
                 print(f"resuming from {checkpoint} at step {step}", file=sys.stderr)
                 threads = state.get("threads")
@@ -354,6 +353,33 @@ def train(
         float(np.mean([h[1] for h in recent])),
         history,
     )
+
+
+def _resume(state, camera, opt, path):
+    """Load checkpoint ``state`` of this run into camera and opt; return (step, elapsed, history).
+
+    Its identity matched, but what it holds must be what :func:`train` saves: else
+    loading raised (exit 3), NaN weights trained on to a NaN model, and a NaN elapsed
+    time never reached a --minutes budget. InputError naming ``path`` if not.
+    """
+    try:
+        camera.load_state_dict(state["camera"])
+        opt.load_state_dict(state["optimizer"])
+        step, elapsed = state["step"], float(state["elapsed"])
+        history = [[float(loss), float(psnr)] for loss, psnr in state["history"]]
+        usable = (
+            isinstance(step, int)
+            and len(history) == step  # one row a step
+            and math.isfinite(elapsed)
+            and elapsed >= 0
+            and np.isfinite(history).all()
+            and all(bool(torch.isfinite(v).all()) for v in camera.state_dict().values())
+        )
+    except (KeyError, TypeError, ValueError, RuntimeError, AttributeError):
+        usable = False  # torch's loaders raise any of these on what they cannot take
+    if not usable:
+        raise InputError(path, "damaged (not what a run saves); --restart trains afresh")
+    return step, elapsed, history
 
 
 def default_patch(factor, limit=64):

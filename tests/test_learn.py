@@ -861,6 +861,33 @@ def test_a_foreign_checkpoint_is_refused_in_one_line(tmp_path, capsys):
     assert not (out / "checkpoint.pt").exists()
 
 
+@pytest.mark.parametrize(
+    "damage",
+    [
+        lambda s: s["camera"].update({"net.head.bias": torch.zeros(3)}),  # RuntimeError
+        lambda s: s["camera"]["psf.logits"].fill_(float("nan")),  # a traceback further on
+        lambda s: s["camera"]["net.head.weight"].fill_(float("nan")),
+        lambda s: s.update(optimizer=None),
+        lambda s: s.update(step="3"),
+        lambda s: s.update(step=10**12),  # "trained" 10**12 steps in no time
+        lambda s: s.update(elapsed=float("nan")),  # a --minutes budget was never spent
+        lambda s: s.update(history=[[1.0], "x"]),
+    ],
+)
+def test_a_damaged_checkpoint_of_this_run_is_refused(tmp_path, damage):
+    # Its identity is this run's, what it holds is not what a run saves.
+    from doe.errors import InputError
+
+    torch.set_num_threads(1)
+    images, sensor, ckpt = _images(), SensorModel(POINT, 200.0), tmp_path / "checkpoint.pt"
+    train(TINY, images, sensor, gaussian_psf(K), checkpoint=ckpt, stop_at_step=3)
+    state = torch.load(ckpt, weights_only=True)
+    damage(state)
+    torch.save(state, ckpt)
+    with pytest.raises(InputError, match=r"checkpoint\.pt: damaged .*--restart"):
+        train(TINY, images, sensor, gaussian_psf(K), checkpoint=ckpt)
+
+
 def test_a_refused_torch_write_is_one_line_and_leaves_no_part(tmp_path):
     # torch reports a full disk or a missing folder as a RuntimeError (a traceback from
     # learn, after the whole training) and leaves what it wrote.
