@@ -75,6 +75,8 @@ def _check_weights(state):
     if not isinstance(state, dict):
         raise ValueError(f"state_dict must be a table of tensors, got {type(state).__name__}")
     for name, value in state.items():
+        if not isinstance(name, str):  # load_state_dict raised AttributeError (exit 3)
+            raise ValueError(f"state_dict keys must be parameter names, got {name!r}")
         if not (isinstance(value, torch.Tensor) and value.is_floating_point()):
             kind = value.dtype if isinstance(value, torch.Tensor) else type(value).__name__
             raise ValueError(f"state_dict {name} must be a float tensor, got {kind}")

@@ -1165,6 +1165,7 @@ def test_evaluate_and_sr_refuse_bad_inputs(trained, tmp_path, capsys):
         lambda r: r["state_dict"].update(
             {"head.bias": r["state_dict"]["head.bias"].to(torch.complex64)}
         ),  # its imaginary part dropped, with a warning
+        lambda r: r.update(state_dict=dict(enumerate(r["state_dict"].values()))),  # exit 3
         lambda r: r["network"].update(arch="transformer"),  # no such network
     ],
 )
