@@ -6,6 +6,7 @@ stored as tensors and plain Python types, so it loads with
 """
 
 import os
+import warnings
 from pathlib import Path
 
 import torch
@@ -41,7 +42,7 @@ def _save(obj, path, shown_as=None):
 def load_checkpoint(path):
     """Read a checkpoint dict written by :func:`save_checkpoint` (InputError if it is not one)."""
     try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
+        state = _load(path)
     except Exception as e:
         state, reason = None, f"not readable: {type(e).__name__}: {first_line(e)}"
     else:
@@ -49,6 +50,17 @@ def load_checkpoint(path):
     if not isinstance(state, dict) or not {"identity", "camera", "step"} <= state.keys():
         raise InputError(path, f"{reason}; --restart trains afresh and replaces it")
     return state
+
+
+def _load(path):
+    """torch.load of tensors and plain types only, without torch's warnings.
+
+    A plain pickle (not torch's zip) made torch warn on stderr, two lines before the
+    one-line refusal.
+    """
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return torch.load(path, map_location="cpu", weights_only=True)
 
 
 def model_record(net, net_config, sensor):
@@ -82,7 +94,7 @@ def load_model_dir(model_dir):
     if not path.exists():
         raise InputError(path, "missing: train a model with `doefab learn --out DIR` first")
     try:
-        record = torch.load(path, map_location="cpu", weights_only=True)
+        record = _load(path)
     except Exception as e:
         raise InputError(
             path, f"not a readable model ({type(e).__name__}: {first_line(e)})"

@@ -933,6 +933,8 @@ def test_model_record_keeps_the_sensor_and_weights_as_they_were(tmp_path):
 def test_model_and_checkpoint_files_holding_code_or_another_format_are_refused(tmp_path):
     # weights_only: a torch file that unpickles anything but tensors and plain types could
     # run code; such a file is refused, not loaded
+    import pickle
+    import warnings
     from fractions import Fraction
 
     from doe.errors import InputError
@@ -949,6 +951,16 @@ def test_model_and_checkpoint_files_holding_code_or_another_format_are_refused(t
     torch.save({"identity": {}, "camera": {}, "step": 1, "x": Fraction(1, 3)}, ckpt)
     with pytest.raises(InputError, match="not readable"):
         store.load_checkpoint(ckpt)
+    # A plain pickle, not torch's zip: torch warned on stderr beside the refusal.
+    for path in (foreign / "model.pt", ckpt):
+        path.write_bytes(pickle.dumps({"format": store.MODEL_FORMAT, "x": Fraction(1, 3)}))
+    with warnings.catch_warnings(record=True) as warned:
+        warnings.simplefilter("always")
+        with pytest.raises(InputError, match="not a readable model"):
+            store.load_model_dir(foreign)
+        with pytest.raises(InputError, match="not readable"):
+            store.load_checkpoint(ckpt)
+    assert [str(w.message) for w in warned] == []
     torch.save({"camera": {}, "step": 1}, ckpt)  # no identity: not one of ours
     with pytest.raises(InputError, match="not a doefab checkpoint"):
         store.load_checkpoint(ckpt)
