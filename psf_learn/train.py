@@ -374,6 +374,13 @@ def _resume(state, camera, opt, path):
             and elapsed >= 0
             and np.isfinite(history).all()
             and all(bool(torch.isfinite(v).all()) for v in camera.state_dict().values())
+            # Adam's moments of another shape load, then fail in the first step
+            and all(
+                v.shape == p.shape
+                for p, s in opt.state.items()
+                for k, v in s.items()
+                if k != "step"
+            )
         )
     except (KeyError, TypeError, ValueError, RuntimeError, AttributeError):
         usable = False  # torch's loaders raise any of these on what they cannot take

@@ -868,6 +868,7 @@ def test_a_foreign_checkpoint_is_refused_in_one_line(tmp_path, capsys):
         lambda s: s["camera"]["psf.logits"].fill_(float("nan")),  # a traceback further on
         lambda s: s["camera"]["net.head.weight"].fill_(float("nan")),
         lambda s: s.update(optimizer=None),
+        lambda s: [m.update(exp_avg=torch.zeros(2)) for m in s["optimizer"]["state"].values()],
         lambda s: s.update(step="3"),
         lambda s: s.update(step=10**12),  # "trained" 10**12 steps in no time
         lambda s: s.update(elapsed=float("nan")),  # a --minutes budget was never spent
