@@ -372,7 +372,7 @@ def _resume(state, camera, opt, path):
             and len(history) == step  # one row a step
             and math.isfinite(elapsed)
             and elapsed >= 0
-            and np.isfinite(history).all()
+            and not np.isnan(history).any()  # a PSNR may be inf (an exact batch), not NaN
             and all(bool(torch.isfinite(v).all()) for v in camera.state_dict().values())
             # Adam's moments of another shape load, then fail in the first step
             and all(

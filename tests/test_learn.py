@@ -873,6 +873,7 @@ def test_a_foreign_checkpoint_is_refused_in_one_line(tmp_path, capsys):
         lambda s: s.update(step=10**12),  # "trained" 10**12 steps in no time
         lambda s: s.update(elapsed=float("nan")),  # a --minutes budget was never spent
         lambda s: s.update(history=[[1.0], "x"]),
+        lambda s: s["history"][1].__setitem__(0, float("nan")),  # a diverged step's loss
     ],
 )
 def test_a_damaged_checkpoint_of_this_run_is_refused(tmp_path, damage):
@@ -887,6 +888,18 @@ def test_a_damaged_checkpoint_of_this_run_is_refused(tmp_path, damage):
     torch.save(state, ckpt)
     with pytest.raises(InputError, match=r"checkpoint\.pt: damaged .*--restart"):
         train(TINY, images, sensor, gaussian_psf(K), checkpoint=ckpt)
+
+
+def test_a_checkpoint_whose_history_holds_an_exact_batch_resumes(tmp_path):
+    # A batch estimated exactly has an infinite PSNR: a figure, not damage.
+    torch.set_num_threads(1)
+    images, sensor, ckpt = _images(), SensorModel(POINT, 200.0), tmp_path / "checkpoint.pt"
+    train(TINY, images, sensor, gaussian_psf(K), checkpoint=ckpt, stop_at_step=3)
+    state = torch.load(ckpt, weights_only=True)
+    state["history"][1][1] = float("inf")
+    torch.save(state, ckpt)
+    result = train(TINY, images, sensor, gaussian_psf(K), checkpoint=ckpt, stop_at_step=4)
+    assert len(result.history) == 4 and result.history[1][1] == float("inf")
 
 
 def test_a_refused_torch_write_is_one_line_and_leaves_no_part(tmp_path):
