@@ -322,7 +322,14 @@ def train(
         opt.zero_grad(set_to_none=True)
         loss.backward()
         # long runs at a high learning rate spike without this (seen at 14 k steps)
-        nn.utils.clip_grad_norm_(camera.parameters(), 1.0)
+        norm = nn.utils.clip_grad_norm_(camera.parameters(), 1.0)
+        if not torch.isfinite(norm):  # the same on every rank: the gradients are shared
+            # One more step made the PSF NaN, and the next capture's Poisson draw raised.
+            raise InputError(
+                "--lr",
+                f"the training diverged at step {step + 1} (gradients no longer finite): "
+                "lower --lr or --psf-lr",
+            )
         opt.step()
         figures = torch.stack([loss.detach(), F.mse_loss(estimate.detach().clamp(0, 1), target)])
         if world > 1:  # the global batch's figures, as one process would have them

@@ -3,6 +3,7 @@
 import hashlib
 import json
 import os
+import re
 import socket
 
 import numpy as np
@@ -888,6 +889,21 @@ def test_a_damaged_checkpoint_of_this_run_is_refused(tmp_path, damage):
     torch.save(state, ckpt)
     with pytest.raises(InputError, match=r"checkpoint\.pt: damaged .*--restart"):
         train(TINY, images, sensor, gaussian_psf(K), checkpoint=ckpt)
+
+
+def test_a_training_that_diverges_is_refused_naming_the_learning_rate(tmp_path, capsys):
+    # --lr 1e8 made the weights overflow, the PSF NaN, and the next capture's Poisson
+    # draw raised: a traceback, exit 3. Nothing is written but the last checkpoint.
+    folder = _image_folder(tmp_path / "imgs")
+    out = tmp_path / "out"
+    args = ["learn", "--out", str(out), "--images", str(folder), *SMALL]
+    assert main([*args, "--lr", "1e8"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and re.search(
+        r"--lr: the training diverged at step \d+ .*lower --lr", err[0]
+    )
+    assert not any((out / name).exists() for name in ("psf.npy", "model.pt", "learn.json"))
+    assert main([*args, "--restart"]) == 0  # a sane rate trains
 
 
 def test_a_checkpoint_whose_history_holds_an_exact_batch_resumes(tmp_path):
