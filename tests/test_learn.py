@@ -877,16 +877,22 @@ def test_a_foreign_checkpoint_is_refused_in_one_line(tmp_path, capsys):
         lambda s: s["history"][1].__setitem__(0, float("nan")),  # a diverged step's loss
     ],
 )
-def test_a_damaged_checkpoint_of_this_run_is_refused(tmp_path, damage):
-    # Its identity is this run's, what it holds is not what a run saves.
-    from doe.errors import InputError
-
+def edited_checkpoint(tmp_path, edit):
+    """Train TINY 3 steps, apply ``edit`` to its checkpoint; return (images, sensor, path)."""
     torch.set_num_threads(1)
     images, sensor, ckpt = _images(), SensorModel(POINT, 200.0), tmp_path / "checkpoint.pt"
     train(TINY, images, sensor, gaussian_psf(K), checkpoint=ckpt, stop_at_step=3)
     state = torch.load(ckpt, weights_only=True)
-    damage(state)
+    edit(state)
     torch.save(state, ckpt)
+    return images, sensor, ckpt
+
+
+def test_a_damaged_checkpoint_of_this_run_is_refused(tmp_path, damage):
+    # Its identity is this run's, what it holds is not what a run saves.
+    from doe.errors import InputError
+
+    images, sensor, ckpt = edited_checkpoint(tmp_path, damage)
     with pytest.raises(InputError, match=r"checkpoint\.pt: damaged .*--restart"):
         train(TINY, images, sensor, gaussian_psf(K), checkpoint=ckpt)
 
@@ -908,12 +914,10 @@ def test_a_training_that_diverges_is_refused_naming_the_learning_rate(tmp_path, 
 
 def test_a_checkpoint_whose_history_holds_an_exact_batch_resumes(tmp_path):
     # A batch estimated exactly has an infinite PSNR: a figure, not damage.
-    torch.set_num_threads(1)
-    images, sensor, ckpt = _images(), SensorModel(POINT, 200.0), tmp_path / "checkpoint.pt"
-    train(TINY, images, sensor, gaussian_psf(K), checkpoint=ckpt, stop_at_step=3)
-    state = torch.load(ckpt, weights_only=True)
-    state["history"][1][1] = float("inf")
-    torch.save(state, ckpt)
+    def exact(state):
+        state["history"][1][1] = float("inf")
+
+    images, sensor, ckpt = edited_checkpoint(tmp_path, exact)
     result = train(TINY, images, sensor, gaussian_psf(K), checkpoint=ckpt, stop_at_step=4)
     assert len(result.history) == 4 and result.history[1][1] == float("inf")
 
