@@ -862,6 +862,17 @@ def test_a_foreign_checkpoint_is_refused_in_one_line(tmp_path, capsys):
     assert not (out / "checkpoint.pt").exists()
 
 
+def edited_checkpoint(tmp_path, edit):
+    """Train TINY 3 steps, apply ``edit`` to its checkpoint; return (images, sensor, path)."""
+    torch.set_num_threads(1)
+    images, sensor, ckpt = _images(), SensorModel(POINT, 200.0), tmp_path / "checkpoint.pt"
+    train(TINY, images, sensor, gaussian_psf(K), checkpoint=ckpt, stop_at_step=3)
+    state = torch.load(ckpt, weights_only=True)
+    edit(state)
+    torch.save(state, ckpt)
+    return images, sensor, ckpt
+
+
 @pytest.mark.parametrize(
     "damage",
     [
@@ -877,17 +888,6 @@ def test_a_foreign_checkpoint_is_refused_in_one_line(tmp_path, capsys):
         lambda s: s["history"][1].__setitem__(0, float("nan")),  # a diverged step's loss
     ],
 )
-def edited_checkpoint(tmp_path, edit):
-    """Train TINY 3 steps, apply ``edit`` to its checkpoint; return (images, sensor, path)."""
-    torch.set_num_threads(1)
-    images, sensor, ckpt = _images(), SensorModel(POINT, 200.0), tmp_path / "checkpoint.pt"
-    train(TINY, images, sensor, gaussian_psf(K), checkpoint=ckpt, stop_at_step=3)
-    state = torch.load(ckpt, weights_only=True)
-    edit(state)
-    torch.save(state, ckpt)
-    return images, sensor, ckpt
-
-
 def test_a_damaged_checkpoint_of_this_run_is_refused(tmp_path, damage):
     # Its identity is this run's, what it holds is not what a run saves.
     from doe.errors import InputError
