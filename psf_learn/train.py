@@ -328,7 +328,8 @@ def train(
             raise InputError(
                 "--lr",
                 f"the training diverged at step {step + 1} (gradients no longer finite): "
-                "lower --lr or --psf-lr",
+                "lower --lr or --psf-lr"
+                + (", or start from another --init model" if init_state is not None else ""),
             )
         opt.step()
         figures = torch.stack([loss.detach(), F.mse_loss(estimate.detach().clamp(0, 1), target)])

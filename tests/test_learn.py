@@ -1334,6 +1334,23 @@ def test_an_init_model_without_its_arch_is_refused_in_one_line(trained, tmp_path
     assert not (tmp_path / "m").exists()
 
 
+def test_an_init_model_whose_weights_overflow_diverges_and_is_named(trained, tmp_path, capsys):
+    # Finite weights of 1e30: the first step's activations overflow float32. The
+    # training stops, naming the learning rate and the model it started from.
+    out, images = trained
+
+    def inflate(record):
+        for value in record["state_dict"].values():
+            value.mul_(1e30)
+
+    model = _damaged_model(out, tmp_path / "model", inflate)
+    args = ["learn", "--init", str(model), "--out", str(tmp_path / "m"), "--images", str(images)]
+    assert main([*args, *SMALL]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "diverged" in err[0] and err[0].endswith("another --init model")
+    assert not (tmp_path / "m" / "model.pt").exists()
+
+
 def test_dark_counts_without_noise_are_refused(tmp_path, capsys):
     # Noise is off at --photons 0, dark counts included, yet model.pt recorded them and
     # sr subtracted them: a 0.5 grey frame came out at -4.4.
