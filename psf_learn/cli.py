@@ -349,7 +349,14 @@ def _evaluate(args):
             raise InputError(path, f"{text}; --psf-file must be made for the model's grid")
     # The capture mirrors each image by K // 2 at its borders: narrower ones cannot be.
     k = (model.psf if psf is None else psf).shape[0]
-    names, images = imgio.read_folder(args.images, min_size=max(4 * model.sensor.factor, k))
+    psf_path = args.psf_file or Path(args.model_dir) / "psf.npy"
+    names, images = imgio.read_folder(
+        args.images,
+        min_size=max(4 * model.sensor.factor, k),
+        why=f"the {k}x{k} PSF of {psf_path} needs {k} pixels"
+        if k > 4 * model.sensor.factor
+        else "",
+    )
     seed = EVAL_SEED if args.seed is None else args.seed
     res = evaluate(model, names, images, psf, seed, progress=sys.stderr.isatty())
     if not math.isfinite(res["psnr"]):  # images in [0, 1]: the weights overflowed float32

@@ -227,16 +227,18 @@ def image_files(folder):
     return files
 
 
-def read_folder(folder, min_size=0):
+def read_folder(folder, min_size=0, why=""):
     """Return (names, images) of every image in a folder, float32 (H, W) in [0, 1].
 
-    Images smaller than ``min_size`` on either side are refused with InputError.
+    Images smaller than ``min_size`` on either side are refused with InputError,
+    ``why`` (what sets the size) added to the message.
     """
     names, images = [], []
     for path in image_files(folder):
         img = read_image(path)
         if min(img.shape) < min_size:
-            raise InputError(path, f"image {img.shape} is smaller than {min_size} pixels")
+            reason = f"image {img.shape} is smaller than {min_size} pixels"
+            raise InputError(path, f"{reason} ({why})" if why else reason)
         names.append(path.name)
         images.append(img)
     return names, images

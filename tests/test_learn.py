@@ -1185,7 +1185,8 @@ def test_evaluate_and_sr_refuse_bad_inputs(trained, tmp_path, capsys):
     wide = tmp_path / "wide.npy"
     np.save(wide, gaussian_psf(41))
     assert main(["evaluate", str(out), "--images", str(small), "--psf-file", str(wide)]) == 2
-    assert "s.png: image (18, 18) is smaller than 41 pixels" in capsys.readouterr().err
+    err = capsys.readouterr().err  # the image and the PSF that sets the size are named
+    assert f"s.png: image (18, 18) is smaller than 41 pixels (the 41x41 PSF of {wide}" in err
     bad = tmp_path / "raw.npy"
     np.save(bad, np.zeros((2, 3, 4, 5)))
     assert main(["sr", str(out), str(bad), "--out", str(tmp_path / "sr")]) == 2
