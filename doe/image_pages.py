@@ -6,6 +6,18 @@ import sys
 from contextlib import contextmanager
 
 
+def png_bit_depth(path):
+    """Return the bit depth in a PNG's header, or None for a file that is no PNG.
+
+    OpenImageIO widens 1-, 2- and 4-bit PNGs to 8 bits and does not say so.
+    """
+    with open(path, "rb") as f:
+        head = f.read(26)
+    if head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR" or len(head) < 26:
+        return None
+    return head[24]
+
+
 def has_more_pages(inp):
     """Whether an open OpenImageIO ImageInput holds images after its first.
 

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from doe.errors import InputError
+from doe.image_pages import png_bit_depth
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 # natural photographs shipped inside scikit-image (no download on demand)
@@ -109,7 +110,7 @@ def _decode(path):
             if planar and first.samplesperpixel > 1:
                 a = np.moveaxis(a, -3, -1)  # channel planes: channels last, as elsewhere
             bits = first.bitspersample
-        elif _png_bit_depth(path) == 16:
+        elif png_bit_depth(path) == 16:
             separated, white, pages, a, bits = False, False, 1, _decode_oiio(path), None
         else:
             import imageio.v3 as iio
@@ -148,15 +149,6 @@ def _pillow_quiet(Image):
         warnings.simplefilter("ignore", Image.DecompressionBombWarning)
         warnings.filterwarnings("ignore", "Palette images with Transparency", UserWarning)
         yield
-
-
-def _png_bit_depth(path):
-    """Return the bit depth in a PNG's header, or None for a file that is no PNG."""
-    with open(path, "rb") as f:
-        head = f.read(26)
-    if head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR" or len(head) < 26:
-        return None
-    return head[24]
 
 
 def _decode_oiio(path):

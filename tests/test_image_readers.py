@@ -518,6 +518,38 @@ def test_a_capture_that_is_no_file_says_what_it_is(tmp_path):
             read_raw_image(tmp_path / name)
 
 
+def test_a_capture_of_fewer_than_8_bits_is_refused(tmp_path):
+    # Widened to 8 bits by the reader, a 1-bit capture's every dot read saturated and
+    # verify failed the plate (exit 1) for what the file held; CONVENTIONS: 8 or 16 bit.
+    import tifffile
+    from PIL import Image
+
+    bits = np.arange(64).reshape(8, 8) % 3 == 0
+    Image.fromarray(bits).save(tmp_path / "one.png")  # mode "1": a 1-bit PNG
+    tifffile.imwrite(tmp_path / "one.tif", bits)  # BitsPerSample 1
+    for name in ("one.png", "one.tif"):
+        with pytest.raises(InputError, match=re.escape(f"{name}: 1-bit image; give an 8-")):
+            read_raw_image(tmp_path / name)
+
+
+def test_a_12_bit_tiff_capture_keeps_its_codes_and_full_scale(tmp_path):
+    # OpenImageIO widens 12-bit samples to 16 bits (4095 -> 65535): the codes, their
+    # step and the sensor's full scale are the file's own.
+    import OpenImageIO as oiio
+
+    codes = (np.arange(64 * 64).reshape(64, 64) * 7 % 4096).astype(np.uint16)
+    path = tmp_path / "twelve.tif"
+    spec = oiio.ImageSpec(64, 64, 1, "uint16")
+    spec.attribute("oiio:BitsPerSample", 12)
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), spec) and out.write_image((codes << 4)[..., None])
+    out.close()
+    raw = read_raw_image(path)
+    assert np.array_equal(raw.data, codes)
+    assert raw.full_scale == 4095 and raw.quantum == 1
+    assert any("12-bit samples" in n for n in raw.notes)
+
+
 def test_a_capture_of_signed_integers_is_refused(tmp_path):
     import tifffile
 
