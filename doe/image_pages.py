@@ -7,15 +7,28 @@ from contextlib import contextmanager
 
 
 def png_bit_depth(path):
-    """Return the bit depth in a PNG's header, or None for a file that is no PNG.
+    """Return the bits per sample of a PNG from its header, or None for a file that is no PNG.
 
-    OpenImageIO widens 1-, 2- and 4-bit PNGs to 8 bits and does not say so.
+    OpenImageIO and Pillow widen 1-, 2- and 4-bit grey to 8 bits and do not say so.
+    A palette image's samples are its 8-bit entries, whatever its index depth.
     """
     with open(path, "rb") as f:
         head = f.read(26)
     if head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR" or len(head) < 26:
         return None
-    return head[24]
+    return 8 if head[25] == 3 else head[24]
+
+
+def stored_codes(values, stored_bits):
+    """Return integer ``values`` a reader widened from ``stored_bits`` bits as the codes stored.
+
+    The readers widen 1- to 4-bit samples to 8 bits and 9- to 15-bit ones to 16 by
+    repeating their bits below (15 -> 255, 4095 -> 65535): the top bits are the code.
+    """
+    container = 8 * values.dtype.itemsize
+    if values.dtype.kind != "u" or not stored_bits or stored_bits >= container:
+        return values
+    return values >> (container - stored_bits)
 
 
 def has_more_pages(inp):

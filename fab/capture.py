@@ -103,7 +103,12 @@ def read_raw_image(path):
     """
     import OpenImageIO as oiio
 
-    from doe.image_pages import has_more_pages, native_stderr_quiet, png_bit_depth
+    from doe.image_pages import (
+        has_more_pages,
+        native_stderr_quiet,
+        png_bit_depth,
+        stored_codes,
+    )
 
     path = Path(path)
     if path.is_dir():
@@ -196,7 +201,7 @@ def read_raw_image(path):
     elif fmt == "uint16" and stored_bits and 8 < stored_bits < 16:
         # A 12-bit TIFF comes widened to 16 bits (4095 -> 65535, the top bits repeated
         # below): its own codes, step and full scale are taken back.
-        data = data >> (16 - stored_bits)
+        data = stored_codes(data, stored_bits)
         full = float((1 << stored_bits) - 1)
         encoding = f"uint{stored_bits}"
         notes.append(f"{stored_bits}-bit samples: codes as stored, full scale {full:g}")

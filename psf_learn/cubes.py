@@ -105,7 +105,7 @@ def read_frame(path):
     """Read one single-channel frame keeping its integer type (uint8/uint16) or float32."""
     import OpenImageIO as oiio
 
-    from doe.image_pages import has_more_pages, native_stderr_quiet
+    from doe.image_pages import has_more_pages, native_stderr_quiet, png_bit_depth, stored_codes
 
     path = Path(path)
     if path.is_dir():
@@ -133,9 +133,11 @@ def read_frame(path):
             raise InputError(path, f"could not read the pixels ({inp.geterror()})")
         if has_more_pages(inp):  # a multi-page TIFF: which page is this shift's frame?
             raise InputError(path, "holds several images (pages); give one frame per file")
+        # Counts as stored: a 12-bit TIFF's 4095 came as 65535, a 1-bit PNG's 1 as 255.
+        bits = spec.get_int_attribute("oiio:BitsPerSample", 0) or png_bit_depth(path)
     finally:
         inp.close()
-    return np.asarray(pixels).reshape(spec.height, spec.width)
+    return stored_codes(np.asarray(pixels).reshape(spec.height, spec.width), bits)
 
 
 def read_irf(path):

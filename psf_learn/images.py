@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from doe.errors import InputError
-from doe.image_pages import png_bit_depth
+from doe.image_pages import png_bit_depth, stored_codes
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 # natural photographs shipped inside scikit-image (no download on demand)
@@ -306,7 +306,8 @@ def read_raw(path):
                 path, f"raw frames must be numeric (H, W) or (T, H, W), got {a.dtype} {a.shape}"
             )
     else:
-        a = decode(path)
+        # Pillow widens a 4-bit grey PNG to 8 bits (1 -> 17): counts are the codes stored.
+        a = stored_codes(decode(path), png_bit_depth(path))
         if a.ndim == 3 and a.shape[2] == 2:  # grey and alpha
             a = a[..., :1]
         if a.ndim == 3 and a.shape[2] in (3, 4):

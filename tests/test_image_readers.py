@@ -518,6 +518,42 @@ def test_a_capture_that_is_no_file_says_what_it_is(tmp_path):
             read_raw_image(tmp_path / name)
 
 
+def _grey_png(path, codes, bits):
+    """Write a 1-, 2- or 4-bit greyscale PNG by hand (Pillow writes none of them but 1-bit)."""
+    import struct
+    import zlib
+
+    def chunk(kind, data):
+        return (
+            struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+        )
+
+    rows = b""
+    for row in codes:
+        text = "".join(format(int(v), f"0{bits}b") for v in row)
+        text += "0" * (-len(text) % 8)
+        rows += b"\0" + int(text, 2).to_bytes(len(text) // 8, "big")
+    header = struct.pack(">IIBBBBB", codes.shape[1], codes.shape[0], bits, 0, 0, 0, 0)
+    path.write_bytes(
+        b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(rows))
+        + chunk(b"IEND", b"")
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("bits", [1, 2, 4])
+def test_counts_of_a_png_of_fewer_than_8_bits_are_its_codes(tmp_path, bits):
+    # The readers widen them to 8 bits (a 4-bit 1 read 17, a 1-bit 1 read 255 as a
+    # depth frame): counts are the codes stored. A capture of them is refused.
+    codes = (np.arange(6 * 10).reshape(6, 10) % (1 << bits)).astype(np.uint8)
+    path = tmp_path / f"c{bits}.png"
+    _grey_png(path, codes, bits)
+    np.testing.assert_array_equal(read_raw(path), codes)
+    np.testing.assert_array_equal(read_frame(path), codes)
+    np.testing.assert_allclose(read_image(path), codes / ((1 << bits) - 1), atol=1e-6)
+    with pytest.raises(InputError, match=re.escape(f"c{bits}.png: {bits}-bit image")):
+        read_raw_image(path)
+
+
 def test_a_capture_of_fewer_than_8_bits_is_refused(tmp_path):
     # Widened to 8 bits by the reader, a 1-bit capture's every dot read saturated and
     # verify failed the plate (exit 1) for what the file held; CONVENTIONS: 8 or 16 bit.
@@ -548,6 +584,9 @@ def test_a_12_bit_tiff_capture_keeps_its_codes_and_full_scale(tmp_path):
     assert np.array_equal(raw.data, codes)
     assert raw.full_scale == 4095 and raw.quantum == 1
     assert any("12-bit samples" in n for n in raw.notes)
+    # and as a depth frame, its counts (they read 16 times too many), as sr reads them
+    np.testing.assert_array_equal(read_frame(path), codes)
+    np.testing.assert_array_equal(read_raw(path), codes)
 
 
 def test_a_capture_of_signed_integers_is_refused(tmp_path):
