@@ -609,15 +609,6 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
             "correlation_with_fitted_etch": None
             if etch_fit is None
             else correlation(measured_psf, etch_fit["psf"]),
-            "overlay_error_fit": _overlay_fit(
-                measured_psf,
-                design_psf,
-                (window, sigma[sl]),
-                lambda period: _frame_score(meas, valid, sigma, period, m0, n0, half)[0],
-                levels,
-                n_levels,
-                thresholds,
-            ),
             "power_outside_window": 1 - w_sum / beam["signal"],
             "power_outside_window_sigma": float(
                 np.sqrt(max(beam["signal_var"] - w_var, 0)) / beam["signal"]
@@ -635,23 +626,32 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
             "hot_pixel_orders": grid.spike_orders,
         }
     )
+    # Fitted only to explain a PSF that fails (a second or so at N = 175).
+    result["overlay_error_fit"] = (
+        _overlay_fit(
+            measured_psf,
+            (window, sigma[sl]),
+            lambda period: _frame_score(meas, valid, sigma, period, m0, n0, half)[0],
+            levels,
+            n_levels,
+        )
+        if _psf_fails(result, thresholds)
+        else None
+    )
     result["diagnosis"] = diagnose(result, thresholds)
     result["pass"] = result["diagnosis"] == ["ok"]
     return result, measured_psf
 
 
-def _overlay_fit(measured_psf, design_psf, window, frame_score, levels, n_levels, thresholds):
-    """Return the JSON-ready overlay fit of a window whose PSF fails, else None.
+def _overlay_fit(measured_psf, window, frame_score, levels, n_levels):
+    """Return the JSON-ready overlay fit of the window, or None when no mask can shift.
 
-    Fitted only then (a second or so at N = 175): it is there to explain a failure.
     ``window`` is (powers, sigma); ``frame_score`` maps an order-power period to
     the frame correlation, which is also taken for the fitted plate: a dense
     design's every order changes with the overlay, not only the window's.
     """
     from fab.capture_sim import PlateFaults, plate_phase  # the faulty plate's model
 
-    if _psf_passes(measured_psf, design_psf, thresholds):
-        return None
     fit = fit_overlay_error(*window, levels, n_levels)
     if fit is None:
         return None
@@ -669,11 +669,11 @@ def _overlay_fit(measured_psf, design_psf, window, frame_score, levels, n_levels
     }
 
 
-def _psf_passes(measured_psf, reference_psf, thresholds):
-    """Whether a measured PSF matches a reference within the correlation and rmse thresholds."""
+def _psf_fails(result, thresholds):
+    """Whether the measured PSF misses the design's by the correlation or rmse threshold."""
     return (
-        correlation(measured_psf, reference_psf) >= thresholds["correlation_min"]
-        and rmse(measured_psf, reference_psf) <= thresholds["rmse_max"]
+        result["correlation"] < thresholds["correlation_min"]
+        or result["rmse"] > thresholds["rmse_max"]
     )
 
 
@@ -872,10 +872,7 @@ def diagnose(result, thresholds):
         process.append("deep_etch_error")
     codes += process
     if not codes or codes == process:
-        if (
-            result["correlation"] < thresholds["correlation_min"]
-            or result["rmse"] > thresholds["rmse_max"]
-        ):
+        if _psf_fails(result, thresholds):
             codes.append("psf_mismatch")
         if (
             result["efficiency"] + SIGNIFICANCE * result["efficiency_sigma"]
