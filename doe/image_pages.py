@@ -4,6 +4,33 @@
 import os
 import sys
 from contextlib import contextmanager
+from pathlib import Path
+
+from doe.errors import InputError
+
+
+def check_file_kind(path):
+    """Raise InputError for a folder, a pipe or device, or a dangling link named as an image.
+
+    Opening a pipe waits for a writer for ever, and "no such file" of /dev/zero or of a
+    link to nothing misled; a missing file is each reader's to name.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise InputError(path, "is a folder, not an image file")
+    if path.exists() and not path.is_file():
+        raise InputError(path, "is not a regular file (a pipe or a device)")
+    if path.is_symlink() and not path.exists():
+        raise InputError(path, "is a symbolic link to nothing (dangling, or a loop)")
+
+
+def stored_bits(spec, path):
+    """Return the bits per sample a file stores (None if it does not say).
+
+    OpenImageIO widens fewer bits to its 8 or 16: a TIFF says how many it had
+    (``oiio:BitsPerSample``), a PNG only in its header.
+    """
+    return spec.get_int_attribute("oiio:BitsPerSample", 0) or png_bit_depth(path)
 
 
 def png_bit_depth(path):

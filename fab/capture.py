@@ -104,19 +104,15 @@ def read_raw_image(path):
     import OpenImageIO as oiio
 
     from doe.image_pages import (
+        check_file_kind,
         has_more_pages,
         native_stderr_quiet,
-        png_bit_depth,
+        stored_bits,
         stored_codes,
     )
 
     path = Path(path)
-    if path.is_dir():
-        raise InputError(path, "is a folder, not an image file")
-    if path.exists() and not path.is_file():  # "no such image file" of /dev/zero misled
-        raise InputError(path, "is not a regular file (a pipe or a device)")
-    if path.is_symlink() and not path.exists():
-        raise InputError(path, "is a symbolic link to nothing (dangling, or a loop)")
+    check_file_kind(path)
     if not path.is_file():
         raise InputError(path, "no such image file")
     config = oiio.ImageSpec()
@@ -145,9 +141,7 @@ def read_raw_image(path):
         if pixels is None or inp.has_error:
             raise InputError(path, f"truncated or corrupt image ({_one_line(inp.geterror())})")
         exposure = spec.get_float_attribute("ExposureTime", 0.0)
-        # What the file stores: OpenImageIO widens fewer bits to its 8 or 16 (a TIFF
-        # says how many it had, a PNG only in its header).
-        stored_bits = spec.get_int_attribute("oiio:BitsPerSample", 0) or png_bit_depth(path)
+        bits = stored_bits(spec, path)
         file_orientation = spec.get_int_attribute("Orientation", 1)
         if has_more_pages(inp):  # a multi-page TIFF: which page is the capture?
             raise InputError(path, "holds several images (pages); give one capture per file")
@@ -183,10 +177,10 @@ def read_raw_image(path):
     data = pixels[..., 0]
     encoding = fmt
     quantum = 1.0
-    if fmt != "float" and stored_bits and stored_bits < 8:
+    if fmt != "float" and bits and bits < 8:
         # Dots of 2 or 16 grey values: verify blamed the plate for the file (CONVENTIONS
         # asks for 8 or 16 bits).
-        raise InputError(path, f"{stored_bits}-bit image; give an 8- or 16-bit or float capture")
+        raise InputError(path, f"{bits}-bit image; give an 8- or 16-bit or float capture")
     if fmt == "float":
         data = data.astype(np.float32)
         quantum = 0.0
@@ -198,13 +192,13 @@ def read_raw_image(path):
                 f"float pixels reach {np.abs(data).max():.3g}, beyond {FLOAT_PIXEL_MAX:g}: "
                 "the sums over a dot would overflow; scale the image down",
             )
-    elif fmt == "uint16" and stored_bits and 8 < stored_bits < 16:
+    elif fmt == "uint16" and bits and 8 < bits < 16:
         # A 12-bit TIFF comes widened to 16 bits (4095 -> 65535, the top bits repeated
         # below): its own codes, step and full scale are taken back.
-        data = stored_codes(data, stored_bits)
-        full = float((1 << stored_bits) - 1)
-        encoding = f"uint{stored_bits}"
-        notes.append(f"{stored_bits}-bit samples: codes as stored, full scale {full:g}")
+        data = stored_codes(data, bits)
+        full = float((1 << bits) - 1)
+        encoding = f"uint{bits}"
+        notes.append(f"{bits}-bit samples: codes as stored, full scale {full:g}")
     elif fmt == "uint16" and data.any() and not np.any(data & 0xF):
         # 12-bit sensors written MSB-aligned leave the four low bits zero; a 10-bit
         # one leaves six, 8-bit data scaled by 256 eight. The codes are shifted

@@ -105,11 +105,16 @@ def read_frame(path):
     """Read one single-channel frame keeping its integer type (uint8/uint16) or float32."""
     import OpenImageIO as oiio
 
-    from doe.image_pages import has_more_pages, native_stderr_quiet, png_bit_depth, stored_codes
+    from doe.image_pages import (
+        check_file_kind,
+        has_more_pages,
+        native_stderr_quiet,
+        stored_bits,
+        stored_codes,
+    )
 
     path = Path(path)
-    if path.is_dir():
-        raise InputError(path, "is a folder, not an image file")
+    check_file_kind(path)
     with native_stderr_quiet():  # libpng's own "libpng error: ..." line; geterror() has it
         inp = oiio.ImageInput.open(str(path))
     if inp is None:
@@ -134,7 +139,7 @@ def read_frame(path):
         if has_more_pages(inp):  # a multi-page TIFF: which page is this shift's frame?
             raise InputError(path, "holds several images (pages); give one frame per file")
         # Counts as stored: a 12-bit TIFF's 4095 came as 65535, a 1-bit PNG's 1 as 255.
-        bits = spec.get_int_attribute("oiio:BitsPerSample", 0) or png_bit_depth(path)
+        bits = stored_bits(spec, path)
     finally:
         inp.close()
     return stored_codes(np.asarray(pixels).reshape(spec.height, spec.width), bits)

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from doe.errors import InputError
-from doe.image_pages import png_bit_depth, stored_codes
+from doe.image_pages import check_file_kind, png_bit_depth, stored_codes
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 # natural photographs shipped inside scikit-image (no download on demand)
@@ -92,10 +92,7 @@ def _decode(path):
     alpha) as 8-bit, dropping the low byte without a word.
     """
     path = Path(path)
-    if path.is_dir():
-        raise InputError(path, "is a folder, not an image file")
-    if path.exists() and not path.is_file():  # opening a FIFO waits for a writer, for ever
-        raise InputError(path, "is not a regular file (a pipe or a device)")
+    check_file_kind(path)
     try:
         if path.suffix.lower() in (".tif", ".tiff"):
             import tifffile
