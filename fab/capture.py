@@ -24,6 +24,9 @@ HOT_PIXEL_SIGMAS = 10.0
 PLATEAU_PIXELS = 3
 # Exposure times (from the files' metadata) may differ by this fraction.
 EXPOSURE_RTOL = 0.02
+# A dark frame with more than this share of its pixels at full scale saw light (a
+# frame saturated everywhere passed as a dark and every figure stayed the same).
+DARK_SATURATED_MAX = 0.01
 # Float pixels beyond this are refused: the analysis sums pixels times squared
 # distances in float32 (largest 3.4e38); a capture at 2e38 overflowed there, printed
 # numpy's warnings and read no signal. No camera counts within 1e20 of it.
@@ -302,7 +305,8 @@ def read_capture(path, dark_path=None):
 
 
 def check_dark(raw, dark, dark_source):
-    """Refuse a dark frame that does not match the capture (size, bit depth, exposure)."""
+    """Refuse a dark frame that does not match the capture (size, bit depth, exposure)
+    or that saw light (a share above ``DARK_SATURATED_MAX`` of its pixels at full scale)."""
     if dark.data.shape != raw.data.shape:
         raise InputError(
             dark_source,
@@ -325,6 +329,14 @@ def check_dark(raw, dark, dark_source):
             f"dark exposure {dark.exposure:.6g} s differs from the "
             f"capture's {raw.exposure:.6g} s; take the dark at the same exposure",
         )
+    if dark.full_scale is not None:
+        share = np.count_nonzero(dark.data >= dark.full_scale) / dark.data.size
+        if share > DARK_SATURATED_MAX:
+            raise InputError(
+                dark_source,
+                f"{100 * share:.3g} % of the dark frame's pixels are at full scale "
+                f"({dark.full_scale:g}): it saw light; take it with the light blocked",
+            )
 
 
 def condition_capture(raw, dark=None):
@@ -367,6 +379,14 @@ def condition_capture(raw, dark=None):
     if dark is not None:
         dark_f = dark.data.astype(np.float32)
         image -= dark_f
+        rise = float(np.median(dark_f[::4, ::4]) - np.median(data[::4, ::4]))
+        if rise > max(5 * robust_sigma(dark_f[::4, ::4]), raw.quantum):
+            # Harmless to the figures (each dot's local background takes it out), but
+            # a dark frame above the capture was not taken with the capture's settings.
+            notes.append(
+                f"the dark frame's floor is {rise:.4g} DN above the capture's: taken "
+                "with other camera settings? Each dot's local background takes the offset out"
+            )
         # Flagged, not repaired: on a dot, a hot pixel less its dark still holds
         # the dot's light; which pixels lie on a dot is known once the lattice is.
         hot = hot_pixels_from_dark(dark_f)

@@ -187,6 +187,40 @@ def read_design_dir(path):
     )
 
 
+def _refuse_a_dark_frame_with_dots(args, nominal_px):
+    """Name the dark frame when it holds the dots that the dark-subtracted capture lacks.
+
+    Files swapped, or a dark taken with the light on, left "no dot stands out" on the
+    capture, which sent the lab to its plate or camera rather than to the dark frame.
+    """
+    import numpy as np
+
+    from fab.capture import read_raw_image
+    from fab.lattice import LatticeNotFound, register_lattice
+
+    def holds_a_lattice(path):
+        raw = read_raw_image(path)
+        try:
+            register_lattice(raw.data.astype(np.float32), nominal_px, quantum=raw.quantum)
+        except LatticeNotFound:
+            return False
+        return True
+
+    if not holds_a_lattice(args.dark):
+        return
+    if holds_a_lattice(args.capture):
+        raise InputError(
+            args.dark,
+            "the dark frame holds the capture's dot lattice, so none is left once it is "
+            "subtracted; take the dark with the light blocked",
+        )
+    raise InputError(
+        args.dark,
+        f"the dark frame holds a dot lattice and the capture {Path(args.capture).name} "
+        "none: are the capture and --dark swapped?",
+    )
+
+
 def _verify(args):
     import numpy as np
 
@@ -223,6 +257,8 @@ def _verify(args):
     try:
         lattice, lattice_notes = register_lattice(found, nominal_px, quantum=capture.quantum)
     except LatticeNotFound as e:
+        if args.dark is not None:
+            _refuse_a_dark_frame_with_dots(args, nominal_px)
         extra = (
             f"; {int(capture.saturated.sum())} saturated pixels" if capture.saturated.any() else ""
         )

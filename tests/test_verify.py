@@ -504,6 +504,48 @@ def test_dark_frame_of_another_size_or_exposure_exits_2(tmp_path, levels, capsys
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize("mixup", ["swapped", "lit dark"])
+def test_a_dark_frame_holding_the_dots_is_named(tmp_path, levels, capsys, mixup):
+    # Both failed as "capture.png: no dot stands 8 sigma above the noise", which sent
+    # the lab to its plate and camera rather than to the dark frame.
+    design = make_design_dir(tmp_path / "design", levels)
+    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, seed=1)
+    other = simulate_capture(levels, L, pitch_px=PITCH_PX, seed=5)["capture"]
+    capture, dark = (sim["dark"], sim["capture"]) if mixup == "swapped" else (sim["capture"], other)
+    write_image(tmp_path / "cap.png", capture, exposure=0.01)
+    write_image(tmp_path / "dark.png", dark, exposure=0.01)
+    argv = ["verify", str(design), str(tmp_path / "cap.png"), "--dark", str(tmp_path / "dark.png")]
+    assert main([*argv, "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "dark.png: the dark frame holds" in err and ("swapped" in err) == (mixup == "swapped")
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_dark_frame_that_saw_light_is_refused(tmp_path, levels, capsys):
+    # A dark saturated everywhere was subtracted and the plate passed as if it were one.
+    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, shape=(300, 300), seed=15)
+    raw = RawImage(sim["capture"] >> 4, 4095.0, None, encoding="uint16-msb12")
+    dark = sim["dark"] >> 4
+    spots = np.random.default_rng(0).random(dark.shape)
+    for share, refused in ((0.005, False), (0.02, True), (1.0, True)):
+        lit = np.where(spots < share, 4095, dark)
+        lit_raw = RawImage(lit, 4095.0, None, encoding="uint16-msb12")
+        if refused:
+            with pytest.raises(InputError, match=r"dark.png: .* at full scale \(4095\): it saw"):
+                check_dark(raw, lit_raw, tmp_path / "dark.png")
+        else:  # a few hot pixels at full scale are a dark frame's own
+            check_dark(raw, lit_raw, tmp_path / "dark.png")
+
+
+@pytest.mark.parametrize("rise", [0, 200])
+def test_a_dark_floor_above_the_capture_is_noted(levels, rise):
+    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, shape=(300, 300), seed=15)
+    raw = RawImage(sim["capture"] >> 4, 4095.0, None, encoding="uint16-msb12")
+    dark = RawImage((sim["dark"] >> 4) + rise, 4095.0, None, encoding="uint16-msb12")
+    notes = condition_capture(raw, dark).notes
+    assert any(f"floor is {rise} DN above" in n for n in notes) == (rise > 0)
+
+
 @pytest.mark.parametrize("seconds", [-0.01, float("nan"), float("inf")])
 def test_an_exposure_time_that_is_no_time_is_ignored_and_noted(tmp_path, seconds):
     # Equal negative ExposureTimes were refused as "dark exposure -0.01 s differs from
