@@ -27,6 +27,10 @@ EXPOSURE_RTOL = 0.02
 # A dark frame with more than this share of its pixels at full scale saw light (a
 # frame saturated everywhere passed as a dark and every figure stayed the same).
 DARK_SATURATED_MAX = 0.01
+# The formats CONVENTIONS names for captures (OpenImageIO's names). JPEG and WebP
+# were read too, their compression moving the weak orders' counts, and GIF's palette.
+CAPTURE_FORMATS = {"tiff": "TIFF", "png": "PNG", "openexr": "EXR"}
+LOSSY_COMPRESSIONS = {"jpeg", "webp", "dwaa", "dwab", "b44", "b44a"}
 # Float pixels beyond this are refused: the analysis sums pixels times squared
 # distances in float32 (largest 3.4e38); a capture at 2e38 overflowed there, printed
 # numpy's warnings and read no signal. No camera counts within 1e20 of it.
@@ -126,6 +130,15 @@ def read_raw_image(path):
         raise InputError(path, f"not a readable image ({_one_line(oiio.geterror())})")
     try:
         spec = inp.spec()
+        kind = inp.format_name()
+        compression = spec.get_string_attribute("compression").split(":")[0]
+        if kind not in CAPTURE_FORMATS or compression in LOSSY_COMPRESSIONS:
+            what = (
+                f"{kind.upper()} image"
+                if kind not in CAPTURE_FORMATS
+                else f"{CAPTURE_FORMATS[kind]} compressed with loss ({compression})"
+            )
+            raise InputError(path, f"{what}; give the capture as TIFF, PNG or EXR without loss")
         base = spec.format.basetype
         if base in (oiio.UINT8, oiio.UINT16):
             fmt, full = ("uint8", 255.0) if base == oiio.UINT8 else ("uint16", 65535.0)

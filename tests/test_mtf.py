@@ -294,3 +294,14 @@ def test_rows_where_the_edge_is_hidden_are_left_out_of_the_line_fit():
     assert r["mtf50_cycles_per_pixel"] == pytest.approx(
         np.sqrt(np.log(2) / (2 * np.pi**2)), rel=0.03
     )
+
+
+def test_mtf_refuses_an_edge_stored_with_loss(tmp_path, capsys):
+    # JPEG's 8 x 8 blocks ring along an edge: its MTF is the codec's as much as the lens's.
+    from PIL import Image
+
+    img = np.clip(gaussian_edge(1.2, 5, high=220, noise=2.0), 0, 255).astype(np.uint8)
+    Image.fromarray(img).save(tmp_path / "edge.jpg", quality=90)
+    assert main(["mtf", str(tmp_path / "edge.jpg"), "--out", str(tmp_path / "o")]) == 2
+    assert "edge.jpg: JPEG image; give the capture as" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()

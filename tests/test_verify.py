@@ -463,6 +463,52 @@ def test_truncated_capture_exits_2_naming_the_file(tmp_path, levels, capsys):
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize(
+    "name, save, refusal",
+    [
+        ("cap.jpg", dict(quality=95), "JPEG image"),
+        ("cap.webp", dict(quality=95), "WEBP image"),
+        ("cap.gif", {}, "GIF image"),
+        ("cap.tif", dict(compression="jpeg"), "TIFF compressed with loss (jpeg)"),
+    ],
+)
+def test_a_capture_stored_with_loss_is_refused(tmp_path, levels, capsys, name, save, refusal):
+    # CONVENTIONS names TIFF, PNG and EXR: a JPEG capture's compression moved the weak
+    # orders' counts, and verify judged the plate by them.
+    from PIL import Image
+
+    design = make_design_dir(tmp_path / "design", levels)
+    sim = simulate_capture(levels, L, pitch_px=PITCH_PX, bits=8, seed=1)
+    Image.fromarray(sim["capture"]).save(tmp_path / name, **save)
+    write_image(tmp_path / "cap.png", sim["capture"])
+    for capture, dark in ((name, None), ("cap.png", name)):
+        argv = ["verify", str(design), str(tmp_path / capture), "--out", str(tmp_path / "o")]
+        code = main(argv + (["--dark", str(tmp_path / dark)] if dark else []))
+        err = capsys.readouterr().err.strip()
+        assert code == 2 and f"{name}: {refusal}; give the capture as TIFF, PNG or EXR" in err
+        assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("compression", ["dwaa", "b44"])
+def test_an_exr_capture_compressed_with_loss_is_refused(tmp_path, compression):
+    import OpenImageIO as oiio
+
+    spec = oiio.ImageSpec(32, 32, 1, "float")
+    spec.attribute("compression", compression)
+    out = oiio.ImageOutput.create(str(tmp_path / "cap.exr"))
+    out.open(str(tmp_path / "cap.exr"), spec)
+    out.write_image(np.ones((32, 32, 1), np.float32))
+    out.close()
+    with pytest.raises(InputError, match=f"EXR compressed with loss \\({compression}\\)"):
+        read_capture(tmp_path / "cap.exr")
+    spec.attribute("compression", "zip")  # lossless: read
+    out = oiio.ImageOutput.create(str(tmp_path / "zip.exr"))
+    out.open(str(tmp_path / "zip.exr"), spec)
+    out.write_image(np.ones((32, 32, 1), np.float32))
+    out.close()
+    assert read_capture(tmp_path / "zip.exr").image.shape == (32, 32)
+
+
 def test_dots_too_close_to_measure_exit_2(tmp_path, levels, capsys):
     # At 3 px apart the aperture overlaps its background annulus: this capture of a good
     # plate once failed as conjugate_plate; a pixel pitch in nm (1000x) once ran out of memory.
