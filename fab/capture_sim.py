@@ -49,8 +49,9 @@ class PlateFaults:
 
     Attributes
     ----------
-    deep_etch_error : float
-        Fractional depth error of the deepest mask's etch (+0.15 = 15 % too deep).
+    etch_errors : tuple of float
+        Fractional depth error of each mask's etch, deepest first (+0.15 = 15 % too
+        deep); masks beyond the tuple are etched right.
     conjugate : bool
         Etch and glass swapped (level l made as L-1-l): the PSF is point-reflected.
     overlay_mask : int
@@ -61,7 +62,7 @@ class PlateFaults:
         Make this level map instead (a plate of another design).
     """
 
-    deep_etch_error: float = 0.0
+    etch_errors: tuple[float, ...] = ()
     conjugate: bool = False
     overlay_mask: int = 0
     overlay_shift: tuple[float, float] = (0.0, 0.0)
@@ -106,8 +107,8 @@ def plate_phase(levels, n_levels, faults=PlateFaults(), mask_pixel_pitch=None, s
             # Periodic: the tile repeats; +y is up, i.e. towards row 0.
             bitmap = np.roll(bitmap, (-round(dy / sub), round(dx / sub)), axis=(0, 1))
         depth = mask.steps * phase_step
-        if j == 0:
-            depth *= 1 + faults.deep_etch_error
+        if j < len(faults.etch_errors):
+            depth *= 1 + faults.etch_errors[j]
         phase = phase - depth * bitmap
     return phase
 

@@ -69,12 +69,16 @@ class DesignRef:
     n_levels: int
     kernel_size: int
     lattice_pitch: float
-    deep_etch_depth: float | None
+    etch_depths: tuple[float, ...]  # deepest first; () when the folder does not say
     acceptance: dict | None
     target_psf: object
     kind: str
     files: tuple[str, ...]
     mask_pixel_pitch: float | None = None  # None: the manifest does not say
+
+    @property
+    def deep_etch_depth(self):
+        return self.etch_depths[0] if self.etch_depths else None
 
 
 def read_design_dir(path):
@@ -109,7 +113,7 @@ def read_design_dir(path):
                 )
             masks = sorted(man.get("masks", []), key=lambda mk: mk["exposure_order"])
             pitch = float(man["pixel_pitch_nm"]) * 1e-9 if "pixel_pitch_nm" in man else None
-            deep = float(masks[0]["etch_depth_nm"]) * 1e-9 if masks else None
+            depths = [float(mk["etch_depth_nm"]) * 1e-9 for mk in masks]
             acceptance = man.get("acceptance")
             target_file = path / man.get("target_psf_file", "target_psf.npy")
             target_named = "target_psf_file" in man
@@ -127,7 +131,9 @@ def read_design_dir(path):
             derived = design["derived"]
             wavelength = float(design["optics"]["wavelength_nm"]) * 1e-9
             focal = float(design["optics"]["focal_length_mm"]) * 1e-3
-            deep = float(derived["etch_depths_nm"][0]) * 1e-9
+            depths = [float(d) * 1e-9 for d in derived["etch_depths_nm"]]
+            if not depths:
+                raise IndexError("etch_depths_nm is empty")
             grid = float(design["fabrication"].get("grid_nm", 1)) * 1e-9
             tile_nominal = float(derived["tile_size_nominal_um"]) * 1e-6
             if not (grid > 0 and tile_nominal > 0 and math.isfinite(grid * tile_nominal)):
@@ -168,8 +174,9 @@ def read_design_dir(path):
         raise InputError(source, "acceptance must be a table of thresholds")
     if not (math.isfinite(lattice) and lattice > 0):
         raise InputError(source, f"lattice pitch {lattice} m is not positive")
-    if deep is not None and not (math.isfinite(deep) and deep > 0):  # its error's scale
-        raise InputError(source, f"the deep mask's etch depth {deep * 1e9:g} nm is not positive")
+    for depth in depths:  # the scale of a fitted etch error
+        if not (math.isfinite(depth) and depth > 0):
+            raise InputError(source, f"an etch depth of {depth * 1e9:g} nm is not positive")
     if pitch is not None and not (math.isfinite(pitch) and pitch > 0):
         raise InputError(source, f"the mask pixel pitch {pitch * 1e9:g} nm is not positive")
     files = [source.name, levels_file.name] + ([target_file.name] if target is not None else [])
@@ -178,7 +185,7 @@ def read_design_dir(path):
         n_levels,
         kernel,
         lattice,
-        deep,
+        tuple(depths),
         acceptance,
         target,
         kind,
@@ -236,6 +243,7 @@ def _verify(args):
         repair_hot_pixels,
         repair_stray_spikes,
     )
+    from fab.masks import mask_name
     from fab.verify import (
         analyse,
         best_frame_correlation,
@@ -332,10 +340,16 @@ def _verify(args):
     overlay = report["overlay_error_fit"]
     if overlay is not None and design.mask_pixel_pitch:
         overlay["shift_um"] = [v * design.mask_pixel_pitch * 1e6 for v in overlay["shift_px"]]
+    etch = report["etch_error_fit"]
+    n_masks = len(design.etch_depths)
+    names = [mask_name(j, n_masks) for j in range(n_masks)]
+    if etch is not None and etch["mask"] in names:
+        etch["error_nm"] = etch["error"] * design.etch_depths[names.index(etch["mask"])] * 1e9
     hints = [
         _pitch_hint(result, on_lattice, lattice.pitch_px, args),
         _orientation_hint(result, grid, design, args.orientation),
         _overlay_hint(report),
+        _etch_hint(report),
     ]
     for hint in filter(None, hints):
         report["notes"].append(hint)
@@ -373,6 +387,20 @@ def _overlay_hint(result):
         f"the window is the design's with mask {fit['mask']} printed off the other masks by "
         f"{shift[0]:+.2f} {unit} in y (up) and {shift[1]:+.2f} {unit} in x (right) (correlation "
         f"{fit['correlation']:.4f} with that plate): check that exposure's alignment"
+    )
+
+
+def _etch_hint(result):
+    """Return a note naming the mask whose etch depth error explains the PSF."""
+    if "etch_depth_error" not in result["diagnosis"]:
+        return None
+    fit = result["etch_error_fit"]
+    nm = f" ({fit['error_nm']:+.1f} nm)" if "error_nm" in fit else ""
+    way = "deep" if fit["error"] > 0 else "shallow"
+    return (
+        f"the window is the design's with mask {fit['mask']}'s etch {abs(fit['error']):.1%} too "
+        f"{way}{nm} (correlation {fit['correlation']:.4f} with that plate): check that "
+        "etch's depth"
     )
 
 

@@ -369,24 +369,28 @@ def locate_zero_order(measured, valid, sigma, period_power, half=5):
     }
 
 
-def _deep_mask_fields(levels, n_levels):
-    """Return the far-field amplitudes (N, N) of the pixels the deepest mask leaves and etches."""
-    deep = masks_from_levels(levels, n_levels, level_step=1.0)[0].bitmap
+def _mask_fields(levels, n_levels, mask_index=0):
+    """Return the far-field amplitudes (N, N) of the pixels a mask (0 = deepest) leaves and
+    etches, and the mask: the two sum to the design's."""
+    mask = masks_from_levels(levels, n_levels, level_step=1.0)[mask_index]
     field = np.exp(1j * level_phase(levels, n_levels))
+    etched = mask.bitmap
     return (
-        np.fft.fft2(np.where(deep, 0, field)) / deep.size,
-        np.fft.fft2(np.where(deep, field, 0)) / deep.size,
+        np.fft.fft2(np.where(etched, 0, field)) / etched.size,
+        np.fft.fft2(np.where(etched, field, 0)) / etched.size,
+        mask,
     )
 
 
-def fit_deep_etch_error(window, sigma, levels, n_levels, search=0.5, step=1e-3):
-    """Fit the signed deep-etch depth error that best explains the measured window.
+def fit_etch_error(window, sigma, levels, n_levels, mask_index=0, search=0.5, step=1e-3):
+    """Fit the signed depth error of one mask's etch that best explains the measured window.
 
-    An error eps adds the phase -pi eps to the pixels the deepest mask etches,
-    so order (m, n) carries ``|U_mn + C_mn exp(-i pi eps)|^2`` (U, C: far fields
-    of the pixels left and etched). Unlike the zero order alone, the window's
-    orders tell a too deep etch from a too shallow one (unless the design is
-    point-symmetric). Weighted least squares over eps with a free overall scale.
+    An error eps adds the phase -eps * phi to the pixels the mask etches (phi: its
+    designed phase, pi for the deepest of 8 levels), so order (m, n) carries
+    ``|U_mn + C_mn exp(-i phi eps)|^2`` (U, C: far fields of the pixels left and
+    etched). Unlike the zero order alone, the window's orders tell a too deep etch
+    from a too shallow one (unless the design is point-symmetric). Weighted least
+    squares over eps with a free overall scale.
 
     Parameters
     ----------
@@ -394,27 +398,29 @@ def fit_deep_etch_error(window, sigma, levels, n_levels, search=0.5, step=1e-3):
         Measured order powers in the design frame (any units).
     sigma : (K, K) float array or None
         Their 1-sigma errors (None: equal weights).
+    mask_index : int
+        The mask, 0 = deepest (exposed first).
 
     Returns
     -------
     dict or None
-        "eps" (+0.1: the deepest etch is 10 % too deep), "chi2_drop" (how much
-        better the fit explains the window than eps = 0, in chi-square units
-        when ``sigma`` is given) and "psf" (the fitted window, sum 1); None
-        when the design does not use the deepest mask on some pixels and not
-        on others (the error leaves no trace).
+        "eps" (+0.1: the etch is 10 % too deep), "chi2_drop" (how much better the
+        fit explains the window than eps = 0, in chi-square units when ``sigma`` is
+        given), "psf" (the fitted window, sum 1), "mask" (its name) and "mask_index";
+        None when the mask etches all pixels or none (the error leaves no trace).
     """
-    deep = masks_from_levels(levels, n_levels, level_step=1.0)[0].bitmap
-    if deep.all() or not deep.any():
+    u_full, c_full, mask = _mask_fields(levels, n_levels, mask_index)
+    if mask.bitmap.all() or not mask.bitmap.any():
         return None
     k = window.shape[0]
     n = levels.shape[0]
     idx = (np.arange(k) - k // 2) % n
     env = pixel_envelope(np.arange(k) - k // 2, n)
     env = env[:, None] * env[None, :]
-    u_amp, c_amp = (f[np.ix_(idx, idx)].ravel() for f in _deep_mask_fields(levels, n_levels))
+    u_amp, c_amp = (f[np.ix_(idx, idx)].ravel() for f in (u_full, c_full))
     eps = np.arange(-search, search + step / 2, step)
-    model = np.abs(u_amp[None, :] + c_amp[None, :] * np.exp(-1j * np.pi * eps)[:, None]) ** 2
+    phi = 2 * np.pi * mask.steps / n_levels
+    model = np.abs(u_amp[None, :] + c_amp[None, :] * np.exp(-1j * phi * eps)[:, None]) ** 2
     model *= env.ravel()[None, :]
     wts = np.ones(k * k) if sigma is None else 1 / np.maximum(np.ravel(sigma), 1e-30)
     meas = np.asarray(window, float).ravel() * wts
@@ -428,6 +434,9 @@ def fit_deep_etch_error(window, sigma, levels, n_levels, search=0.5, step=1e-3):
         "eps": float(eps[best]),
         "chi2_drop": float(chi2[zero] - chi2[best]),
         "psf": fitted / fitted.sum(),
+        "mask": mask.name,
+        "mask_index": mask_index,
+        "at_search_edge": abs(eps[best]) > search - step,
     }
 
 
@@ -439,10 +448,10 @@ def implied_deep_etch_error(levels, n_levels, zero_order_power, sign_hint=None):
     ``|U + C exp(i delta)|^2 = |U|^2 + |C|^2 + 2 |U| |C| cos(delta + arg C - arg U)``;
     the deepest mask's phase is pi, so delta = -pi eps. The zero order alone has
     two solutions (too deep, too shallow): the one nearer ``sign_hint`` (e.g.
-    from ``fit_deep_etch_error``) is returned, otherwise the smaller |eps|.
+    from ``fit_etch_error``) is returned, otherwise the smaller |eps|.
     Returns None when the design makes the zero order insensitive.
     """
-    u_amp, c_amp = (f[0, 0] for f in _deep_mask_fields(levels, n_levels))
+    u_amp, c_amp = (f[0, 0] for f in _mask_fields(levels, n_levels)[:2])
     a = abs(u_amp) ** 2 + abs(c_amp) ** 2
     b = 2 * abs(u_amp) * abs(c_amp)
     if b < 1e-12:
@@ -590,7 +599,7 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
         np.sqrt(beam["signal_var"]) / max(beam["signal"], 1e-30),
     )
     on_camera = float(meas[valid].sum())
-    etch_fit = fit_deep_etch_error(window, sigma[sl], levels, n_levels)
+    etch_fit = fit_etch_error(window, sigma[sl], levels, n_levels)
     snr = w_sum / np.sqrt(np.nansum(to_design_frame(grid.sigma, orientation)[sl] ** 2))
     result.update(
         {
@@ -638,6 +647,17 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
         if _psf_fails(result, thresholds)
         else None
     )
+    result["etch_error_fit"] = (
+        _shallower_etch_fit(
+            measured_psf,
+            (window, sigma[sl]),
+            lambda period: _frame_score(meas, valid, sigma, period, m0, n0, half)[0],
+            levels,
+            n_levels,
+        )
+        if _psf_fails(result, thresholds)
+        else None
+    )
     result["diagnosis"] = diagnose(result, thresholds)
     result["pass"] = result["diagnosis"] == ["ok"]
     return result, measured_psf
@@ -662,6 +682,35 @@ def _overlay_fit(measured_psf, window, frame_score, levels, n_levels):
     return {
         "mask": fit["mask"],
         "shift_px": fit["shift_px"],
+        "significance": fit["chi2_drop"],
+        "correlation": correlation(measured_psf, fit["psf"]),
+        "rmse": rmse(measured_psf, fit["psf"]),
+        "frame_correlation": frame_score(np.abs(order_amplitudes(plate)) ** 2),
+    }
+
+
+def _shallower_etch_fit(measured_psf, window, frame_score, levels, n_levels):
+    """Return the JSON-ready fit of the mask, other than the deepest, whose etch depth error
+    best explains the window; None when none of them etches some pixels and not others.
+
+    The deepest mask's error has its own fit and rule (``deep_etch_error``), judged
+    against the fabrication tolerance even on a plate that passes.
+    """
+    from fab.capture_sim import PlateFaults, plate_phase  # the faulty plate's model
+
+    n_masks = int(n_levels).bit_length() - 1
+    fits = [fit_etch_error(*window, levels, n_levels, j) for j in range(1, n_masks)]
+    fits = [f for f in fits if f is not None]
+    if not fits:
+        return None
+    fit = max(fits, key=lambda f: f["chi2_drop"])
+    errors = [0.0] * n_masks
+    errors[fit["mask_index"]] = fit["eps"]
+    plate = plate_phase(levels, n_levels, PlateFaults(etch_errors=tuple(errors)))
+    return {
+        "mask": fit["mask"],
+        "error": fit["eps"],
+        "at_search_edge": bool(fit["at_search_edge"]),
         "significance": fit["chi2_drop"],
         "correlation": correlation(measured_psf, fit["psf"]),
         "rmse": rmse(measured_psf, fit["psf"]),
@@ -765,42 +814,50 @@ def _other_design(result):
     unrelated to another design's); a compact one only in the window, where a
     plate of this design with a depth or overlay error still matches the fitted model.
     """
-    overlay = _significant_overlay(result)
+    fits = _significant_fits(result).values()
     frame = best_frame_correlation(result)
-    if overlay is not None:  # NaN (no frame to judge) loses to any number
-        frame = float(np.fmax(frame, overlay["frame_correlation"]))
+    for fit in fits:  # NaN (no frame to judge) loses to any number
+        frame = float(np.fmax(frame, fit["frame_correlation"]))
     if frame < OTHER_DESIGN_MAX:
         return True
     explained = max(
         result["correlation"],
         result["correlation_with_fitted_etch"] or -1.0,
-        overlay["correlation"] if overlay else -1.0,
+        *(fit["correlation"] for fit in fits),
     )
     return explained < EXPLAINED_MIN
 
 
-def _significant_overlay(result):
-    """Return the overlay fit when it explains the window decisively better than no shift.
+def _significant_fits(result):
+    """Return the fitted faults (by diagnosis code) that explain the window decisively better
+    than the design does.
 
-    Not one pinned to the edge of the fitted range: the shift may lie beyond it,
-    and the window's few orders then fit a wrong shift within it all too well.
+    Not one pinned to the edge of its fitted range: the fault may lie beyond it, and
+    the window's few orders then fit a wrong value within it all too well.
     """
-    fit = result["overlay_error_fit"]
-    if fit is None or max(abs(v) for v in fit["shift_px"]) >= OVERLAY_REACH_PX:
-        return None
-    return fit if fit["significance"] > (SIGNIFICANCE + 1) ** 2 else None
+    fits = {}
+    overlay = result["overlay_error_fit"]
+    if overlay is not None and max(abs(v) for v in overlay["shift_px"]) < OVERLAY_REACH_PX:
+        fits["overlay_error"] = overlay
+    etch = result["etch_error_fit"]
+    if etch is not None and not etch["at_search_edge"]:
+        fits["etch_depth_error"] = etch
+    return {
+        code: fit for code, fit in fits.items() if fit["significance"] > (SIGNIFICANCE + 1) ** 2
+    }
 
 
-def _overlay_explains(result, thresholds):
-    """Whether a mask shifted explains the failing PSF: within the thresholds, and better
-    than a deep-etch error does."""
-    fit = _significant_overlay(result)
-    return (
-        fit is not None
-        and fit["correlation"] >= thresholds["correlation_min"]
+def _explaining_fault(result, thresholds):
+    """Return the diagnosis code of the fitted fault that explains the failing PSF: within
+    the thresholds, and better than a deep-etch error and than the other fault; or None."""
+    fits = {
+        code: fit
+        for code, fit in _significant_fits(result).items()
+        if fit["correlation"] >= thresholds["correlation_min"]
         and fit["rmse"] <= thresholds["rmse_max"]
         and fit["correlation"] > (result["correlation_with_fitted_etch"] or -1.0)
-    )
+    }
+    return max(fits, key=lambda code: fits[code]["correlation"], default=None)
 
 
 def _ambiguous(search, thresholds):
@@ -836,9 +893,9 @@ def diagnose(result, thresholds):
 
     Codes: "saturated", "low_signal", "conjugate_plate", "mirrored",
     "other_design", "zero_order_ambiguous", "zero_order_excess", "overlay_error",
-    "deep_etch_error", "psf_mismatch", "low_efficiency". A check on a noisy
-    figure (zero order, efficiency) fails only when it misses its threshold by
-    ``SIGNIFICANCE`` sigma.
+    "etch_depth_error" (a mask other than the deepest), "deep_etch_error", "psf_mismatch",
+    "low_efficiency". A check on a noisy figure (zero order, efficiency) fails only
+    when it misses its threshold by ``SIGNIFICANCE`` sigma.
     """
     codes = []
     if result["saturated_dots"]:
@@ -862,8 +919,9 @@ def diagnose(result, thresholds):
     ):
         process.append("zero_order_excess")
     fit = result["deep_etch_error_fit"]
-    if _overlay_explains(result, thresholds):  # a depth error fitted to it would be spurious
-        process.append("overlay_error")
+    fault = _explaining_fault(result, thresholds)
+    if fault:  # a deep-etch error fitted to it would be spurious
+        process.append(fault)
     elif (
         fit is not None
         and abs(fit) > thresholds["deep_etch_error_max"]

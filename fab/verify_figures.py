@@ -165,6 +165,11 @@ def _html(report):
         ),
         ("overlay fit: one mask shifted (fitted when the PSF fails)", _overlay_text(report)),
         (
+            "etch fit: one mask other than the deepest etched too deep or too shallow "
+            "(fitted when the PSF fails)",
+            _etch_text(report),
+        ),
+        (
             "frame correlation with design / rot180 / mirror-x / mirror-y",
             " / ".join(
                 f"{report['frame_correlation'][k]:.3f}"
@@ -283,3 +288,16 @@ def write_mtf_plot(path, result):
     fig.tight_layout()
     fig.savefig(path, dpi=90, metadata=_PNG_META)
     plt.close(fig)
+
+
+def _etch_text(report):
+    fit = report["etch_error_fit"]
+    if fit is None:
+        return "not fitted"
+    nm = f" ({fit['error_nm']:+.1f} nm)" if "error_nm" in fit else ""
+    edge = ", at the edge of the search: the error may be larger" if fit["at_search_edge"] else ""
+    return (
+        f"{fit['mask']} {fit['error']:+.1%}{nm}{edge}; correlation {fit['correlation']:.4f} "
+        f"with that plate (frame {fit['frame_correlation']:.3f}), "
+        f"chi-square gain {fit['significance']:.3g}"
+    )

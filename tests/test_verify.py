@@ -28,7 +28,7 @@ from fab.lattice import Lattice, LatticeNotFound, measure_orders, register_latti
 from fab.verify import (
     analyse,
     design_order_power,
-    fit_deep_etch_error,
+    fit_etch_error,
     implied_deep_etch_error,
     resolve_thresholds,
 )
@@ -173,7 +173,7 @@ def test_12bit_msb_png_is_detected(tmp_path, levels):
 
 def test_deep_etch_error_fails_on_zero_order_with_implied_error(tmp_path, levels):
     code, report, sim = run_verify(
-        tmp_path, levels, dict(seed=5, faults=PlateFaults(deep_etch_error=0.15))
+        tmp_path, levels, dict(seed=5, faults=PlateFaults(etch_errors=(0.15,)))
     )
     assert code == 1 and report["pass"] is False
     assert "zero_order_excess" in report["diagnosis"]
@@ -199,7 +199,7 @@ def test_an_acceptance_threshold_that_is_no_number_is_refused(value):
 def test_zero_order_check_catches_what_correlation_misses(levels):
     """With a lenient correlation threshold the zero order alone must fail the plate."""
     sim = simulate_capture(
-        levels, L, pitch_px=PITCH_PX, seed=6, faults=PlateFaults(deep_etch_error=0.15)
+        levels, L, pitch_px=PITCH_PX, seed=6, faults=PlateFaults(etch_errors=(0.15,))
     )
     grid = _grid(sim)
     _psf, eff = simulate_levels(levels, L, K)
@@ -867,11 +867,24 @@ def test_a_saturated_pixel_off_the_dots_is_noted_and_does_not_fail(tmp_path, lev
     assert "1 saturated pixel(s) outside the dots" in report["notes"]
 
 
+@pytest.mark.parametrize("mask", [1, 2])
+def test_the_etch_fit_of_each_shallower_mask_inverts_the_simulated_plate(levels, mask):
+    orders = np.meshgrid(np.arange(K) - K // 2, np.arange(K) - K // 2, indexing="ij")
+    for eps in (-0.3, -0.1, 0.05, 0.25):
+        errors = tuple(eps if j == mask else 0.0 for j in range(3))
+        window = plate_far_field(plate_phase(levels, L, PlateFaults(etch_errors=errors)))(*orders)
+        fits = [fit_etch_error(window, None, levels, L, j) for j in range(3)]
+        assert fits[mask]["eps"] == pytest.approx(eps, abs=2e-3)
+        assert fits[mask]["mask"] == ("M1_deep", "M2_mid", "M3_shallow")[mask]
+        # the other masks' fits explain the window worse (an exact fit drops chi2 the most)
+        assert max(fits, key=lambda f: f["chi2_drop"]) is fits[mask]
+
+
 def test_implied_deep_etch_error_inverts_the_simulated_plate(levels):
     for eps in (-0.2, -0.1, 0.05, 0.15):
-        far = plate_far_field(plate_phase(levels, L, PlateFaults(deep_etch_error=eps)))
+        far = plate_far_field(plate_phase(levels, L, PlateFaults(etch_errors=(eps,))))
         window = far(*np.meshgrid(np.arange(K) - K // 2, np.arange(K) - K // 2, indexing="ij"))
-        fit = fit_deep_etch_error(window, None, levels, L)
+        fit = fit_etch_error(window, None, levels, L)
         assert fit["eps"] == pytest.approx(eps, abs=2e-3)
         assert implied_deep_etch_error(levels, L, float(far(0, 0)), fit["eps"]) == pytest.approx(
             eps, abs=1e-6
@@ -880,7 +893,7 @@ def test_implied_deep_etch_error_inverts_the_simulated_plate(levels):
 
 def test_deep_etch_fit_is_none_when_the_deep_mask_is_unused():
     upper = np.random.default_rng(4).integers(L // 2, L, (N, N)).astype(np.uint8)
-    assert fit_deep_etch_error(np.ones((K, K)), None, upper, L) is None
+    assert fit_etch_error(np.ones((K, K)), None, upper, L) is None
     # nor does the zero order tell an etch error of a mask that etches nothing
     assert implied_deep_etch_error(upper, L, 0.01) is None
 
@@ -896,7 +909,7 @@ def test_zero_order_follows_the_analytic_deep_etch_law():
     c = abs(np.exp(1j * np.pi * np.arange(4) / 4).sum()) / 8
     assert design_order_power(lv, L)[0, 0] == pytest.approx(0, abs=1e-20)
     for eps in (0.02, 0.05, 0.15):
-        far = plate_far_field(plate_phase(lv, L, PlateFaults(deep_etch_error=eps)))
+        far = plate_far_field(plate_phase(lv, L, PlateFaults(etch_errors=(eps,))))
         z = float(far(0, 0))
         assert z == pytest.approx(4 * c**2 * np.sin(np.pi * eps / 2) ** 2, rel=1e-9)
         # The zero order alone cannot tell too deep from too shallow here.
@@ -1004,7 +1017,7 @@ def test_designed_plate_passes(tmp_path, designed):
 @pytest.mark.parametrize("eps", [0.15, -0.15])
 def test_designed_plate_with_deep_etch_error_fails(tmp_path, designed, eps):
     code, report, sim = run_verify(
-        tmp_path, designed, dict(seed=22, faults=PlateFaults(deep_etch_error=eps))
+        tmp_path, designed, dict(seed=22, faults=PlateFaults(etch_errors=(eps,)))
     )
     assert code == 1
     # Which way the zero order moves depends on the design; the window fit sees both.
@@ -1158,6 +1171,60 @@ def test_an_overlay_within_the_thresholds_is_not_fitted(tmp_path, designed):
     assert code == 0 and report["overlay_error_fit"] is None
     html = (tmp_path / "out" / "verify_report.html").read_text()
     assert "not fitted" in html
+
+
+@pytest.mark.parametrize("eps, way", [(0.2, "deep"), (-0.3, "shallow")])
+def test_a_mid_etch_off_its_depth_is_diagnosed_and_named(tmp_path, designed, capsys, eps, way):
+    # It failed as a bare psf_mismatch: only the deepest etch was fitted, so the lab
+    # was not told which of the three etches to measure.
+    design = make_design_dir(tmp_path / "design", designed, acceptance=STRICT_ACCEPTANCE)
+    sim = simulate_capture(designed, L, pitch_px=PITCH_PX, seed=22,
+                           faults=PlateFaults(etch_errors=(0.0, eps)))  # fmt: skip
+    write_image(tmp_path / "c.png", sim["capture"], exposure=0.01)
+    write_image(tmp_path / "d.png", sim["dark"], exposure=0.01)
+    out = tmp_path / "out"
+    code = main(["verify", str(design), str(tmp_path / "c.png"), "--dark", str(tmp_path / "d.png"),
+                 "--out", str(out)])  # fmt: skip
+    report = json.loads((out / "verify.json").read_text())
+    assert code == 1 and report["diagnosis"] == ["etch_depth_error", "psf_mismatch"]
+    fit = report["etch_error_fit"]
+    assert fit["mask"] == "M2_mid" and fit["error"] == pytest.approx(eps, abs=0.02)
+    assert fit["error_nm"] == pytest.approx(fit["error"] * 358.8)  # the manifest's M2 depth
+    assert fit["correlation"] > 0.999 > report["correlation"] and fit["frame_correlation"] > 0.99
+    assert report["measured_psf_usable"] is True
+    hint = re.search(r"mask M2_mid's etch (\d+\.\d)% too (\w+) \(([+-]\d+\.\d) nm\)",
+                     capsys.readouterr().err)  # fmt: skip
+    assert hint and float(hint[1]) == pytest.approx(100 * abs(eps), abs=2) and hint[2] == way
+    assert float(hint[3]) == pytest.approx(fit["error_nm"], abs=0.06)
+    html = (out / "verify_report.html").read_text()
+    row = re.search(r"M2_mid ([+-]\d+\.\d)% \([+-]\d+\.\d nm\); correlation 0\.99\d\d "
+                    r"with that plate \(frame [01]\.\d{3}\)", html)  # fmt: skip
+    assert row and float(row[1]) == pytest.approx(100 * fit["error"], abs=0.06)
+
+
+@pytest.mark.parametrize(
+    "mask, name, depth_nm, acceptance",
+    [(1, "M2_mid", 358.8, None), (2, "M3_shallow", 179.4, STRICT_ACCEPTANCE)],
+)
+def test_a_dense_design_with_an_etch_off_names_that_mask(
+    tmp_path, levels, mask, name, depth_nm, acceptance
+):
+    design = make_design_dir(tmp_path / "design", levels, acceptance=acceptance)
+    errors = tuple(0.3 if j == mask else 0.0 for j in range(3))
+    sim = simulate_capture(
+        levels, L, pitch_px=PITCH_PX, seed=22, faults=PlateFaults(etch_errors=errors)
+    )
+    write_image(tmp_path / "c.png", sim["capture"], exposure=0.01)
+    write_image(tmp_path / "d.png", sim["dark"], exposure=0.01)
+    out = tmp_path / "out"
+    code = main(["verify", str(design), str(tmp_path / "c.png"), "--dark", str(tmp_path / "d.png"),
+                 "--out", str(out)])  # fmt: skip
+    report = json.loads((out / "verify.json").read_text())
+    # (a random design's efficiency misses the strict acceptance's 0.5 as well)
+    assert code == 1 and report["diagnosis"][:2] == ["etch_depth_error", "psf_mismatch"]
+    fit = report["etch_error_fit"]
+    assert fit["mask"] == name and fit["error"] == pytest.approx(0.3, abs=0.02)
+    assert fit["error_nm"] == pytest.approx(fit["error"] * depth_nm)
 
 
 def test_clipped_14bit_capture_is_flagged_saturated(tmp_path, levels):
@@ -1600,7 +1667,7 @@ def test_plate_phase_is_the_level_model_with_its_etch_faults():
     # the deep mask etches L/2 steps (pi) into levels 0 .. L/2 - 1; 15 % too deep takes
     # another 0.15 pi of glass off those pixels and leaves the others alone
     for eps in (0.15, -0.1):
-        faulty = plate_phase(lv, L, PlateFaults(deep_etch_error=eps))
+        faulty = plate_phase(lv, L, PlateFaults(etch_errors=(eps,)))
         _same_phase(faulty, 2 * np.pi * lv / L - eps * np.pi * (lv < L // 2))
 
 

@@ -139,6 +139,7 @@ def _good_result(**changes):
         "deep_etch_error_fit": 0.0,
         "deep_etch_error_fit_significance": 0.0,
         "overlay_error_fit": None,
+        "etch_error_fit": None,
     }
     result.update(changes)
     return result
@@ -217,6 +218,42 @@ def test_an_overlay_fit_names_a_failing_plate_only_when_it_explains_it_decisivel
     assert diagnose(_good_result(**failing, overlay_error_fit=_overlay(rmse=0.09)), t) == [
         "psf_mismatch"
     ]  # fmt: skip
+
+
+def _etch(**changes):
+    fit = {"mask": "M2_mid", "error": 0.25, "at_search_edge": False, "significance": 1e4,
+           "correlation": 0.999, "rmse": 0.005, "frame_correlation": 0.99}  # fmt: skip
+    return {**fit, **changes}
+
+
+def test_a_shallower_etch_fit_names_a_failing_plate_only_when_it_explains_it_best():
+    t = resolve_thresholds(None, design_efficiency=0.80, design_zero_order=0.01)
+    failing = dict(correlation=0.6, correlation_with_fitted_etch=0.6, rmse=0.1)
+    explained = _good_result(**failing, etch_error_fit=_etch())
+    assert diagnose(explained, t) == ["etch_depth_error", "psf_mismatch"]
+    for weak in (
+        _etch(significance=8.0),  # under 3 sigma
+        _etch(at_search_edge=True, error=0.5),  # the error may lie beyond the search
+        _etch(correlation=0.94),  # not within the thresholds
+    ):
+        assert diagnose(_good_result(**failing, etch_error_fit=weak), t) == ["other_design"]
+    # of an overlay and an etch fit that both explain the window, the closer is named
+    for etch_corr, named in ((0.9995, "etch_depth_error"), (0.9985, "overlay_error")):
+        both = _good_result(
+            **failing, overlay_error_fit=_overlay(), etch_error_fit=_etch(correlation=etch_corr)
+        )
+        assert diagnose(both, t) == [named, "psf_mismatch"]
+    # no better than the deep-etch fit: that is named instead
+    deep = dict(failing, correlation_with_fitted_etch=0.999, deep_etch_error_fit=0.2,
+                deep_etch_error_fit_significance=1e4)  # fmt: skip
+    assert diagnose(_good_result(**deep, etch_error_fit=_etch()), t) == [
+        "deep_etch_error", "psf_mismatch"
+    ]  # fmt: skip
+    # a dense design: the fitted plate's frame must hold where the design's fails
+    dense = dict(failing, frame_correlation=dict(_good_result()["frame_correlation"], design=0.4))
+    assert diagnose(_good_result(**dense, etch_error_fit=_etch()), t)[0] == "etch_depth_error"
+    unlike = _etch(frame_correlation=0.5)
+    assert diagnose(_good_result(**dense, etch_error_fit=unlike), t) == ["other_design"]
 
 
 def test_a_runner_up_offset_within_25_of_the_best_chi_square_is_ambiguous():
