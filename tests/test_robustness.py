@@ -145,8 +145,8 @@ VERIFY_MANIFEST = {
 @settings(
     max_examples=200, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
 )
-@given(st.sampled_from([*VERIFY_MANIFEST, "masks.0.etch_depth_nm", "masks.1.exposure_order"]),
-       json_values)  # fmt: skip
+@given(st.sampled_from([*VERIFY_MANIFEST, "masks.0.etch_depth_nm", "masks.1.etch_depth_nm",
+                        "masks.1.exposure_order"]), json_values)  # fmt: skip
 def test_verify_reads_a_design_folder_it_can_use_or_refuses_it(tmp_path_factory, key, value):
     # Each value either makes a design verify can use or an InputError naming the file;
     # "eight", -1, 1e400 and an 11 x 11 target beside kernel_size 9 once went further.
@@ -169,7 +169,7 @@ def test_verify_reads_a_design_folder_it_can_use_or_refuses_it(tmp_path_factory,
     assert d.n_levels in (2, 4, 8, 16, 32, 64, 128, 256) and d.levels.max() < d.n_levels
     assert 1 <= d.kernel_size <= n and d.kernel_size % 2 == 1
     assert np.isfinite(d.lattice_pitch) and d.lattice_pitch > 0
-    assert d.deep_etch_depth is None or (np.isfinite(d.deep_etch_depth) and d.deep_etch_depth > 0)
+    assert all(np.isfinite(depth) and depth > 0 for depth in d.etch_depths)  # errors' scale
     assert d.acceptance is None or isinstance(d.acceptance, dict)
     assert d.target_psf is None or d.target_psf.shape == (d.kernel_size, d.kernel_size)
     pitch = d.mask_pixel_pitch
