@@ -29,8 +29,9 @@ from doe.fraunhofer import simulate_levels
 from doe.retrieval import retrieve_phase
 from doe.targets import make_target
 from fab.capture import read_capture, repair_pixels, write_image
-from fab.capture_sim import PlateFaults, simulate_capture
+from fab.capture_sim import simulate_capture
 from fab.lattice import measure_orders, register_lattice, repair_hot_pixels
+from fab.plate import PlateFaults
 from fab.verify import analyse, design_order_power, resolve_thresholds
 
 RUNS = 5

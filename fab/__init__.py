@@ -18,6 +18,8 @@ Hardware verification (``doefab verify``, ``doefab mtf``)
 - ``capture``: reading captures and dark frames (the only module opening images)
 - ``lattice``: registering the dot lattice, order photometry
 - ``verify``: measured PSF, comparison with the design, diagnosis, pass/fail
+- ``plate``: the fabricated plate's phase and far field, faults included (one model
+  for the simulator and for verify's fits)
 - ``capture_sim``: a physical simulator of captures for tests and benchmarks
 - ``mtf``: slanted-edge MTF
 - ``verify_figures``, ``cli_verify``: report and commands

@@ -14,7 +14,7 @@ K^2 operations, and a grid search over thousands takes a fraction of a second
 where the general model takes ~10 ms a shift at N = 175.
 
 Shifts are in mask pixels in the layout's axes (+y up, +x right; row 0 of a
-level map is the top edge), as ``fab.capture_sim.PlateFaults`` states them.
+level map is the top edge), as ``fab.plate.PlateFaults`` states them.
 """
 
 import numpy as np

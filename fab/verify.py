@@ -35,6 +35,7 @@ from doe.fraunhofer import (
 from fab.masks import masks_from_levels
 from fab.overlay import REACH_PX as OVERLAY_REACH_PX
 from fab.overlay import fit_overlay_error
+from fab.plate import PlateFaults, plate_phase
 
 ORIENTATIONS = (
     "as-designed",
@@ -670,7 +671,6 @@ def _overlay_fit(measured_psf, window, frame_score, levels, n_levels):
     the frame correlation, which is also taken for the fitted plate: a dense
     design's every order changes with the overlay, not only the window's.
     """
-    from fab.capture_sim import PlateFaults, plate_phase  # the faulty plate's model
 
     fit = fit_overlay_error(*window, levels, n_levels)
     if fit is None:
@@ -696,7 +696,6 @@ def _shallower_etch_fit(measured_psf, window, frame_score, levels, n_levels):
     The deepest mask's error has its own fit and rule (``deep_etch_error``), judged
     against the fabrication tolerance even on a plate that passes.
     """
-    from fab.capture_sim import PlateFaults, plate_phase  # the faulty plate's model
 
     n_masks = int(n_levels).bit_length() - 1
     fits = [fit_etch_error(*window, levels, n_levels, j) for j in range(1, n_masks)]

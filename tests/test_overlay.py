@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from doe.fraunhofer import order_amplitudes, pixel_envelope, window_indices
-from fab.capture_sim import PlateFaults, plate_far_field, plate_phase
 from fab.overlay import REACH_PX, OverlayModel, fit_overlay_error
+from fab.plate import PlateFaults, plate_far_field, plate_phase
 
 N, K, L = 24, 7, 8
 

@@ -23,8 +23,9 @@ from fab.capture import (
     repair_pixels,
     write_image,
 )
-from fab.capture_sim import PlateFaults, plate_far_field, plate_phase, simulate_capture
+from fab.capture_sim import simulate_capture
 from fab.lattice import Lattice, LatticeNotFound, measure_orders, register_lattice
+from fab.plate import PlateFaults, plate_far_field, plate_phase
 from fab.verify import (
     analyse,
     design_order_power,
