@@ -12,6 +12,8 @@ from doe.errors import InputError
 
 PSF_CHOICES = ("learned", "delta", "box", "gaussian")
 OUTPUTS = ("psf.npy", "model.pt", "learn.json")
+# sr notes a frame whose 99th-percentile counts pass this many times its white level.
+OVER_WHITE = 2.0
 
 
 def register(sub):
@@ -413,6 +415,9 @@ def _sr(args):
     with staged_output(args.out, force=args.force, names=names) as stage:
         bar = tqdm(frames, desc="sr", unit="input", disable=None)
         for raw_path, stem, raw in zip(args.raw, stems, bar, strict=True):
+            notes = _exposure_notes(raw, raw_path, record["photons"], model.sensor.dark_counts)
+            for note in notes:
+                print(f"doefab sr: {note}", file=sys.stderr)
             hr = super_resolve(model, raw, photons=args.photons)
             if not np.isfinite(hr).all():  # weights (or counts) past float32's range
                 raise InputError(model_file, f"gives non-finite values on {raw_path}")
@@ -428,11 +433,31 @@ def _sr(args):
                     "input_shape": list(raw.shape),
                     "output_shape": list(hr.shape),
                     "files": {n: sha256_file(stage / n) for n in made},
+                    "notes": notes,
                 },
             )
             print(f"{stem}: {raw.shape} -> {hr.shape}", file=sys.stderr)
     print(json.dumps({"outputs": names}))
     return 0
+
+
+def _exposure_notes(raw, raw_path, white, dark_counts):
+    """Return a note when a frame is far brighter than the white the network was trained on.
+
+    A camera frame of 16-bit codes, or a SPAD exposed longer than the model's photon
+    level, was super-resolved without a word: the network never saw a scene brighter
+    than white, and its output then means little.
+    """
+    import numpy as np
+
+    top = float(np.percentile(raw, 99)) - dark_counts
+    if not top > OVER_WHITE * white:
+        return []
+    return [
+        f"{raw_path}: 1 % of its counts exceed {top:.4g}, {top / white:.3g} times the white "
+        f"level {white:g} the network was trained at: give --photons as the counts a white "
+        "scene gives these frames"
+    ]
 
 
 def _write_preview(path, image):

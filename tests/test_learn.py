@@ -785,6 +785,25 @@ def test_sr_records_what_made_each_output_and_gathers_batches(trained, tmp_path)
     assert json.loads((dest / "c_sr.json").read_text())["photons"] == 80
 
 
+@pytest.mark.parametrize("scale, noted", [(1.0, False), (1.5, False), (8.0, True)])
+def test_sr_notes_frames_far_brighter_than_the_white_it_was_trained_at(
+    trained, tmp_path, capsys, scale, noted
+):
+    # A frame of camera codes (or a longer exposure) was super-resolved without a word.
+    out, _ = trained
+    white = 300.0
+    frame = np.random.default_rng(3).poisson(scale * white, size=(6, 5)).astype(np.uint16)
+    np.save(tmp_path / "f.npy", frame)
+    argv = ["sr", str(out), str(tmp_path / "f.npy"), "--out", str(tmp_path / "o")]
+    assert main([*argv, "--photons", str(white)]) == 0
+    notes = json.loads((tmp_path / "o" / "f_sr.json").read_text())["notes"]
+    assert len(notes) == int(noted)
+    if noted:
+        top = np.percentile(frame, 99)
+        assert f"f.npy: 1 % of its counts exceed {top:.4g}, {top / white:.3g} times" in notes[0]
+        assert "--photons" in notes[0] and notes[0] in capsys.readouterr().err
+
+
 def _bad_input(tmp_path, kind):
     folder = tmp_path / "imgs"
     if kind == "empty":
