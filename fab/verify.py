@@ -616,6 +616,7 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
             ),
             "deep_etch_error_fit": None if etch_fit is None else etch_fit["eps"],
             "deep_etch_error_fit_significance": None if etch_fit is None else etch_fit["chi2_drop"],
+            "deep_etch_error_fit_psf": None if etch_fit is None else etch_fit["psf"].tolist(),
             "correlation_with_fitted_etch": None
             if etch_fit is None
             else correlation(measured_psf, etch_fit["psf"]),
@@ -686,6 +687,7 @@ def _overlay_fit(measured_psf, window, frame_score, levels, n_levels):
         "correlation": correlation(measured_psf, fit["psf"]),
         "rmse": rmse(measured_psf, fit["psf"]),
         "frame_correlation": frame_score(np.abs(order_amplitudes(plate)) ** 2),
+        "psf": fit["psf"].tolist(),
     }
 
 
@@ -714,7 +716,33 @@ def _shallower_etch_fit(measured_psf, window, frame_score, levels, n_levels):
         "correlation": correlation(measured_psf, fit["psf"]),
         "rmse": rmse(measured_psf, fit["psf"]),
         "frame_correlation": frame_score(np.abs(order_amplitudes(plate)) ** 2),
+        "psf": fit["psf"].tolist(),
     }
+
+
+def fitted_fault(result):
+    """Return (what, psf) of the plate fault the diagnosis names, or None.
+
+    ``what`` says the fault in a few words; ``psf`` is the K x K window of the
+    design's plate with that fault, fitted to the measurement (sum 1).
+    """
+    diagnosis = result["diagnosis"]
+    if "overlay_error" in diagnosis:
+        fit = result["overlay_error_fit"]
+        dy, dx = fit["shift_px"]
+        return f"{fit['mask']} shifted y {dy:+.2f}, x {dx:+.2f} mask px", np.array(fit["psf"])
+    if "etch_depth_error" in diagnosis:
+        fit = result["etch_error_fit"]
+        return f"{fit['mask']} etched {_too(fit['error'])}", np.array(fit["psf"])
+    if "deep_etch_error" in diagnosis:
+        what = f"the deepest mask etched {_too(result['deep_etch_error_fit'])}"
+        return what, np.array(result["deep_etch_error_fit_psf"])
+    return None
+
+
+def _too(error):
+    """'12.0 % too deep' for +0.12, 'too shallow' for a negative error."""
+    return f"{abs(error):.1%} too {'deep' if error > 0 else 'shallow'}"
 
 
 def _psf_fails(result, thresholds):

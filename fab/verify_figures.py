@@ -9,7 +9,7 @@ import html
 import numpy as np
 
 from doe.figures import value_and_limit
-from fab.verify import is_judged
+from fab.verify import fitted_fault, is_judged
 
 _PNG_META = {"Software": None}
 
@@ -43,7 +43,8 @@ def write_verify_report(stage, report, image, grid, lattice, measured_psf, desig
     from matplotlib.colors import PowerNorm
 
     k = measured_psf.shape[0]
-    fig, axes = plt.subplots(2, 2, figsize=(10, 9))
+    fault = fitted_fault(report)  # a third row: the plate with that fault, and what remains
+    fig, axes = plt.subplots(3 if fault else 2, 2, figsize=(10, 13.5 if fault else 9))
     r0, c0 = report["zero_order_px"]
     half = (k // 2 + 2) * lattice.pitch_px
     h, w = image.shape
@@ -85,6 +86,15 @@ def write_verify_report(stage, report, image, grid, lattice, measured_psf, desig
     im = axes[1, 1].imshow(diff, cmap="RdBu_r", vmin=-lim, vmax=lim)
     axes[1, 1].set_title("difference (each / its peak)")
     fig.colorbar(im, ax=axes[1, 1], fraction=0.046)
+    if fault:
+        what, fitted = fault
+        im = axes[2, 0].imshow(fitted, cmap="magma", vmin=0, vmax=vmax)
+        axes[2, 0].set_title(f"fitted plate: {what}", fontsize=10)
+        fig.colorbar(im, ax=axes[2, 0], fraction=0.046)
+        rest = measured_psf / measured_psf.max() - fitted / fitted.max()
+        im = axes[2, 1].imshow(rest, cmap="RdBu_r", vmin=-lim, vmax=lim)
+        axes[2, 1].set_title("difference from the fitted plate (same scale)", fontsize=10)
+        fig.colorbar(im, ax=axes[2, 1], fraction=0.046)
     verdict = "PASS" if report["pass"] else "FAIL"
     fig.suptitle(
         f"{verdict}: {', '.join(report['diagnosis'])}   correlation "

@@ -1015,8 +1015,20 @@ def test_designed_plate_passes(tmp_path, designed):
     assert report["zero_order"] == pytest.approx(report["design_zero_order"], abs=0.005)
 
 
+def fitted_plate_panels(saved_figures):
+    """Return the title of verify.png's fitted-plate panel and the largest difference of the
+    measured PSF from the design and from the fitted plate (each over its peak)."""
+    (fig,) = [f for f in saved_figures if f.axes[0].get_title().startswith("capture")]
+    panels = {ax.get_title(): ax for ax in fig.axes if ax.get_images()}
+    assert len(panels) == 6 and all(ax.get_images()[0].colorbar for ax in panels.values())
+    (title,) = [t for t in panels if t.startswith("fitted plate: ")]
+    design = np.abs(panels["difference (each / its peak)"].get_images()[0].get_array()).max()
+    fitted = panels["difference from the fitted plate (same scale)"].get_images()[0].get_array()
+    return title, design, np.abs(fitted).max()
+
+
 @pytest.mark.parametrize("eps", [0.15, -0.15])
-def test_designed_plate_with_deep_etch_error_fails(tmp_path, designed, eps):
+def test_designed_plate_with_deep_etch_error_fails(tmp_path, designed, eps, saved_figures):
     code, report, sim = run_verify(
         tmp_path, designed, dict(seed=22, faults=PlateFaults(etch_errors=(eps,)))
     )
@@ -1031,6 +1043,11 @@ def test_designed_plate_with_deep_etch_error_fails(tmp_path, designed, eps):
     html = (tmp_path / "out" / "verify_report.html").read_text()
     row = re.search(r"deep-etch depth error fitted[^<]*</td><td>([^<]*)</td>", html)
     assert float(row[1]) == pytest.approx(eps, abs=0.02)
+    # verify.png shows the plate with the fitted error: what the design left, it explains
+    title, from_design, from_fitted = fitted_plate_panels(saved_figures)
+    way = "deep" if eps > 0 else "shallow"
+    assert re.fullmatch(rf"fitted plate: the deepest mask etched 1\d\.\d% too {way}", title)
+    assert from_fitted < from_design / 3
 
 
 def test_report_table_never_shows_a_figure_on_the_wrong_side_of_its_limit(tmp_path, designed):
@@ -1123,7 +1140,9 @@ def test_an_orientation_hint_never_names_the_orientation_given(tmp_path, designe
 
 
 @pytest.mark.parametrize("mask, name", [(0, "M1_deep"), (1, "M2_mid")])
-def test_a_mask_8um_off_is_diagnosed_as_an_overlay_error(tmp_path, designed, mask, name, capsys):
+def test_a_mask_8um_off_is_diagnosed_as_an_overlay_error(
+    tmp_path, designed, mask, name, capsys, saved_figures
+):
     # It failed as other_design: the lab was told the wrong plate had arrived.
     faults = PlateFaults(overlay_mask=mask, overlay_shift=(8e-6, -3e-6))
     design = make_design_dir(tmp_path / "design", designed, acceptance=STRICT_ACCEPTANCE)
@@ -1151,6 +1170,9 @@ def test_a_mask_8um_off_is_diagnosed_as_an_overlay_error(tmp_path, designed, mas
                      r"\(\+7\.\d\d um, -2\.\d\d um\); correlation 0\.99\d\d with that "
                      r"plate \(frame [01]\.\d\d\d\)", html)  # fmt: skip
     assert fit["frame_correlation"] > 0.99
+    title, from_design, from_fitted = fitted_plate_panels(saved_figures)
+    assert re.fullmatch(rf"fitted plate: {name} shifted y \+1\.5\d, x -0\.\d\d mask px", title)
+    assert from_fitted < from_design / 3
 
 
 def test_a_dense_design_with_a_mask_off_is_an_overlay_error_not_another_design(tmp_path, levels):
@@ -1175,7 +1197,9 @@ def test_an_overlay_within_the_thresholds_is_not_fitted(tmp_path, designed):
 
 
 @pytest.mark.parametrize("eps, way", [(0.2, "deep"), (-0.3, "shallow")])
-def test_a_mid_etch_off_its_depth_is_diagnosed_and_named(tmp_path, designed, capsys, eps, way):
+def test_a_mid_etch_off_its_depth_is_diagnosed_and_named(
+    tmp_path, designed, capsys, saved_figures, eps, way
+):
     # It failed as a bare psf_mismatch: only the deepest etch was fitted, so the lab
     # was not told which of the three etches to measure.
     design = make_design_dir(tmp_path / "design", designed, acceptance=STRICT_ACCEPTANCE)
@@ -1201,6 +1225,9 @@ def test_a_mid_etch_off_its_depth_is_diagnosed_and_named(tmp_path, designed, cap
     row = re.search(r"M2_mid ([+-]\d+\.\d)% \([+-]\d+\.\d nm\); correlation 0\.99\d\d "
                     r"with that plate \(frame [01]\.\d{3}\)", html)  # fmt: skip
     assert row and float(row[1]) == pytest.approx(100 * fit["error"], abs=0.06)
+    title, from_design, from_fitted = fitted_plate_panels(saved_figures)
+    assert re.fullmatch(rf"fitted plate: M2_mid etched \d\d\.\d% too {way}", title)
+    assert from_fitted < from_design / 3
 
 
 @pytest.mark.parametrize(
