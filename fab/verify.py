@@ -637,29 +637,16 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
             "hot_pixel_orders": grid.spike_orders,
         }
     )
-    # Fitted only to explain a PSF that fails (a second or so at N = 175).
-    result["overlay_error_fit"] = (
-        _overlay_fit(
-            measured_psf,
-            (window, sigma[sl]),
-            lambda period: _frame_score(meas, valid, sigma, period, m0, n0, half)[0],
-            levels,
-            n_levels,
+    # Plate faults are fitted only to explain a PSF that fails (a second or so at N = 175).
+    fails = _psf_fails(result, thresholds)
+
+    def frame_score(period):
+        return _frame_score(meas, valid, sigma, period, m0, n0, half)[0]
+
+    for key, fit in (("overlay_error_fit", _overlay_fit), ("etch_error_fit", _shallower_etch_fit)):
+        result[key] = (
+            fit(measured_psf, (window, sigma[sl]), frame_score, levels, n_levels) if fails else None
         )
-        if _psf_fails(result, thresholds)
-        else None
-    )
-    result["etch_error_fit"] = (
-        _shallower_etch_fit(
-            measured_psf,
-            (window, sigma[sl]),
-            lambda period: _frame_score(meas, valid, sigma, period, m0, n0, half)[0],
-            levels,
-            n_levels,
-        )
-        if _psf_fails(result, thresholds)
-        else None
-    )
     result["diagnosis"] = diagnose(result, thresholds)
     result["pass"] = result["diagnosis"] == ["ok"]
     return result, measured_psf
@@ -684,10 +671,7 @@ def _overlay_fit(measured_psf, window, frame_score, levels, n_levels):
         "mask": fit["mask"],
         "shift_px": fit["shift_px"],
         "significance": fit["chi2_drop"],
-        "correlation": correlation(measured_psf, fit["psf"]),
-        "rmse": rmse(measured_psf, fit["psf"]),
-        "frame_correlation": frame_score(np.abs(order_amplitudes(plate)) ** 2),
-        "psf": fit["psf"].tolist(),
+        **_fitted_plate_figures(measured_psf, fit["psf"], plate, frame_score),
     }
 
 
@@ -698,7 +682,6 @@ def _shallower_etch_fit(measured_psf, window, frame_score, levels, n_levels):
     The deepest mask's error has its own fit and rule (``deep_etch_error``), judged
     against the fabrication tolerance even on a plate that passes.
     """
-
     n_masks = int(n_levels).bit_length() - 1
     fits = [fit_etch_error(*window, levels, n_levels, j) for j in range(1, n_masks)]
     fits = [f for f in fits if f is not None]
@@ -713,10 +696,19 @@ def _shallower_etch_fit(measured_psf, window, frame_score, levels, n_levels):
         "error": fit["eps"],
         "at_search_edge": bool(fit["at_search_edge"]),
         "significance": fit["chi2_drop"],
-        "correlation": correlation(measured_psf, fit["psf"]),
-        "rmse": rmse(measured_psf, fit["psf"]),
+        **_fitted_plate_figures(measured_psf, fit["psf"], plate, frame_score),
+    }
+
+
+def _fitted_plate_figures(measured_psf, fitted_psf, plate, frame_score):
+    """Return how a fitted faulty plate (its phase ``plate``) meets the measurement: its
+    window's correlation and rmse with the measured PSF, its frame's correlation, and
+    the window itself."""
+    return {
+        "correlation": correlation(measured_psf, fitted_psf),
+        "rmse": rmse(measured_psf, fitted_psf),
         "frame_correlation": frame_score(np.abs(order_amplitudes(plate)) ** 2),
-        "psf": fit["psf"].tolist(),
+        "psf": fitted_psf.tolist(),
     }
 
 

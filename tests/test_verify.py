@@ -494,20 +494,18 @@ def test_a_capture_stored_with_loss_is_refused(tmp_path, levels, capsys, name, s
 def test_an_exr_capture_compressed_with_loss_is_refused(tmp_path, compression):
     import OpenImageIO as oiio
 
-    spec = oiio.ImageSpec(32, 32, 1, "float")
-    spec.attribute("compression", compression)
-    out = oiio.ImageOutput.create(str(tmp_path / "cap.exr"))
-    out.open(str(tmp_path / "cap.exr"), spec)
-    out.write_image(np.ones((32, 32, 1), np.float32))
-    out.close()
+    def exr(name, compression):
+        spec = oiio.ImageSpec(32, 32, 1, "float")
+        spec.attribute("compression", compression)
+        out = oiio.ImageOutput.create(str(tmp_path / name))
+        out.open(str(tmp_path / name), spec)
+        out.write_image(np.ones((32, 32, 1), np.float32))
+        out.close()
+        return tmp_path / name
+
     with pytest.raises(InputError, match=f"EXR compressed with loss \\({compression}\\)"):
-        read_capture(tmp_path / "cap.exr")
-    spec.attribute("compression", "zip")  # lossless: read
-    out = oiio.ImageOutput.create(str(tmp_path / "zip.exr"))
-    out.open(str(tmp_path / "zip.exr"), spec)
-    out.write_image(np.ones((32, 32, 1), np.float32))
-    out.close()
-    assert read_capture(tmp_path / "zip.exr").image.shape == (32, 32)
+        read_capture(exr("cap.exr", compression))
+    assert read_capture(exr("zip.exr", "zip")).image.shape == (32, 32)  # lossless: read
 
 
 def test_dots_too_close_to_measure_exit_2(tmp_path, levels, capsys):
@@ -1139,22 +1137,35 @@ def test_an_orientation_hint_never_names_the_orientation_given(tmp_path, designe
     assert not any("--orientation as-designed" in n for n in report["notes"])
 
 
+def verify_faulty_plate(tmp_path, levels, faults, seed, acceptance=None, supersample=1, **manifest):
+    """Verify a simulated capture (and dark) of a plate of ``levels`` with ``faults``.
+
+    ``manifest`` adds keys to the design folder's fab_manifest.json. Returns the exit
+    code, the verify.json content and the output folder.
+    """
+    design = make_design_dir(tmp_path / "design", levels, acceptance=acceptance)
+    manifest_file = design / "fab_manifest.json"
+    write_json(manifest_file, {**json.loads(manifest_file.read_text()), **manifest})
+    sim = simulate_capture(
+        levels, L, pitch_px=PITCH_PX, seed=seed, faults=faults, supersample=supersample
+    )
+    write_image(tmp_path / "c.png", sim["capture"], exposure=0.01)
+    write_image(tmp_path / "d.png", sim["dark"], exposure=0.01)
+    out = tmp_path / "out"
+    code = main(["verify", str(design), str(tmp_path / "c.png"), "--dark", str(tmp_path / "d.png"),
+                 "--out", str(out)])  # fmt: skip
+    return code, json.loads((out / "verify.json").read_text()), out
+
+
 @pytest.mark.parametrize("mask, name", [(0, "M1_deep"), (1, "M2_mid")])
 def test_a_mask_8um_off_is_diagnosed_as_an_overlay_error(
     tmp_path, designed, mask, name, capsys, saved_figures
 ):
     # It failed as other_design: the lab was told the wrong plate had arrived.
     faults = PlateFaults(overlay_mask=mask, overlay_shift=(8e-6, -3e-6))
-    design = make_design_dir(tmp_path / "design", designed, acceptance=STRICT_ACCEPTANCE)
-    manifest = json.loads((design / "fab_manifest.json").read_text())
-    write_json(design / "fab_manifest.json", {**manifest, "pixel_pitch_nm": 4990})
-    sim = simulate_capture(designed, L, pitch_px=PITCH_PX, seed=11, faults=faults, supersample=4)
-    write_image(tmp_path / "c.png", sim["capture"], exposure=0.01)
-    write_image(tmp_path / "d.png", sim["dark"], exposure=0.01)
-    out = tmp_path / "out"
-    code = main(["verify", str(design), str(tmp_path / "c.png"), "--dark", str(tmp_path / "d.png"),
-                 "--out", str(out)])  # fmt: skip
-    report = json.loads((out / "verify.json").read_text())
+    code, report, out = verify_faulty_plate(
+        tmp_path, designed, faults, 11, STRICT_ACCEPTANCE, supersample=4, pixel_pitch_nm=4990
+    )
     assert code == 1 and report["diagnosis"][:2] == ["overlay_error", "psf_mismatch"]
     fit = report["overlay_error_fit"]
     # the simulation rounds the shift to quarter pixels: 8 um -> 1.5 px, -3 um -> -0.5 px
@@ -1202,15 +1213,8 @@ def test_a_mid_etch_off_its_depth_is_diagnosed_and_named(
 ):
     # It failed as a bare psf_mismatch: only the deepest etch was fitted, so the lab
     # was not told which of the three etches to measure.
-    design = make_design_dir(tmp_path / "design", designed, acceptance=STRICT_ACCEPTANCE)
-    sim = simulate_capture(designed, L, pitch_px=PITCH_PX, seed=22,
-                           faults=PlateFaults(etch_errors=(0.0, eps)))  # fmt: skip
-    write_image(tmp_path / "c.png", sim["capture"], exposure=0.01)
-    write_image(tmp_path / "d.png", sim["dark"], exposure=0.01)
-    out = tmp_path / "out"
-    code = main(["verify", str(design), str(tmp_path / "c.png"), "--dark", str(tmp_path / "d.png"),
-                 "--out", str(out)])  # fmt: skip
-    report = json.loads((out / "verify.json").read_text())
+    faults = PlateFaults(etch_errors=(0.0, eps))
+    code, report, out = verify_faulty_plate(tmp_path, designed, faults, 22, STRICT_ACCEPTANCE)
     assert code == 1 and report["diagnosis"] == ["etch_depth_error", "psf_mismatch"]
     fit = report["etch_error_fit"]
     assert fit["mask"] == "M2_mid" and fit["error"] == pytest.approx(eps, abs=0.02)
@@ -1237,17 +1241,10 @@ def test_a_mid_etch_off_its_depth_is_diagnosed_and_named(
 def test_a_dense_design_with_an_etch_off_names_that_mask(
     tmp_path, levels, mask, name, depth_nm, acceptance
 ):
-    design = make_design_dir(tmp_path / "design", levels, acceptance=acceptance)
     errors = tuple(0.3 if j == mask else 0.0 for j in range(3))
-    sim = simulate_capture(
-        levels, L, pitch_px=PITCH_PX, seed=22, faults=PlateFaults(etch_errors=errors)
+    code, report, _ = verify_faulty_plate(
+        tmp_path, levels, PlateFaults(etch_errors=errors), 22, acceptance
     )
-    write_image(tmp_path / "c.png", sim["capture"], exposure=0.01)
-    write_image(tmp_path / "d.png", sim["dark"], exposure=0.01)
-    out = tmp_path / "out"
-    code = main(["verify", str(design), str(tmp_path / "c.png"), "--dark", str(tmp_path / "d.png"),
-                 "--out", str(out)])  # fmt: skip
-    report = json.loads((out / "verify.json").read_text())
     # (a random design's efficiency misses the strict acceptance's 0.5 as well)
     assert code == 1 and report["diagnosis"][:2] == ["etch_depth_error", "psf_mismatch"]
     fit = report["etch_error_fit"]
