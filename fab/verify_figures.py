@@ -97,11 +97,12 @@ def write_verify_report(stage, report, image, grid, lattice, measured_psf, desig
         fig.colorbar(im, ax=axes[2, 1], fraction=0.046)
     verdict = "PASS" if report["pass"] else "FAIL"
     fig.suptitle(
-        f"{verdict}: {', '.join(report['diagnosis'])}   correlation "
+        f"{verdict}: {', '.join(report['diagnosis'])}\ncorrelation "
         f"{report['correlation']:.4f}, rmse {report['rmse']:.4f}, orientation "
         f"{orientation}"
     )
-    fig.tight_layout()
+    # room for the two-line title (a long diagnosis list ran past the figure's width)
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.5 / fig.get_figheight()))
     fig.savefig(stage / "verify.png", dpi=90, metadata=_PNG_META)
     plt.close(fig)
     (stage / "verify_report.html").write_text(_html(report), encoding="utf-8")
