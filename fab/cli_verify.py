@@ -243,7 +243,6 @@ def _verify(args):
         repair_hot_pixels,
         repair_stray_spikes,
     )
-    from fab.masks import mask_name
     from fab.verify import (
         analyse,
         best_frame_correlation,
@@ -341,10 +340,9 @@ def _verify(args):
     if overlay is not None and design.mask_pixel_pitch:
         overlay["shift_um"] = [v * design.mask_pixel_pitch * 1e6 for v in overlay["shift_px"]]
     etch = report["etch_error_fit"]
-    n_masks = len(design.etch_depths)
-    names = [mask_name(j, n_masks) for j in range(n_masks)]
-    if etch is not None and etch["mask"] in names:
-        etch["error_nm"] = etch["error"] * design.etch_depths[names.index(etch["mask"])] * 1e9
+    if etch is not None and len(etch["masks"]) == len(design.etch_depths):  # deepest first
+        depths = zip(etch["errors"], design.etch_depths, strict=True)
+        etch["errors_nm"] = [e * d * 1e9 for e, d in depths]
     hints = [
         _pitch_hint(result, on_lattice, lattice.pitch_px, args),
         _orientation_hint(result, grid, design, args.orientation),
@@ -391,16 +389,21 @@ def _overlay_hint(result):
 
 
 def _etch_hint(result):
-    """Return a note naming the mask whose etch depth error explains the PSF."""
+    """Return a note naming the masks whose etch depth errors explain the PSF."""
+    from fab.verify import etched_off
+
     if "etch_depth_error" not in result["diagnosis"]:
         return None
     fit = result["etch_error_fit"]
-    nm = f" ({fit['error_nm']:+.1f} nm)" if "error_nm" in fit else ""
-    way = "deep" if fit["error"] > 0 else "shallow"
+    nm = dict(zip(fit["masks"], fit.get("errors_nm", []), strict=False))
+    off = ", ".join(
+        f"{name} {abs(err):.1%} too {'deep' if err > 0 else 'shallow'}"
+        + (f" ({nm[name]:+.1f} nm)" if name in nm else "")
+        for name, err in etched_off(fit)
+    )
     return (
-        f"the window is the design's with mask {fit['mask']}'s etch {abs(fit['error']):.1%} too "
-        f"{way}{nm} (correlation {fit['correlation']:.4f} with that plate): check that "
-        "etch's depth"
+        f"the window is the design's with these etches off their depth: {off} (correlation "
+        f"{fit['correlation']:.4f} with that plate): check those etches' depths"
     )
 
 

@@ -441,6 +441,83 @@ def fit_etch_error(window, sigma, levels, n_levels, mask_index=0, search=0.5, st
     }
 
 
+def fit_etch_errors(window, sigma, levels, n_levels, search=0.5):
+    """Fit the depth errors of every mask's etch at once.
+
+    A plate's etches are all off by a little; one mask's error fitted alone takes up
+    some of the others'. With errors eps_j, level l carries the phase
+    ``-sum_j b_jl phi_j (1 + eps_j)`` (b_jl: whether mask j etches level l; phi_j its
+    designed phase), so the window is ``|sum_l exp(i phase_l) F_l|^2`` with F_l the
+    window far field of level l's pixels: exact, and a few K^2 operations an
+    evaluation. Weighted least squares with a free scale, from no error, within
+    ``search`` each way.
+
+    Returns
+    -------
+    dict or None
+        "eps" (one error a mask, deepest first; 0 for a mask that etches all pixels
+        or none), "chi2_drop" (against no error), "mask_chi2" (for each mask, how
+        much worse the fit is with its error held at 0 and the others refitted),
+        "at_search_edge", "psf" (the fitted window, sum 1) and "masks" (names);
+        None when no mask etches some pixels and not others.
+    """
+    from scipy.optimize import least_squares
+
+    masks = masks_from_levels(levels, n_levels, level_step=1.0)
+    free = [j for j, mk in enumerate(masks) if 0 < mk.bitmap.mean() < 1]
+    if not free:
+        return None
+    k, n = window.shape[0], levels.shape[0]
+    idx = (np.arange(k) - k // 2) % n
+    env = pixel_envelope(np.arange(k) - k // 2, n)
+    env = env[:, None] * env[None, :]
+    per_level = np.array(
+        [np.fft.fft2(levels == lv)[np.ix_(idx, idx)] / levels.size for lv in range(n_levels)]
+    )
+    # Mask j etches level l when its steps are in the level's depth L - 1 - l (binary).
+    etched = np.array([[(n_levels - 1 - lv) & mk.steps != 0 for mk in masks]
+                       for lv in range(n_levels)])  # fmt: skip
+    phi = np.array([2 * np.pi * mk.steps / n_levels for mk in masks])
+    wts = np.ones((k, k)) if sigma is None else 1 / np.maximum(np.asarray(sigma), 1e-30)
+    meas = np.asarray(window, float) * wts
+
+    def power(eps):
+        phase = -(etched * phi * (1 + eps)).sum(axis=1)
+        return np.abs(np.tensordot(np.exp(1j * phase), per_level, axes=1)) ** 2 * env
+
+    def errors(x, held=None):
+        eps = np.zeros(len(masks))
+        eps[[j for j in free if j != held]] = x
+        return eps
+
+    def residuals(x, held=None):
+        p = power(errors(x, held)) * wts
+        return (p * ((p * meas).sum() / (p * p).sum()) - meas).ravel()
+
+    def best_fit(x0, held=None):
+        return least_squares(residuals, x0, bounds=(-search, search), args=(held,))
+
+    # From no error it found the errors of 120 simulated plates (each etch within
+    # +-45 %; a random, the retrieved asymmetric and the default run's design).
+    fit = best_fit(np.zeros(len(free)))
+    chi2 = 2 * fit.cost
+    mask_chi2 = [0.0] * len(masks)
+    for i, j in enumerate(free):
+        if len(free) == 1:
+            mask_chi2[j] = float((residuals(np.zeros(0), j) ** 2).sum() - chi2)
+        else:
+            mask_chi2[j] = float(2 * best_fit(np.delete(fit.x, i), j).cost - chi2)
+    fitted = power(errors(fit.x))
+    return {
+        "eps": errors(fit.x),
+        "chi2_drop": float((residuals(np.zeros(len(free))) ** 2).sum() - chi2),
+        "mask_chi2": mask_chi2,
+        "at_search_edge": bool(np.any(np.abs(fit.x) > search - 1e-3)),
+        "psf": fitted / fitted.sum(),
+        "masks": [mk.name for mk in masks],
+    }
+
+
 def implied_deep_etch_error(levels, n_levels, zero_order_power, sign_hint=None):
     """Invert the zero-order power for the fractional depth error of the deepest etch.
 
@@ -643,7 +720,7 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
     def frame_score(period):
         return _frame_score(meas, valid, sigma, period, m0, n0, half)[0]
 
-    for key, fit in (("overlay_error_fit", _overlay_fit), ("etch_error_fit", _shallower_etch_fit)):
+    for key, fit in (("overlay_error_fit", _overlay_fit), ("etch_error_fit", _etch_fit)):
         result[key] = (
             fit(measured_psf, (window, sigma[sl]), frame_score, levels, n_levels) if fails else None
         )
@@ -675,29 +752,33 @@ def _overlay_fit(measured_psf, window, frame_score, levels, n_levels):
     }
 
 
-def _shallower_etch_fit(measured_psf, window, frame_score, levels, n_levels):
-    """Return the JSON-ready fit of the mask, other than the deepest, whose etch depth error
-    best explains the window; None when none of them etches some pixels and not others.
-
-    The deepest mask's error has its own fit and rule (``deep_etch_error``), judged
-    against the fabrication tolerance even on a plate that passes.
-    """
-    n_masks = int(n_levels).bit_length() - 1
-    fits = [fit_etch_error(*window, levels, n_levels, j) for j in range(1, n_masks)]
-    fits = [f for f in fits if f is not None]
-    if not fits:
+def _etch_fit(measured_psf, window, frame_score, levels, n_levels):
+    """Return the JSON-ready joint fit of every mask's etch depth error, or None when no
+    mask etches some pixels and not others."""
+    fit = fit_etch_errors(*window, levels, n_levels)
+    if fit is None:
         return None
-    fit = max(fits, key=lambda f: f["chi2_drop"])
-    errors = [0.0] * n_masks
-    errors[fit["mask_index"]] = fit["eps"]
-    plate = plate_phase(levels, n_levels, PlateFaults(etch_errors=tuple(errors)))
+    plate = plate_phase(levels, n_levels, PlateFaults(etch_errors=tuple(fit["eps"])))
     return {
-        "mask": fit["mask"],
-        "error": fit["eps"],
-        "at_search_edge": bool(fit["at_search_edge"]),
+        "masks": fit["masks"],
+        "errors": [float(e) for e in fit["eps"]],
+        "mask_significance": fit["mask_chi2"],
+        "at_search_edge": fit["at_search_edge"],
         "significance": fit["chi2_drop"],
         **_fitted_plate_figures(measured_psf, fit["psf"], plate, frame_score),
     }
+
+
+def etched_off(fit):
+    """Return [(mask, error)] of the masks whose error the joint etch fit needs (chi-square
+    rise over (SIGNIFICANCE + 1)^2 without it), deepest first."""
+    return [
+        (name, err)
+        for name, err, chi2 in zip(
+            fit["masks"], fit["errors"], fit["mask_significance"], strict=True
+        )
+        if chi2 > (SIGNIFICANCE + 1) ** 2
+    ]
 
 
 def _fitted_plate_figures(measured_psf, fitted_psf, plate, frame_score):
@@ -725,7 +806,8 @@ def fitted_fault(result):
         return f"{fit['mask']} shifted y {dy:+.2f}, x {dx:+.2f} mask px", np.array(fit["psf"])
     if "etch_depth_error" in diagnosis:
         fit = result["etch_error_fit"]
-        return f"{fit['mask']} etched {_too(fit['error'])}", np.array(fit["psf"])
+        what = ", ".join(f"{name} etch {err:+.1%}" for name, err in etched_off(fit))
+        return what, np.array(fit["psf"])
     if "deep_etch_error" in diagnosis:
         what = f"the deepest mask etched {_too(result['deep_etch_error_fit'])}"
         return what, np.array(result["deep_etch_error_fit_psf"])
@@ -859,8 +941,10 @@ def _significant_fits(result):
     if overlay is not None and max(abs(v) for v in overlay["shift_px"]) < OVERLAY_REACH_PX:
         fits["overlay_error"] = overlay
     etch = result["etch_error_fit"]
+    # named for the shallower masks: the deepest alone is deep_etch_error's
     if etch is not None and not etch["at_search_edge"]:
-        fits["etch_depth_error"] = etch
+        if any(name != etch["masks"][0] for name, _ in etched_off(etch)):
+            fits["etch_depth_error"] = etch
     return {
         code: fit for code, fit in fits.items() if fit["significance"] > (SIGNIFICANCE + 1) ** 2
     }
@@ -907,6 +991,16 @@ def winning_reflection(result):
     return max(better, key=lambda t: delta[t]) if better else None
 
 
+def _deep_etch_off(result, thresholds):
+    """Whether the deepest etch's own fit is off beyond its tolerance, and decisively."""
+    fit = result["deep_etch_error_fit"]
+    return (
+        fit is not None
+        and abs(fit) > thresholds["deep_etch_error_max"]
+        and result["deep_etch_error_fit_significance"] > (SIGNIFICANCE + 1) ** 2
+    )
+
+
 def diagnose(result, thresholds):
     """Return the list of short diagnosis codes (["ok"] when every check holds).
 
@@ -937,15 +1031,15 @@ def diagnose(result, thresholds):
         > SIGNIFICANCE * result["zero_order_sigma"]
     ):
         process.append("zero_order_excess")
-    fit = result["deep_etch_error_fit"]
     fault = _explaining_fault(result, thresholds)
-    if fault:  # a deep-etch error fitted to it would be spurious
+    if fault:
         process.append(fault)
-    elif (
-        fit is not None
-        and abs(fit) > thresholds["deep_etch_error_max"]
-        and result["deep_etch_error_fit_significance"] > (SIGNIFICANCE + 1) ** 2
-    ):
+    if fault == "etch_depth_error":  # its deepest error is fitted beside the others
+        etch = result["etch_error_fit"]
+        deep = [err for name, err in etched_off(etch) if name == etch["masks"][0]]
+        if deep and abs(deep[0]) > thresholds["deep_etch_error_max"]:
+            process.append("deep_etch_error")
+    elif fault is None and _deep_etch_off(result, thresholds):  # not with an overlay's
         process.append("deep_etch_error")
     codes += process
     if not codes or codes == process:

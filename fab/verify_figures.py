@@ -176,8 +176,8 @@ def _html(report):
         ),
         ("overlay fit: one mask shifted (fitted when the PSF fails)", _overlay_text(report)),
         (
-            "etch fit: one mask other than the deepest etched too deep or too shallow "
-            "(fitted when the PSF fails)",
+            "etch fit: every mask's depth error, fitted together (+ too deep; the gain "
+            "is the chi-square each needs; fitted when the PSF fails)",
             _etch_text(report),
         ),
         (
@@ -305,10 +305,17 @@ def _etch_text(report):
     fit = report["etch_error_fit"]
     if fit is None:
         return "not fitted"
-    nm = f" ({fit['error_nm']:+.1f} nm)" if "error_nm" in fit else ""
-    edge = ", at the edge of the search: the error may be larger" if fit["at_search_edge"] else ""
+    nm = fit.get("errors_nm") or [None] * len(fit["errors"])
+    masks = ", ".join(
+        f"{name} {err:+.1%}"
+        + (f" ({e_nm:+.1f} nm)" if e_nm is not None else "")
+        + f" gain {gain:.3g}"
+        for name, err, e_nm, gain in zip(
+            fit["masks"], fit["errors"], nm, fit["mask_significance"], strict=True
+        )
+    )
+    edge = ", at the edge of the search: an error may be larger" if fit["at_search_edge"] else ""
     return (
-        f"{fit['mask']} {fit['error']:+.1%}{nm}{edge}; correlation {fit['correlation']:.4f} "
-        f"with that plate (frame {fit['frame_correlation']:.3f}), "
-        f"chi-square gain {fit['significance']:.3g}"
+        f"{masks}{edge}; correlation {fit['correlation']:.4f} with that plate (frame "
+        f"{fit['frame_correlation']:.3f}), chi-square gain {fit['significance']:.3g}"
     )

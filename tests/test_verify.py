@@ -29,7 +29,9 @@ from fab.plate import PlateFaults, plate_far_field, plate_phase
 from fab.verify import (
     analyse,
     design_order_power,
+    etched_off,
     fit_etch_error,
+    fit_etch_errors,
     implied_deep_etch_error,
     resolve_thresholds,
 )
@@ -866,6 +868,33 @@ def test_a_saturated_pixel_off_the_dots_is_noted_and_does_not_fail(tmp_path, lev
     assert "1 saturated pixel(s) outside the dots" in report["notes"]
 
 
+@pytest.mark.parametrize("errors", [(-0.15, 0.25, 0.0), (0.0, -0.2, 0.3), (0.3, -0.3, 0.2)])
+def test_the_joint_etch_fit_inverts_a_plate_with_every_etch_off(levels, errors):
+    orders = np.meshgrid(np.arange(K) - K // 2, np.arange(K) - K // 2, indexing="ij")
+    window = plate_far_field(plate_phase(levels, L, PlateFaults(etch_errors=errors)))(*orders)
+    sigma = 1e-4 * window.max() + 0.01 * window
+    fit = fit_etch_errors(window, sigma, levels, L)
+    assert fit["eps"] == pytest.approx(errors, abs=2e-3)
+    assert fit["masks"] == ["M1_deep", "M2_mid", "M3_shallow"] and not fit["at_search_edge"]
+    # a mask whose error is 0 is not needed: holding it at 0 costs (almost) nothing
+    for err, chi2 in zip(errors, fit["mask_chi2"], strict=True):
+        assert (chi2 > 100) if err else (chi2 < 1e-3)
+    assert fit["psf"] == pytest.approx(window / window.sum(), abs=1e-6)
+
+
+def test_the_joint_etch_fit_of_a_design_using_one_mask():
+    # levels 3 and 7 only: the deepest mask alone etches some pixels and not others
+    two = np.random.default_rng(5).choice(np.array([3, 7], np.uint8), (N, N))
+    orders = np.meshgrid(np.arange(K) - K // 2, np.arange(K) - K // 2, indexing="ij")
+    window = plate_far_field(plate_phase(two, L, PlateFaults(etch_errors=(0.2,))))(*orders)
+    fit = fit_etch_errors(window, 1e-4 * window.max() + 0.01 * window, two, L)
+    assert fit["eps"] == pytest.approx([0.2, 0.0, 0.0], abs=2e-3)
+    assert fit["mask_chi2"][0] == pytest.approx(fit["chi2_drop"]) and fit["chi2_drop"] > 100
+    assert fit_etch_errors(window, None, np.full((N, N), 7, np.uint8), L) is None  # flat
+    far = plate_far_field(plate_phase(two, L, PlateFaults(etch_errors=(0.7,))))(*orders)
+    assert fit_etch_errors(far, None, two, L)["at_search_edge"]  # beyond the +-50 % searched
+
+
 @pytest.mark.parametrize("mask", [1, 2])
 def test_the_etch_fit_of_each_shallower_mask_inverts_the_simulated_plate(levels, mask):
     orders = np.meshgrid(np.arange(K) - K // 2, np.arange(K) - K // 2, indexing="ij")
@@ -1217,39 +1246,52 @@ def test_a_mid_etch_off_its_depth_is_diagnosed_and_named(
     code, report, out = verify_faulty_plate(tmp_path, designed, faults, 22, STRICT_ACCEPTANCE)
     assert code == 1 and report["diagnosis"] == ["etch_depth_error", "psf_mismatch"]
     fit = report["etch_error_fit"]
-    assert fit["mask"] == "M2_mid" and fit["error"] == pytest.approx(eps, abs=0.02)
-    assert fit["error_nm"] == pytest.approx(fit["error"] * 358.8)  # the manifest's M2 depth
+    assert fit["masks"] == ["M1_deep", "M2_mid", "M3_shallow"]
+    assert fit["errors"] == pytest.approx([0.0, eps, 0.0], abs=0.02)
+    # the manifest's depths, deepest first
+    assert fit["errors_nm"] == pytest.approx(np.multiply(fit["errors"], [717.6, 358.8, 179.4]))
     assert fit["correlation"] > 0.999 > report["correlation"] and fit["frame_correlation"] > 0.99
     assert report["measured_psf_usable"] is True
-    hint = re.search(r"mask M2_mid's etch (\d+\.\d)% too (\w+) \(([+-]\d+\.\d) nm\)",
-                     capsys.readouterr().err)  # fmt: skip
+    hint = re.search(
+        r"off their depth: M2_mid (\d+\.\d)% too (\w+) \(([+-]\d+\.\d) nm\) \(",
+        capsys.readouterr().err,
+    )  # fmt: skip  (M2 alone: the others need no error)
     assert hint and float(hint[1]) == pytest.approx(100 * abs(eps), abs=2) and hint[2] == way
-    assert float(hint[3]) == pytest.approx(fit["error_nm"], abs=0.06)
+    assert float(hint[3]) == pytest.approx(fit["errors_nm"][1], abs=0.06)
     html = (out / "verify_report.html").read_text()
-    row = re.search(r"M2_mid ([+-]\d+\.\d)% \([+-]\d+\.\d nm\); correlation 0\.99\d\d "
-                    r"with that plate \(frame [01]\.\d{3}\)", html)  # fmt: skip
-    assert row and float(row[1]) == pytest.approx(100 * fit["error"], abs=0.06)
+    row = re.search(r"M2_mid ([+-]\d+\.\d)% \([+-]\d+\.\d nm\) gain [\d.e+]+, M3_shallow", html)
+    assert row and float(row[1]) == pytest.approx(100 * fit["errors"][1], abs=0.06)
     title, from_design, from_fitted = fitted_plate_panels(saved_figures)
-    assert re.fullmatch(rf"fitted plate: M2_mid etched \d\d\.\d% too {way}", title)
+    shown = re.fullmatch(r"fitted plate: M2_mid etch ([+-]\d+\.\d)%", title)
+    assert shown and float(shown[1]) == pytest.approx(100 * fit["errors"][1], abs=0.06)
     assert from_fitted < from_design / 3
 
 
 @pytest.mark.parametrize(
-    "mask, name, depth_nm, acceptance",
-    [(1, "M2_mid", 358.8, None), (2, "M3_shallow", 179.4, STRICT_ACCEPTANCE)],
+    "errors, named",
+    [
+        ((0.0, 0.3, 0.0), ["M2_mid"]),  # the defaults
+        ((0.0, 0.0, 0.3), ["M3_shallow"]),  # the strict acceptance
+        ((-0.15, 0.25, 0.0), ["M1_deep", "M2_mid"]),  # two etches off at once
+    ],
 )
-def test_a_dense_design_with_an_etch_off_names_that_mask(
-    tmp_path, levels, mask, name, depth_nm, acceptance
+def test_a_dense_design_with_etches_off_names_those_masks(
+    tmp_path, levels, saved_figures, errors, named
 ):
-    errors = tuple(0.3 if j == mask else 0.0 for j in range(3))
+    acceptance = None if errors[1] == 0.3 else STRICT_ACCEPTANCE
     code, report, _ = verify_faulty_plate(
         tmp_path, levels, PlateFaults(etch_errors=errors), 22, acceptance
     )
     # (a random design's efficiency misses the strict acceptance's 0.5 as well)
-    assert code == 1 and report["diagnosis"][:2] == ["etch_depth_error", "psf_mismatch"]
+    assert code == 1 and report["diagnosis"][0] == "etch_depth_error"
+    assert ("deep_etch_error" in report["diagnosis"]) == ("M1_deep" in named)
     fit = report["etch_error_fit"]
-    assert fit["mask"] == name and fit["error"] == pytest.approx(0.3, abs=0.02)
-    assert fit["error_nm"] == pytest.approx(fit["error"] * depth_nm)
+    assert fit["errors"] == pytest.approx(errors, abs=0.02)
+    off = zip(fit["masks"], fit["errors"], strict=True)
+    assert etched_off(fit) == [(m, e) for m, e in off if m in named]
+    title, from_design, from_fitted = fitted_plate_panels(saved_figures)
+    shown = re.findall(r"(M\d_\w+) etch ([+-]\d+\.\d)%", title)
+    assert [m for m, _ in shown] == named and from_fitted < from_design / 3
 
 
 def test_clipped_14bit_capture_is_flagged_saturated(tmp_path, levels):

@@ -220,23 +220,36 @@ def test_an_overlay_fit_names_a_failing_plate_only_when_it_explains_it_decisivel
     ]  # fmt: skip
 
 
-def _etch(**changes):
-    fit = {"mask": "M2_mid", "error": 0.25, "at_search_edge": False, "significance": 1e4,
-           "correlation": 0.999, "rmse": 0.005, "frame_correlation": 0.99}  # fmt: skip
+def _etch(errors=(0.0, 0.25, 0.0), mask_significance=(0.5, 1e4, 0.3), **changes):
+    fit = {"masks": ["M1_deep", "M2_mid", "M3_shallow"], "errors": list(errors),
+           "mask_significance": list(mask_significance), "at_search_edge": False,
+           "significance": 1e4, "correlation": 0.999, "rmse": 0.005,
+           "frame_correlation": 0.99}  # fmt: skip
     return {**fit, **changes}
 
 
-def test_a_shallower_etch_fit_names_a_failing_plate_only_when_it_explains_it_best():
+def test_an_etch_fit_names_a_failing_plate_only_when_a_shallower_etch_explains_it_best():
     t = resolve_thresholds(None, design_efficiency=0.80, design_zero_order=0.01)
     failing = dict(correlation=0.6, correlation_with_fitted_etch=0.6, rmse=0.1)
     explained = _good_result(**failing, etch_error_fit=_etch())
     assert diagnose(explained, t) == ["etch_depth_error", "psf_mismatch"]
     for weak in (
-        _etch(significance=8.0),  # under 3 sigma
-        _etch(at_search_edge=True, error=0.5),  # the error may lie beyond the search
+        _etch(significance=8.0),  # under 3 sigma in all
+        _etch(mask_significance=(0.5, 8.0, 0.3)),  # M2's error is not needed
+        _etch(errors=(0.3, 0.0, 0.0), mask_significance=(1e4, 0.1, 0.1)),  # the deepest alone
+        _etch(at_search_edge=True),  # an error may lie beyond the search
         _etch(correlation=0.94),  # not within the thresholds
     ):
         assert diagnose(_good_result(**failing, etch_error_fit=weak), t) == ["other_design"]
+    # the deepest etch off beside a shallower one: named, by the joint fit's error
+    both = dict(errors=(-0.15, 0.25, 0.0), mask_significance=(1e4, 1e4, 0.3))
+    assert diagnose(_good_result(**failing, etch_error_fit=_etch(**both)), t) == [
+        "etch_depth_error", "deep_etch_error", "psf_mismatch"
+    ]  # fmt: skip
+    within = dict(errors=(-0.05, 0.25, 0.0), mask_significance=(1e4, 1e4, 0.3))  # under 10 %
+    assert diagnose(_good_result(**failing, etch_error_fit=_etch(**within)), t)[0:2] == [
+        "etch_depth_error", "psf_mismatch"
+    ]  # fmt: skip
     # of an overlay and an etch fit that both explain the window, the closer is named
     for etch_corr, named in ((0.9995, "etch_depth_error"), (0.9985, "overlay_error")):
         both = _good_result(
