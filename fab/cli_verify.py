@@ -336,18 +336,12 @@ def _verify(args):
         },
         "notes": capture.notes + lattice_notes + _notes(result, capture, design),
     }
-    overlay = report["overlay_error_fit"]
-    if overlay is not None and design.mask_pixel_pitch:
-        overlay["shift_um"] = [v * design.mask_pixel_pitch * 1e6 for v in overlay["shift_px"]]
-    etch = report["etch_error_fit"]
-    if etch is not None and len(etch["masks"]) == len(design.etch_depths):  # deepest first
-        depths = zip(etch["errors"], design.etch_depths, strict=True)
-        etch["errors_nm"] = [e * d * 1e9 for e, d in depths]
+    for key in ("overlay_error_fit", "etch_error_fit", "overlay_and_etch_fit"):
+        _in_um_and_nm(report[key], design)
     hints = [
         _pitch_hint(result, on_lattice, lattice.pitch_px, args),
         _orientation_hint(result, grid, design, args.orientation),
-        _overlay_hint(report),
-        _etch_hint(report),
+        _fault_hint(report),
     ]
     for hint in filter(None, hints):
         report["notes"].append(hint)
@@ -375,35 +369,47 @@ def _verify(args):
     return 0 if report["pass"] else 1
 
 
-def _overlay_hint(result):
-    """Return a note naming the shifted mask when an overlay error explains the PSF."""
-    if "overlay_error" not in result["diagnosis"]:
+def _in_um_and_nm(fit, design):
+    """Add a fit's shift in um and etch errors in nm, where the design folder gives the scale."""
+    if fit is None:
+        return
+    if "shift_px" in fit and design.mask_pixel_pitch:
+        fit["shift_um"] = [v * design.mask_pixel_pitch * 1e6 for v in fit["shift_px"]]
+    if "errors" in fit and len(fit["masks"]) == len(design.etch_depths):  # deepest first
+        depths = zip(fit["errors"], design.etch_depths, strict=True)
+        fit["errors_nm"] = [e * d * 1e9 for e, d in depths]
+
+
+def _fault_hint(result):
+    """Return a note naming the plate faults that explain the PSF: a mask printed off the
+    others, etches off their depths, or both."""
+    from fab.verify import etched_off, explaining_fit
+
+    fit = explaining_fit(result)
+    if fit is None:
         return None
-    fit = result["overlay_error_fit"]
-    unit, shift = ("um", fit["shift_um"]) if "shift_um" in fit else ("mask pixels", fit["shift_px"])
+    faults, checks = [], []
+    if "shift_px" in fit:
+        unit, shift = (
+            ("um", fit["shift_um"]) if "shift_um" in fit else ("mask pixels", fit["shift_px"])
+        )
+        faults.append(
+            f"mask {fit['mask']} printed off the other masks by {shift[0]:+.2f} {unit} in y "
+            f"(up) and {shift[1]:+.2f} {unit} in x (right)"
+        )
+        checks.append("that exposure's alignment")
+    if "errors" in fit:
+        nm = dict(zip(fit["masks"], fit.get("errors_nm", []), strict=False))
+        off = ", ".join(
+            f"{name} {abs(err):.1%} too {'deep' if err > 0 else 'shallow'}"
+            + (f" ({nm[name]:+.1f} nm)" if name in nm else "")
+            for name, err in etched_off(fit)
+        )
+        faults.append(f"these etches off their depth: {off}")
+        checks.append("those etches' depths")
     return (
-        f"the window is the design's with mask {fit['mask']} printed off the other masks by "
-        f"{shift[0]:+.2f} {unit} in y (up) and {shift[1]:+.2f} {unit} in x (right) (correlation "
-        f"{fit['correlation']:.4f} with that plate): check that exposure's alignment"
-    )
-
-
-def _etch_hint(result):
-    """Return a note naming the masks whose etch depth errors explain the PSF."""
-    from fab.verify import etched_off
-
-    if "etch_depth_error" not in result["diagnosis"]:
-        return None
-    fit = result["etch_error_fit"]
-    nm = dict(zip(fit["masks"], fit.get("errors_nm", []), strict=False))
-    off = ", ".join(
-        f"{name} {abs(err):.1%} too {'deep' if err > 0 else 'shallow'}"
-        + (f" ({nm[name]:+.1f} nm)" if name in nm else "")
-        for name, err in etched_off(fit)
-    )
-    return (
-        f"the window is the design's with these etches off their depth: {off} (correlation "
-        f"{fit['correlation']:.4f} with that plate): check those etches' depths"
+        f"the window is the design's with {' and '.join(faults)} (correlation "
+        f"{fit['correlation']:.4f} with that plate): check {' and '.join(checks)}"
     )
 
 

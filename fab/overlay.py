@@ -47,34 +47,41 @@ def _part_integrals(orders, n, frac):
 
 
 class OverlayModel:
-    """Window orders of the design with one mask shifted, for any shift within ``REACH_PX``."""
+    """Window orders of the design with one mask shifted, for any shift within ``REACH_PX``.
 
-    def __init__(self, levels, n_levels, kernel_size):
+    ``etch_errors`` (fractions, deepest mask first) etch the plate's masks off their
+    depths as well; ``only`` builds the model of that one mask's shift alone.
+    """
+
+    def __init__(self, levels, n_levels, kernel_size, etch_errors=(), only=None):
         levels = np.asarray(levels)
         n = levels.shape[0]
         self.n, self.orders = n, np.arange(kernel_size) - kernel_size // 2
         masks = masks_from_levels(levels, n_levels, level_step=1.0)
         self.names = [mask_name(j, len(masks)) for j in range(len(masks))]
         self.used = [0 < mk.bitmap.mean() < 1 for mk in masks]
-        depth = [2 * np.pi * mk.steps / n_levels for mk in masks]
+        errors = np.zeros(len(masks))
+        errors[: len(etch_errors)] = etch_errors
+        steps = np.array([mk.steps for mk in masks])
+        depth = 2 * np.pi * steps / n_levels * (1 + errors)
         phase = -sum(d * mk.bitmap for d, mk in zip(depth, masks, strict=True))
         dft = np.exp(-2j * np.pi * np.outer(self.orders, np.arange(n)) / n) / n
         self.whole = np.arange(int(np.floor(-REACH_PX)), int(np.ceil(REACH_PX)) + 2)
-        self.rest, self.etched, self.contrast = [], [], []
-        for d, mk in zip(depth, masks, strict=True):
+        self.rest, self.etched, self.contrast = {}, {}, {}
+        for j, (d, mk) in enumerate(zip(depth, masks, strict=True)):
+            if only is not None and j != only:
+                continue
             # The plate is A (1 + c M): A the other masks' transmission, c what this one adds.
             rest = np.exp(1j * (phase + d * mk.bitmap))
-            self.rest.append(dft @ rest @ dft.T)
-            self.etched.append(
-                np.array(
-                    [
-                        [dft @ (rest * np.roll(mk.bitmap, (p, q), axis=(0, 1))) @ dft.T
-                         for q in self.whole]
-                        for p in self.whole
-                    ]
-                )
+            self.rest[j] = dft @ rest @ dft.T
+            self.etched[j] = np.array(
+                [
+                    [dft @ (rest * np.roll(mk.bitmap, (p, q), axis=(0, 1))) @ dft.T
+                     for q in self.whole]
+                    for p in self.whole
+                ]
             )  # fmt: skip
-            self.contrast.append(np.exp(-1j * d) - 1)
+            self.contrast[j] = np.exp(-1j * d) - 1
 
     def amplitudes(self, mask, dy, dx):
         """Return the complex window orders with mask ``mask`` shifted by (dy, dx) px.
@@ -166,5 +173,68 @@ def fit_overlay_error(window, sigma, levels, n_levels):
         "mask_index": j,
         "shift_px": [dy, dx],
         "chi2_drop": float(chi2(j, 0.0, 0.0)) - value,
+        "psf": fitted / fitted.sum(),
+    }
+
+
+def fit_overlay_and_etch(window, sigma, levels, n_levels, mask, shift, etch_errors):
+    """Fit one mask's shift and every mask's etch depth error together, from a start.
+
+    For a plate with two faults at once, which each fit alone explains only in part:
+    weighted least squares with a free scale from ``shift`` (dy, dx, mask pixels) of
+    mask index ``mask`` and ``etch_errors`` (deepest first), within ``REACH_PX`` and
+    +-50 %. Each etch error's significance is the chi-square rise with it held at 0
+    and the rest refitted; the shift's, the quadratic form of the pair in the fit's
+    curvature.
+
+    Returns
+    -------
+    dict
+        "mask", "mask_index", "shift_px", "eps" (deepest first), "chi2",
+        "chi2_drop" (against no fault), "shift_chi2", "mask_chi2" (one a mask; 0 for
+        a mask that etches all pixels or none), "at_search_edge" and "psf" (the
+        fitted window, sum 1).
+    """
+    from scipy.optimize import least_squares
+
+    probe = OverlayModel(levels, n_levels, window.shape[0], only=mask)
+    free = np.flatnonzero(probe.used)
+    wts = np.ones(window.shape) if sigma is None else 1 / np.maximum(np.asarray(sigma), 1e-30)
+    meas = np.asarray(window, float) * wts
+
+    def power(x):
+        errors = np.zeros(len(probe.used))
+        errors[free] = x[2:]
+        model = OverlayModel(levels, n_levels, window.shape[0], errors, only=mask)
+        return model.power(mask, x[0], x[1])
+
+    def residuals(x, held=None):  # held: a parameter kept at 0, left out of x
+        x = x if held is None else np.insert(x, held, 0.0)
+        p = power(x) * wts
+        return (p * ((p * meas).sum() / (p * p).sum()) - meas).ravel()
+
+    reach = np.array([REACH_PX, REACH_PX] + [0.5] * len(free))
+    inside = reach * (1 - 1e-6)  # least_squares wants its start inside the bounds
+    x0 = np.clip(np.r_[shift, np.asarray(etch_errors, float)[free]], -inside, inside)
+    fit = least_squares(residuals, x0, bounds=(-reach, reach))
+    cov = np.linalg.pinv(fit.jac.T @ fit.jac)
+    mask_chi2 = np.zeros(len(probe.used))
+    for i, j in enumerate(free, start=2):  # each error held at 0, the rest refitted
+        rest = np.delete(reach, i)
+        held = least_squares(residuals, np.delete(fit.x, i), bounds=(-rest, rest), args=(i,))
+        mask_chi2[j] = 2 * (held.cost - fit.cost)
+    eps = np.zeros(len(probe.used))
+    eps[free] = fit.x[2:]
+    fitted = power(fit.x)
+    return {
+        "mask": probe.names[mask],
+        "mask_index": int(mask),
+        "shift_px": [float(fit.x[0]), float(fit.x[1])],
+        "eps": eps,
+        "chi2": float(2 * fit.cost),
+        "chi2_drop": float((residuals(np.zeros_like(x0)) ** 2).sum() - 2 * fit.cost),
+        "shift_chi2": float(fit.x[:2] @ np.linalg.pinv(cov[:2, :2]) @ fit.x[:2]),
+        "mask_chi2": mask_chi2.tolist(),
+        "at_search_edge": bool(np.any(np.abs(fit.x) > reach - 1e-3)),
         "psf": fitted / fitted.sum(),
     }

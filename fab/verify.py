@@ -34,7 +34,7 @@ from doe.fraunhofer import (
 )
 from fab.masks import masks_from_levels
 from fab.overlay import REACH_PX as OVERLAY_REACH_PX
-from fab.overlay import fit_overlay_error
+from fab.overlay import fit_overlay_and_etch, fit_overlay_error
 from fab.plate import PlateFaults, plate_phase
 
 ORIENTATIONS = (
@@ -724,6 +724,11 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
         result[key] = (
             fit(measured_psf, (window, sigma[sl]), frame_score, levels, n_levels) if fails else None
         )
+    result["overlay_and_etch_fit"] = None
+    if fails and _explaining_fault(result, thresholds) is None:  # two faults at once?
+        result["overlay_and_etch_fit"] = _overlay_and_etch_fit(
+            result, measured_psf, (window, sigma[sl]), frame_score, levels, n_levels
+        )
     result["diagnosis"] = diagnose(result, thresholds)
     result["pass"] = result["diagnosis"] == ["ok"]
     return result, measured_psf
@@ -769,6 +774,34 @@ def _etch_fit(measured_psf, window, frame_score, levels, n_levels):
     }
 
 
+def _overlay_and_etch_fit(result, measured_psf, window, frame_score, levels, n_levels):
+    """Return the JSON-ready fit of an overlay and the etch depths together, started from
+    the two fits alone; None when either is missing."""
+    overlay, etch = result["overlay_error_fit"], result["etch_error_fit"]
+    if overlay is None or etch is None:
+        return None
+    mask = etch["masks"].index(overlay["mask"])
+    fit = fit_overlay_and_etch(*window, levels, n_levels, mask, overlay["shift_px"], etch["errors"])
+    faults = PlateFaults(
+        etch_errors=tuple(fit["eps"]), overlay_mask=mask, overlay_shift=tuple(fit["shift_px"])
+    )
+    plate = plate_phase(levels, n_levels, faults, mask_pixel_pitch=1.0, supersample=8)
+    return {
+        "mask": fit["mask"],
+        "shift_px": fit["shift_px"],
+        "shift_significance": fit["shift_chi2"],
+        "masks": etch["masks"],
+        "errors": [float(e) for e in fit["eps"]],
+        "mask_significance": fit["mask_chi2"],
+        "at_search_edge": fit["at_search_edge"],
+        # over the better of the two fits alone: what the second fault is worth
+        "significance": min(
+            fit["chi2_drop"] - overlay["significance"], fit["chi2_drop"] - etch["significance"]
+        ),
+        **_fitted_plate_figures(measured_psf, fit["psf"], plate, frame_score),
+    }
+
+
 def etched_off(fit):
     """Return [(mask, error)] of the masks whose error the joint etch fit needs (chi-square
     rise over (SIGNIFICANCE + 1)^2 without it), deepest first."""
@@ -793,22 +826,32 @@ def _fitted_plate_figures(measured_psf, fitted_psf, plate, frame_score):
     }
 
 
+def explaining_fit(result):
+    """Return the fit (overlay, etch depths, or both) behind the faults the diagnosis names,
+    or None (none named, or the deepest etch's own fit alone)."""
+    diagnosis = set(result["diagnosis"])
+    if "overlay_error" in diagnosis:
+        both = diagnosis & {"etch_depth_error", "deep_etch_error"}
+        return result["overlay_and_etch_fit" if both else "overlay_error_fit"]
+    return result["etch_error_fit"] if "etch_depth_error" in diagnosis else None
+
+
 def fitted_fault(result):
     """Return (what, psf) of the plate fault the diagnosis names, or None.
 
     ``what`` says the fault in a few words; ``psf`` is the K x K window of the
     design's plate with that fault, fitted to the measurement (sum 1).
     """
-    diagnosis = result["diagnosis"]
-    if "overlay_error" in diagnosis:
-        fit = result["overlay_error_fit"]
-        dy, dx = fit["shift_px"]
-        return f"{fit['mask']} shifted y {dy:+.2f}, x {dx:+.2f} mask px", np.array(fit["psf"])
-    if "etch_depth_error" in diagnosis:
-        fit = result["etch_error_fit"]
-        what = ", ".join(f"{name} etch {err:+.1%}" for name, err in etched_off(fit))
-        return what, np.array(fit["psf"])
-    if "deep_etch_error" in diagnosis:
+    fit = explaining_fit(result)
+    if fit is not None:
+        parts = []
+        if "shift_px" in fit:
+            dy, dx = fit["shift_px"]
+            parts.append(f"{fit['mask']} shifted y {dy:+.2f}, x {dx:+.2f} mask px")
+        if "errors" in fit:
+            parts += [f"{name} etch {err:+.1%}" for name, err in etched_off(fit)]
+        return ", ".join(parts), np.array(fit["psf"])
+    if "deep_etch_error" in result["diagnosis"]:
         what = f"the deepest mask etched {_too(result['deep_etch_error_fit'])}"
         return what, np.array(result["deep_etch_error_fit_psf"])
     return None
@@ -945,9 +988,21 @@ def _significant_fits(result):
     if etch is not None and not etch["at_search_edge"]:
         if any(name != etch["masks"][0] for name, _ in etched_off(etch)):
             fits["etch_depth_error"] = etch
+    both = result["overlay_and_etch_fit"]
+    if both is not None and not both["at_search_edge"]:
+        if both["shift_significance"] > (SIGNIFICANCE + 1) ** 2 and etched_off(both):
+            fits["overlay_and_etch"] = both
     return {
         code: fit for code, fit in fits.items() if fit["significance"] > (SIGNIFICANCE + 1) ** 2
     }
+
+
+# The fit in the result behind each explanation _explaining_fault can return.
+EXPLAINING_FIT = {
+    "overlay_error": "overlay_error_fit",
+    "etch_depth_error": "etch_error_fit",
+    "overlay_and_etch": "overlay_and_etch_fit",
+}
 
 
 def _explaining_fault(result, thresholds):
@@ -1032,11 +1087,14 @@ def diagnose(result, thresholds):
     ):
         process.append("zero_order_excess")
     fault = _explaining_fault(result, thresholds)
-    if fault:
-        process.append(fault)
-    if fault == "etch_depth_error":  # its deepest error is fitted beside the others
-        etch = result["etch_error_fit"]
-        deep = [err for name, err in etched_off(etch) if name == etch["masks"][0]]
+    if fault in ("overlay_error", "overlay_and_etch"):
+        process.append("overlay_error")
+    if fault in ("etch_depth_error", "overlay_and_etch"):  # deepest fitted with the others
+        etch = result[EXPLAINING_FIT[fault]]
+        off = etched_off(etch)
+        if any(name != etch["masks"][0] for name, _ in off):
+            process.append("etch_depth_error")
+        deep = [err for name, err in off if name == etch["masks"][0]]
         if deep and abs(deep[0]) > thresholds["deep_etch_error_max"]:
             process.append("deep_etch_error")
     elif fault is None and _deep_etch_off(result, thresholds):  # not with an overlay's

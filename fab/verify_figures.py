@@ -181,6 +181,11 @@ def _html(report):
             _etch_text(report),
         ),
         (
+            "overlay and etch fit: one mask shifted and every etch's depth, fitted together "
+            "(when neither alone explains a failing PSF)",
+            _both_text(report),
+        ),
+        (
             "frame correlation with design / rot180 / mirror-x / mirror-y",
             " / ".join(
                 f"{report['frame_correlation'][k]:.3f}"
@@ -318,4 +323,24 @@ def _etch_text(report):
     return (
         f"{masks}{edge}; correlation {fit['correlation']:.4f} with that plate (frame "
         f"{fit['frame_correlation']:.3f}), chi-square gain {fit['significance']:.3g}"
+    )
+
+
+def _both_text(report):
+    fit = report["overlay_and_etch_fit"]
+    if fit is None:
+        return "not fitted"
+    dy, dx = fit["shift_px"]
+    um = " ({:+.2f} um, {:+.2f} um)".format(*fit["shift_um"]) if "shift_um" in fit else ""
+    errors = ", ".join(
+        f"{name} {err:+.1%} gain {gain:.3g}"
+        for name, err, gain in zip(
+            fit["masks"], fit["errors"], fit["mask_significance"], strict=True
+        )
+    )
+    return (
+        f"{fit['mask']} by y {dy:+.2f}, x {dx:+.2f} mask pixels{um}, gain "
+        f"{fit['shift_significance']:.3g}; {errors}; correlation {fit['correlation']:.4f} "
+        f"with that plate (frame {fit['frame_correlation']:.3f}), chi-square gain over the "
+        f"better single fit {fit['significance']:.3g}"
     )

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from doe.fraunhofer import order_amplitudes, pixel_envelope, window_indices
-from fab.overlay import REACH_PX, OverlayModel, fit_overlay_error
+from fab.overlay import REACH_PX, OverlayModel, fit_overlay_and_etch, fit_overlay_error
 from fab.plate import PlateFaults, plate_far_field, plate_phase
 
 N, K, L = 24, 7, 8
@@ -20,9 +20,10 @@ def model(levels):
     return OverlayModel(levels, L, K)
 
 
-def supersampled_window(levels, mask, shift, supersample):
-    """The window orders of a plate with ``mask`` shifted, sampled ``supersample`` times finer."""
-    faults = PlateFaults(overlay_mask=mask, overlay_shift=shift)
+def supersampled_window(levels, mask, shift, supersample, etch_errors=()):
+    """The window orders of a plate with ``mask`` shifted (and its etches off by
+    ``etch_errors``), sampled ``supersample`` times finer."""
+    faults = PlateFaults(etch_errors=etch_errors, overlay_mask=mask, overlay_shift=shift)
     orders = plate_far_field(plate_phase(levels, L, faults, 1.0, supersample))
     m = np.arange(K) - K // 2
     return orders(m[:, None], m[None, :])
@@ -110,3 +111,27 @@ def test_the_fit_of_an_aligned_plate_is_no_shift(levels):
 def test_a_design_no_mask_structures_has_no_overlay_fit():
     # Every mask etches all pixels or none: a shift leaves no trace.
     assert fit_overlay_error(np.ones((K, K)), None, np.full((N, N), 5, np.uint8), L) is None
+
+
+@pytest.mark.parametrize("mask", [0, 1, 2])
+def test_a_shifted_mask_on_a_plate_etched_off_gives_the_supersampled_plate(levels, mask):
+    errors = (0.1, -0.2, 0.15)
+    expected = supersampled_window(levels, mask, (1.25, -0.5), 4, errors)
+    model = OverlayModel(levels, L, K, errors, only=mask)
+    assert np.allclose(model.power(mask, 1.25, -0.5), expected, rtol=1e-9, atol=1e-15)
+
+
+@pytest.mark.parametrize(
+    "mask, shift, errors", [(0, (1.6, 0.0), (0.0, 0.3, 0.0)), (1, (1.0, -0.6), (0.2, 0.0, 0.0))]
+)
+def test_the_joint_fit_finds_an_overlay_and_an_etch_error_together(levels, mask, shift, errors):
+    window = supersampled_window(levels, mask, shift, 5, errors)
+    sigma = 1e-4 * window.max() + 0.01 * window
+    # started where a lab's first fits leave it: the shift near, no etch error
+    fit = fit_overlay_and_etch(window, sigma, levels, L, mask, (shift[0] - 0.2, 0.0), (0, 0, 0))
+    assert fit["shift_px"] == pytest.approx(shift, abs=1e-3)
+    assert fit["eps"] == pytest.approx(errors, abs=1e-3)
+    # needed: the shift and the etches off; not the etches that are right
+    assert fit["shift_chi2"] > 100 and fit["chi2"] < 1e-6
+    assert [c > 100 for c in fit["mask_chi2"]] == [e != 0 for e in errors]
+    assert fit["chi2_drop"] > 100 and not fit["at_search_edge"]

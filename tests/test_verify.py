@@ -1294,6 +1294,69 @@ def test_a_dense_design_with_etches_off_names_those_masks(
     assert [m for m, _ in shown] == named and from_fitted < from_design / 3
 
 
+@pytest.mark.parametrize(
+    "faults, codes, mask, shift_px, errors",
+    [
+        (  # M1 8 um off (1.5 px as simulated) with the mid etch 30 % too deep
+            PlateFaults(etch_errors=(0.0, 0.3), overlay_mask=0, overlay_shift=(8e-6, 0.0)),
+            ["overlay_error", "etch_depth_error"], "M1_deep", (1.5, 0.0), (0.0, 0.3),
+        ),
+        (  # M2 5 um up, 3 um left (1, -0.5 px) with the deep etch 20 % too deep
+            PlateFaults(etch_errors=(0.2,), overlay_mask=1, overlay_shift=(5e-6, -3e-6)),
+            ["overlay_error", "deep_etch_error"], "M2_mid", (1.0, -0.5), (0.2, 0.0),
+        ),
+    ],
+)  # fmt: skip
+def test_a_plate_with_an_overlay_and_an_etch_off_names_both(
+    tmp_path, designed, capsys, saved_figures, faults, codes, mask, shift_px, errors
+):
+    # The first failed as a bare psf_mismatch, the second as deep_etch_error alone.
+    code, report, _ = verify_faulty_plate(
+        tmp_path, designed, faults, 22, STRICT_ACCEPTANCE, supersample=4, pixel_pitch_nm=4990
+    )
+    assert code == 1 and report["diagnosis"] == [*codes, "psf_mismatch"]
+    fit = report["overlay_and_etch_fit"]
+    assert fit["mask"] == mask and fit["shift_px"] == pytest.approx(shift_px, abs=0.05)
+    assert fit["errors"][:2] == pytest.approx(errors, abs=0.02)
+    assert fit["shift_um"] == pytest.approx(np.multiply(fit["shift_px"], 4.99))
+    assert fit["errors_nm"] == pytest.approx(np.multiply(fit["errors"], [717.6, 358.8, 179.4]))
+    assert (
+        fit["correlation"]
+        > 0.999
+        > max(report["overlay_error_fit"]["correlation"], report["etch_error_fit"]["correlation"])
+    )
+    err = capsys.readouterr().err
+    assert f"mask {mask} printed off the other masks by" in err and "off their depth: " in err
+    title, from_design, from_fitted = fitted_plate_panels(saved_figures)
+    assert title.startswith(f"fitted plate: {mask} shifted y +1.") and " etch +" in title
+    assert from_fitted < from_design / 3
+
+
+def test_an_overlay_and_etch_fit_of_a_plate_with_an_overlay_alone_is_worth_nothing(designed):
+    # Its significance is its gain over the better fit alone: a second fault the plate
+    # does not have is worth a chi-square of noise, not the whole window's.
+    from fab.overlay import fit_overlay_error
+    from fab.verify import _overlay_and_etch_fit
+
+    faults = PlateFaults(overlay_mask=1, overlay_shift=(1.25, -0.5))
+    orders = np.meshgrid(np.arange(K) - K // 2, np.arange(K) - K // 2, indexing="ij")
+    plate = plate_phase(designed, L, faults, mask_pixel_pitch=1.0, supersample=4)
+    window = plate_far_field(plate)(*orders)
+    sigma = 1e-4 * window.max() + 0.01 * window
+    overlay = fit_overlay_error(window, sigma, designed, L)
+    etch = fit_etch_errors(window, sigma, designed, L)
+    result = {
+        "overlay_error_fit": {**overlay, "significance": overlay["chi2_drop"]},
+        "etch_error_fit": {"masks": etch["masks"], "errors": list(etch["eps"]),
+                           "significance": etch["chi2_drop"]},
+    }  # fmt: skip
+    measured = window / window.sum()
+    fit = _overlay_and_etch_fit(result, measured, (window, sigma), lambda p: 1.0, designed, L)
+    assert fit["shift_px"] == pytest.approx([1.25, -0.5], abs=0.02)
+    assert fit["errors"] == pytest.approx([0, 0, 0], abs=0.01)
+    assert fit["significance"] < 9 < overlay["chi2_drop"]
+
+
 def test_clipped_14bit_capture_is_flagged_saturated(tmp_path, levels):
     """A 16-bit file from a 14-bit sensor (LSB-aligned): clipping shows as a plateau."""
     sim = simulate_capture(

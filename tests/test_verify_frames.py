@@ -140,6 +140,7 @@ def _good_result(**changes):
         "deep_etch_error_fit_significance": 0.0,
         "overlay_error_fit": None,
         "etch_error_fit": None,
+        "overlay_and_etch_fit": None,
     }
     result.update(changes)
     return result
@@ -267,6 +268,38 @@ def test_an_etch_fit_names_a_failing_plate_only_when_a_shallower_etch_explains_i
     assert diagnose(_good_result(**dense, etch_error_fit=_etch()), t)[0] == "etch_depth_error"
     unlike = _etch(frame_correlation=0.5)
     assert diagnose(_good_result(**dense, etch_error_fit=unlike), t) == ["other_design"]
+
+
+def _both(**changes):
+    fit = {"mask": "M1_deep", "shift_px": [1.5, 0.0], "shift_significance": 1e5,
+           "masks": ["M1_deep", "M2_mid", "M3_shallow"], "errors": [0.0, 0.3, 0.0],
+           "mask_significance": [1.0, 1e4, 0.5], "at_search_edge": False, "significance": 1e4,
+           "correlation": 0.999, "rmse": 0.005, "frame_correlation": 0.99}  # fmt: skip
+    return {**fit, **changes}
+
+
+def test_an_overlay_and_etch_fit_names_both_faults_only_when_both_are_needed():
+    t = resolve_thresholds(None, design_efficiency=0.80, design_zero_order=0.01)
+    # the two fits alone explain the window in part only (correlation 0.9)
+    alone = dict(overlay_error_fit=_overlay(correlation=0.9), etch_error_fit=_etch(correlation=0.9))
+    failing = dict(correlation=0.6, correlation_with_fitted_etch=0.6, rmse=0.1, **alone)
+    assert diagnose(_good_result(**failing), t) == ["other_design"]
+    named = _good_result(**failing, overlay_and_etch_fit=_both())
+    assert diagnose(named, t) == ["overlay_error", "etch_depth_error", "psf_mismatch"]
+    deep = _both(errors=[-0.2, 0.0, 0.0], mask_significance=[1e4, 0.3, 0.5])
+    assert diagnose(_good_result(**failing, overlay_and_etch_fit=deep), t) == [
+        "overlay_error", "deep_etch_error", "psf_mismatch"
+    ]  # fmt: skip
+    for weak in (
+        _both(significance=8.0),  # no better than one fault alone
+        _both(shift_significance=8.0),  # the shift is not needed
+        _both(mask_significance=[1.0, 8.0, 0.5]),  # nor any etch error
+        _both(at_search_edge=True),
+        _both(correlation=0.94),
+    ):
+        assert diagnose(_good_result(**failing, overlay_and_etch_fit=weak), t) == [
+            "other_design"
+        ]  # fmt: skip
 
 
 def test_a_runner_up_offset_within_25_of_the_best_chi_square_is_ambiguous():
