@@ -1357,6 +1357,41 @@ def test_an_overlay_and_etch_fit_of_a_plate_with_an_overlay_alone_is_worth_nothi
     assert fit["significance"] < 9 < overlay["chi2_drop"]
 
 
+@pytest.mark.parametrize("eps", [-0.3, 0.45])
+def test_a_dense_design_with_its_deep_etch_off_is_a_deep_etch_error_not_another_design(
+    tmp_path, levels, eps
+):
+    # Every order of a dense design changes with the deepest etch: its frame correlation
+    # with the design (0.77 at 30 %) called the plate another design, although the etch
+    # fit explains its window (0.9998). The fitted plate's frame counts too.
+    faults = PlateFaults(etch_errors=(eps, 0.0, 0.0))
+    code, report, _ = verify_faulty_plate(tmp_path, levels, faults, 11)
+    assert code == 1 and "deep_etch_error" in report["diagnosis"]
+    assert "other_design" not in report["diagnosis"]
+    assert report["deep_etch_error_fit"] == pytest.approx(eps, abs=0.02)
+    assert (
+        report["frame_correlation"]["design"] < 0.8 < report["etch_error_fit"]["frame_correlation"]
+    )
+
+
+def test_an_overlay_beyond_the_fit_reach_is_not_named_an_etch_error(tmp_path):
+    # 11 um of the deepest mask (2.25 mask pixels, past the overlay fit's 2): the overlay
+    # fit, pinned at 2 px, explains the window best (0.9999) and is left out, and the mid
+    # etch's fit (0.998, within the strict thresholds) was named instead.
+    from doe.retrieval import retrieve_phase
+    from doe.targets import make_target
+
+    blob = retrieve_phase(make_target("compact_blob", K), 175, L, seed=0).levels
+    faults = PlateFaults(overlay_mask=0, overlay_shift=(11e-6, 0.0))
+    code, report, _ = verify_faulty_plate(
+        tmp_path, blob, faults, 11, STRICT_ACCEPTANCE, supersample=4
+    )
+    assert report["overlay_error_fit"]["shift_px"][0] == pytest.approx(2.0)  # pinned
+    assert report["etch_error_fit"]["correlation"] < report["overlay_error_fit"]["correlation"]
+    assert code == 1 and "psf_mismatch" in report["diagnosis"]
+    assert not {"etch_depth_error", "overlay_error", "deep_etch_error"} & set(report["diagnosis"])
+
+
 def test_clipped_14bit_capture_is_flagged_saturated(tmp_path, levels):
     """A 16-bit file from a 14-bit sensor (LSB-aligned): clipping shows as a plateau."""
     sim = simulate_capture(
