@@ -185,15 +185,15 @@ def fit_overlay_and_etch(window, sigma, levels, n_levels, mask, shift, etch_erro
     mask index ``mask`` and ``etch_errors`` (deepest first), within ``REACH_PX`` and
     +-50 %. Each etch error's significance is the chi-square rise with it held at 0
     and the rest refitted; the shift's, the quadratic form of the pair in the fit's
-    curvature.
+    curvature; both over the fit's reduced chi-square where that passes 1.
 
     Returns
     -------
     dict
         "mask", "mask_index", "shift_px", "eps" (deepest first), "chi2",
         "chi2_drop" (against no fault), "shift_chi2", "mask_chi2" (one a mask; 0 for
-        a mask that etches all pixels or none), "at_search_edge" and "psf" (the
-        fitted window, sum 1).
+        a mask that etches all pixels or none), "reduced_chi2", "at_search_edge" and
+        "psf" (the fitted window, sum 1).
     """
     from scipy.optimize import least_squares
 
@@ -218,11 +218,14 @@ def fit_overlay_and_etch(window, sigma, levels, n_levels, mask, shift, etch_erro
     x0 = np.clip(np.r_[shift, np.asarray(etch_errors, float)[free]], -inside, inside)
     fit = least_squares(residuals, x0, bounds=(-reach, reach))
     cov = np.linalg.pinv(fit.jac.T @ fit.jac)
+    # significances in units of the fit's own residual variance, where it passes 1
+    reduced = 2 * fit.cost / max(window.size - len(x0) - 1, 1)
+    scale = max(reduced, 1.0)
     mask_chi2 = np.zeros(len(probe.used))
     for i, j in enumerate(free, start=2):  # each error held at 0, the rest refitted
         rest = np.delete(reach, i)
         held = least_squares(residuals, np.delete(fit.x, i), bounds=(-rest, rest), args=(i,))
-        mask_chi2[j] = 2 * (held.cost - fit.cost)
+        mask_chi2[j] = 2 * (held.cost - fit.cost) / scale
     eps = np.zeros(len(probe.used))
     eps[free] = fit.x[2:]
     fitted = power(fit.x)
@@ -233,7 +236,8 @@ def fit_overlay_and_etch(window, sigma, levels, n_levels, mask, shift, etch_erro
         "eps": eps,
         "chi2": float(2 * fit.cost),
         "chi2_drop": float((residuals(np.zeros_like(x0)) ** 2).sum() - 2 * fit.cost),
-        "shift_chi2": float(fit.x[:2] @ np.linalg.pinv(cov[:2, :2]) @ fit.x[:2]),
+        "shift_chi2": float(fit.x[:2] @ np.linalg.pinv(cov[:2, :2]) @ fit.x[:2] / scale),
+        "reduced_chi2": float(reduced),
         "mask_chi2": mask_chi2.tolist(),
         "at_search_edge": bool(np.any(np.abs(fit.x) > reach - 1e-3)),
         "psf": fitted / fitted.sum(),

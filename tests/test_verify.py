@@ -1374,6 +1374,20 @@ def test_a_dense_design_with_its_deep_etch_off_is_a_deep_etch_error_not_another_
     )
 
 
+def test_a_deep_etch_at_its_tolerance_that_fails_a_dense_design_is_named(tmp_path, levels):
+    # -10 % failed the PSF (correlation 0.61) as a bare psf_mismatch, and +10 % was named
+    # only because the fit's grid read 0.10000000000000053
+    for eps in (-0.1, 0.1):
+        faults = PlateFaults(etch_errors=(eps,))
+        code, report, _ = verify_faulty_plate(tmp_path / str(eps), levels, faults, 11)
+        # (+10 % also brightens the zero order; the joint etch fit's 0.6 % of M2 is noise)
+        expected = ["deep_etch_error", "psf_mismatch"]
+        assert (
+            code == 1 and [c for c in report["diagnosis"] if c != "zero_order_excess"] == expected
+        )
+        assert report["deep_etch_error_fit"] == pytest.approx(eps, abs=0.005)
+
+
 def test_an_overlay_beyond_the_fit_reach_is_not_named_an_etch_error(tmp_path):
     # 11 um of the deepest mask (2.25 mask pixels, past the overlay fit's 2): the overlay
     # fit, pinned at 2 px, explains the window best (0.9999) and is left out, and the mid

@@ -131,6 +131,7 @@ def _good_result(**changes):
         },
         "correlation": 0.999,
         "correlation_with_fitted_etch": 0.999,
+        "rmse_with_fitted_etch": 0.01,
         "rmse": 0.01,
         "efficiency": 0.80,
         "efficiency_sigma": 0.01,
@@ -176,6 +177,20 @@ def test_a_deep_etch_fit_under_three_sigma_does_not_fail_the_plate():
     assert diagnose(_good_result(**fit, deep_etch_error_fit_significance=6.0), t) == ["ok"]
     failing = _good_result(**fit, deep_etch_error_fit_significance=12.0)
     assert diagnose(failing, t) == ["deep_etch_error"]
+
+
+def test_a_deep_etch_within_its_tolerance_is_named_when_it_explains_a_failing_psf():
+    # 9.8 % off failed a random design's PSF (correlation 0.61) as a bare psf_mismatch
+    t = resolve_thresholds(None, design_efficiency=0.80, design_zero_order=0.01)
+    within = dict(deep_etch_error_fit=-0.098, deep_etch_error_fit_significance=1e4)
+    failing = dict(within, correlation=0.6, rmse=0.1)
+    assert diagnose(_good_result(**failing), t) == ["deep_etch_error", "psf_mismatch"]
+    assert diagnose(_good_result(**within), t) == ["ok"]  # a PSF that passes: within tolerance
+    unexplained = dict(failing, correlation_with_fitted_etch=0.9)
+    assert diagnose(_good_result(**unexplained), t) == ["other_design"]
+    assert diagnose(_good_result(**failing, rmse_with_fitted_etch=0.1), t) == ["psf_mismatch"]
+    weak = dict(failing, deep_etch_error_fit_significance=8.0)
+    assert diagnose(_good_result(**weak), t) == ["psf_mismatch"]
 
 
 def _overlay(**changes):
