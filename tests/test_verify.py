@@ -1388,6 +1388,20 @@ def test_a_deep_etch_at_its_tolerance_that_fails_a_dense_design_is_named(tmp_pat
         assert report["deep_etch_error_fit"] == pytest.approx(eps, abs=0.005)
 
 
+def test_a_mid_etch_far_off_on_a_sparse_design_is_not_named_a_deep_etch_error(tmp_path):
+    # M2 45 % too deep leaves a sparse design's PSF within the thresholds, and moved the
+    # deepest etch's own fit to +10.3 %, past its tolerance: deep_etch_error, the wrong
+    # mask. The joint fit puts the deepest etch at 0.
+    from doe.retrieval import retrieve_phase
+    from doe.targets import make_target
+
+    sparse = retrieve_phase(make_target("sparse_dots", K), 175, L, seed=0).levels
+    faults = PlateFaults(etch_errors=(0.0, 0.45, 0.0))
+    code, report, _ = verify_faulty_plate(tmp_path, sparse, faults, 11)
+    assert report["deep_etch_error_fit"] > 0.1 and abs(report["deep_etch_error_joint_fit"]) < 0.01
+    assert code == 1 and report["diagnosis"] == ["zero_order_excess"]  # its zero order only
+
+
 def test_an_overlay_beyond_the_fit_reach_is_not_named_an_etch_error(tmp_path):
     # 11 um of the deepest mask (2.25 mask pixels, past the overlay fit's 2): the overlay
     # fit, pinned at 2 px, explains the window best (0.9999) and is left out, and the mid

@@ -139,6 +139,8 @@ def _good_result(**changes):
         "zero_order_sigma": 0.001,
         "deep_etch_error_fit": 0.0,
         "deep_etch_error_fit_significance": 0.0,
+        "deep_etch_error_joint_fit": None,
+        "deep_etch_error_joint_significance": None,
         "overlay_error_fit": None,
         "etch_error_fit": None,
         "overlay_and_etch_fit": None,
@@ -177,6 +179,18 @@ def test_a_deep_etch_fit_under_three_sigma_does_not_fail_the_plate():
     assert diagnose(_good_result(**fit, deep_etch_error_fit_significance=6.0), t) == ["ok"]
     failing = _good_result(**fit, deep_etch_error_fit_significance=12.0)
     assert diagnose(failing, t) == ["deep_etch_error"]
+
+
+def test_a_deep_etch_fit_past_its_tolerance_is_named_only_when_the_joint_fit_agrees():
+    # A mid etch 45 % off moved the deepest etch's own fit to 10.3 % on a passing PSF:
+    # the plate was named deep_etch_error, the wrong mask.
+    t = resolve_thresholds(None, design_efficiency=0.80, design_zero_order=0.01)
+    own = dict(deep_etch_error_fit=0.103, deep_etch_error_fit_significance=50.0)
+    for joint, gain, named in ((0.0, 0.5, False), (0.104, 40.0, True), (0.09, 40.0, False)):
+        result = _good_result(
+            **own, deep_etch_error_joint_fit=joint, deep_etch_error_joint_significance=gain
+        )
+        assert diagnose(result, t) == (["deep_etch_error"] if named else ["ok"])
 
 
 def test_a_deep_etch_within_its_tolerance_is_named_when_it_explains_a_failing_psf():
