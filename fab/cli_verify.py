@@ -400,8 +400,11 @@ def _fault_hint(result):
         checks.append("that exposure's alignment")
     if "errors" in fit:
         nm = dict(zip(fit["masks"], fit.get("errors_nm", []), strict=False))
+        sigma = dict(zip(fit["masks"], fit.get("errors_sigma", []), strict=False))
         off = ", ".join(
-            f"{name} {abs(err):.1%} too {'deep' if err > 0 else 'shallow'}"
+            f"{name} {abs(err):.1%}"
+            + (f" ± {sigma[name]:.1%}" if name in sigma else "")
+            + f" too {'deep' if err > 0 else 'shallow'}"
             + (f" ({nm[name]:+.1f} nm)" if name in nm else "")
             for name, err in etched_off(fit)
         )

@@ -460,7 +460,8 @@ def fit_etch_errors(window, sigma, levels, n_levels, search=0.5):
         "eps" (one error a mask, deepest first; 0 for a mask that etches all pixels
         or none), "chi2_drop" (against no error), "mask_chi2" (for each mask, how
         much worse the fit is with its error held at 0 and the others refitted, over
-        the fit's reduced chi-square where that passes 1), "reduced_chi2",
+        the fit's reduced chi-square where that passes 1), "eps_sigma" (their 1-sigma
+        errors, from the fit's curvature, in those units), "reduced_chi2",
         "at_search_edge", "psf" (the fitted window, sum 1) and "masks" (names);
         None when no mask etches some pixels and not others.
     """
@@ -515,8 +516,11 @@ def fit_etch_errors(window, sigma, levels, n_levels, search=0.5):
             rise = 2 * best_fit(np.delete(fit.x, i), j).cost - chi2
         mask_chi2[j] = float(rise / max(reduced, 1.0))
     fitted = power(errors(fit.x))
+    # 1-sigma errors from the fit's curvature, in the same units
+    cov = np.linalg.pinv(fit.jac.T @ fit.jac) * max(reduced, 1.0)
     return {
         "eps": errors(fit.x),
+        "eps_sigma": errors(np.sqrt(np.maximum(np.diag(cov), 0.0))),
         "chi2_drop": float((residuals(np.zeros(len(free))) ** 2).sum() - chi2),
         "mask_chi2": mask_chi2,
         "reduced_chi2": float(reduced),
@@ -783,7 +787,9 @@ def _etch_fit(measured_psf, window, frame_score, levels, n_levels):
     return {
         "masks": fit["masks"],
         "errors": [float(e) for e in fit["eps"]],
+        "errors_sigma": [float(e) for e in fit["eps_sigma"]],
         "mask_significance": fit["mask_chi2"],
+        "reduced_chi2": fit["reduced_chi2"],
         "at_search_edge": fit["at_search_edge"],
         "significance": fit["chi2_drop"],
         **_fitted_plate_figures(measured_psf, fit["psf"], plate, frame_score),
@@ -809,6 +815,7 @@ def _overlay_and_etch_fit(result, measured_psf, window, frame_score, levels, n_l
         "masks": etch["masks"],
         "errors": [float(e) for e in fit["eps"]],
         "mask_significance": fit["mask_chi2"],
+        "reduced_chi2": fit["reduced_chi2"],
         "at_search_edge": fit["at_search_edge"],
         # over the better of the two fits alone: what the second fault is worth
         "significance": min(

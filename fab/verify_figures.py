@@ -311,13 +311,14 @@ def _etch_text(report):
     if fit is None:
         return "not fitted"
     nm = fit.get("errors_nm") or [None] * len(fit["errors"])
+    figures = zip(
+        fit["masks"], fit["errors"], fit["errors_sigma"], nm, fit["mask_significance"], strict=True
+    )
     masks = ", ".join(
-        f"{name} {err:+.1%}"
+        f"{name} {err:+.1%} ± {sd:.1%}"
         + (f" ({e_nm:+.1f} nm)" if e_nm is not None else "")
         + f" gain {gain:.3g}"
-        for name, err, e_nm, gain in zip(
-            fit["masks"], fit["errors"], nm, fit["mask_significance"], strict=True
-        )
+        for name, err, sd, e_nm, gain in figures
     )
     edge = ", at the edge of the search: an error may be larger" if fit["at_search_edge"] else ""
     return (

@@ -882,6 +882,19 @@ def test_the_joint_etch_fit_inverts_a_plate_with_every_etch_off(levels, errors):
     assert fit["psf"] == pytest.approx(window / window.sum(), abs=1e-6)
 
 
+def test_the_joint_etch_fit_s_sigmas_are_the_spread_of_its_errors_over_noise(levels):
+    orders = np.meshgrid(np.arange(K) - K // 2, np.arange(K) - K // 2, indexing="ij")
+    errors = (0.1, -0.2, 0.15)
+    window = plate_far_field(plate_phase(levels, L, PlateFaults(etch_errors=errors)))(*orders)
+    sigma = 0.002 * window.max() + 0.03 * window
+    rng = np.random.default_rng(0)
+    fits = [fit_etch_errors(window + rng.normal(0, 1, window.shape) * sigma, sigma, levels, L)
+            for _ in range(60)]  # fmt: skip
+    spread = np.std([f["eps"] for f in fits], axis=0)
+    quoted = np.median([f["eps_sigma"] for f in fits], axis=0)
+    assert np.all((quoted > spread / 1.5) & (quoted < spread * 1.5)), (quoted, spread)
+
+
 def test_the_joint_etch_fit_of_a_design_using_one_mask():
     # levels 3 and 7 only: the deepest mask alone etches some pixels and not others
     two = np.random.default_rng(5).choice(np.array([3, 7], np.uint8), (N, N))
@@ -1253,13 +1266,15 @@ def test_a_mid_etch_off_its_depth_is_diagnosed_and_named(
     assert fit["correlation"] > 0.999 > report["correlation"] and fit["frame_correlation"] > 0.99
     assert report["measured_psf_usable"] is True
     hint = re.search(
-        r"off their depth: M2_mid (\d+\.\d)% too (\w+) \(([+-]\d+\.\d) nm\) \(",
+        r"off their depth: M2_mid (\d+\.\d)% ± (\d\.\d)% too (\w+) \(([+-]\d+\.\d) nm\) \(",
         capsys.readouterr().err,
     )  # fmt: skip  (M2 alone: the others need no error)
-    assert hint and float(hint[1]) == pytest.approx(100 * abs(eps), abs=2) and hint[2] == way
-    assert float(hint[3]) == pytest.approx(fit["errors_nm"][1], abs=0.06)
+    assert hint and float(hint[1]) == pytest.approx(100 * abs(eps), abs=2) and hint[3] == way
+    assert float(hint[2]) == pytest.approx(100 * fit["errors_sigma"][1], abs=0.06)
+    assert 0 < fit["errors_sigma"][1] < 0.02  # a dense window pins the error down
+    assert float(hint[4]) == pytest.approx(fit["errors_nm"][1], abs=0.06)
     html = (out / "verify_report.html").read_text()
-    row = re.search(r"M2_mid ([+-]\d+\.\d)% \([+-]\d+\.\d nm\) gain [\d.e+]+, M3_shallow", html)
+    row = re.search(r"M2_mid ([+-]\d+\.\d)% ± \d\.\d% \([+-]\d+\.\d nm\) gain [\d.e+]+, M3_", html)
     assert row and float(row[1]) == pytest.approx(100 * fit["errors"][1], abs=0.06)
     title, from_design, from_fitted = fitted_plate_panels(saved_figures)
     shown = re.fullmatch(r"fitted plate: M2_mid etch ([+-]\d+\.\d)%", title)
