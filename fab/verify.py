@@ -697,6 +697,10 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
     result.update(
         {
             "correlation": correlation(measured_psf, design_psf),
+            # with the plate it is measured as (the design, or the reflection that won)
+            "correlation_as_measured": correlation(
+                measured_psf, simulate_levels(levels, n_levels, k)[0]
+            ),
             "rmse": rmse(measured_psf, design_psf),
             "efficiency": efficiency,
             "efficiency_sigma": float(eff_sigma),
@@ -1135,10 +1139,12 @@ def diagnose(result, thresholds):
         codes.append("low_signal")
     search = result["zero_order_search"]
     reflection = winning_reflection(result)
-    if reflection:
+    # The reflection must explain the window too: a plate of another design won as the
+    # conjugate of a nearly point-symmetric one (frame 0.83) and matched it at 0.85.
+    if reflection and result["correlation_as_measured"] >= EXPLAINED_MIN:
         codes.append("conjugate_plate" if reflection == "rot180" else "mirrored")
-    elif not codes and _other_design(result):  # clipped or noisy windows explain nothing
-        codes.append("other_design")
+    elif not codes and (reflection or _other_design(result)):  # clipped or noisy windows
+        codes.append("other_design")  # explain nothing
     elif not codes and _ambiguous(search, thresholds):
         codes.append("zero_order_ambiguous")
     process = []

@@ -130,6 +130,7 @@ def _good_result(**changes):
             "transform_psf_correlation": {"rot180": 0.2, "mirror-x": 0.2, "mirror-y": 0.2},
         },
         "correlation": 0.999,
+        "correlation_as_measured": 0.999,
         "correlation_with_fitted_etch": 0.999,
         "rmse_with_fitted_etch": 0.01,
         "rmse": 0.01,
@@ -329,6 +330,22 @@ def test_an_overlay_and_etch_fit_names_both_faults_only_when_both_are_needed():
         assert diagnose(_good_result(**failing, overlay_and_etch_fit=weak), t) == [
             "other_design"
         ]  # fmt: skip
+
+
+def test_a_reflection_names_the_plate_only_when_it_explains_the_window():
+    # A plate of another design won as the conjugate of a nearly point-symmetric design
+    # (frame 0.83, chi-square 35 better) and matched that conjugate's PSF at 0.85 only.
+    t = resolve_thresholds(None, design_efficiency=0.80, design_zero_order=0.01)
+    won = dict(
+        frame_correlation={"design": 0.82, "rot180": 0.83, "mirror-x": 0.3, "mirror-y": 0.3},
+        zero_order_search=dict(
+            _good_result()["zero_order_search"],
+            delta_chi2={"rot180": 35.0, "mirror-x": -1e3, "mirror-y": -1e3},
+        ),
+        correlation=0.5,
+    )
+    assert diagnose(_good_result(**won), t) == ["conjugate_plate"]
+    assert diagnose(_good_result(**won, correlation_as_measured=0.85), t) == ["other_design"]
 
 
 def test_a_runner_up_offset_within_25_of_the_best_chi_square_is_ambiguous():
