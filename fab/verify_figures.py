@@ -251,10 +251,8 @@ def _overlay_text(report):
     fit = report["overlay_error_fit"]
     if fit is None:
         return "not fitted"
-    dy, dx = fit["shift_px"]
-    um = " ({:+.2f} um, {:+.2f} um)".format(*fit["shift_um"]) if "shift_um" in fit else ""
     return (
-        f"{fit['mask']} by y {dy:+.2f}, x {dx:+.2f} mask pixels{um}; correlation "
+        f"{_shift_text(fit)}; correlation "
         f"{fit['correlation']:.4f} with that plate (frame {fit['frame_correlation']:.3f}), "
         f"chi-square gain {fit['significance']:.3g}"
     )
@@ -331,8 +329,6 @@ def _both_text(report):
     fit = report["overlay_and_etch_fit"]
     if fit is None:
         return "not fitted"
-    dy, dx = fit["shift_px"]
-    um = " ({:+.2f} um, {:+.2f} um)".format(*fit["shift_um"]) if "shift_um" in fit else ""
     errors = ", ".join(
         f"{name} {err:+.1%} gain {gain:.3g}"
         for name, err, gain in zip(
@@ -340,8 +336,15 @@ def _both_text(report):
         )
     )
     return (
-        f"{fit['mask']} by y {dy:+.2f}, x {dx:+.2f} mask pixels{um}, gain "
+        f"{_shift_text(fit)}, gain "
         f"{fit['shift_significance']:.3g}; {errors}; correlation {fit['correlation']:.4f} "
         f"with that plate (frame {fit['frame_correlation']:.3f}), chi-square gain over the "
         f"better single fit {fit['significance']:.3g}"
     )
+
+
+def _shift_text(fit):
+    """'M2_mid by y +1.50, x -0.50 mask pixels (+7.49 um, -2.50 um)' of a fitted shift."""
+    dy, dx = fit["shift_px"]
+    um = " ({:+.2f} um, {:+.2f} um)".format(*fit["shift_um"]) if "shift_um" in fit else ""
+    return f"{fit['mask']} by y {dy:+.2f}, x {dx:+.2f} mask pixels{um}"
