@@ -46,41 +46,35 @@ def _part_integrals(orders, n, frac):
     return integral(0.0, f), integral(f, 1.0)
 
 
+def _window_arrays(dft, field, bitmap, whole):
+    """Return the window orders of ``field``, and of ``field`` times ``bitmap`` rolled by each
+    whole shift (p, q) in ``whole`` x ``whole``."""
+    return dft @ field @ dft.T, np.array(
+        [[dft @ (field * np.roll(bitmap, (p, q), axis=(0, 1))) @ dft.T for q in whole]
+         for p in whole]
+    )  # fmt: skip
+
+
 class OverlayModel:
-    """Window orders of the design with one mask shifted, for any shift within ``REACH_PX``.
+    """Window orders of the design with one mask shifted, for any shift within ``REACH_PX``."""
 
-    ``etch_errors`` (fractions, deepest mask first) etch the plate's masks off their
-    depths as well; ``only`` builds the model of that one mask's shift alone.
-    """
-
-    def __init__(self, levels, n_levels, kernel_size, etch_errors=(), only=None):
+    def __init__(self, levels, n_levels, kernel_size, masks_modelled=None):
         levels = np.asarray(levels)
         n = levels.shape[0]
         self.n, self.orders = n, np.arange(kernel_size) - kernel_size // 2
-        masks = masks_from_levels(levels, n_levels, level_step=1.0)
-        self.names = [mask_name(j, len(masks)) for j in range(len(masks))]
-        self.used = [0 < mk.bitmap.mean() < 1 for mk in masks]
-        errors = np.zeros(len(masks))
-        errors[: len(etch_errors)] = etch_errors
-        steps = np.array([mk.steps for mk in masks])
-        depth = 2 * np.pi * steps / n_levels * (1 + errors)
-        phase = -sum(d * mk.bitmap for d, mk in zip(depth, masks, strict=True))
-        dft = np.exp(-2j * np.pi * np.outer(self.orders, np.arange(n)) / n) / n
+        self.masks = masks_from_levels(levels, n_levels, level_step=1.0)
+        self.names = [mask_name(j, len(self.masks)) for j in range(len(self.masks))]
+        self.used = [0 < mk.bitmap.mean() < 1 for mk in self.masks]
+        self.phi = np.array([2 * np.pi * mk.steps / n_levels for mk in self.masks])
+        phase = -sum(d * mk.bitmap for d, mk in zip(self.phi, self.masks, strict=True))
+        self.dft = np.exp(-2j * np.pi * np.outer(self.orders, np.arange(n)) / n) / n
         self.whole = np.arange(int(np.floor(-REACH_PX)), int(np.ceil(REACH_PX)) + 2)
         self.rest, self.etched, self.contrast = {}, {}, {}
-        for j, (d, mk) in enumerate(zip(depth, masks, strict=True)):
-            if only is not None and j != only:
-                continue
+        for j in range(len(self.masks)) if masks_modelled is None else masks_modelled:
+            d, mk = self.phi[j], self.masks[j]
             # The plate is A (1 + c M): A the other masks' transmission, c what this one adds.
             rest = np.exp(1j * (phase + d * mk.bitmap))
-            self.rest[j] = dft @ rest @ dft.T
-            self.etched[j] = np.array(
-                [
-                    [dft @ (rest * np.roll(mk.bitmap, (p, q), axis=(0, 1))) @ dft.T
-                     for q in self.whole]
-                    for p in self.whole
-                ]
-            )  # fmt: skip
+            self.rest[j], self.etched[j] = _window_arrays(self.dft, rest, mk.bitmap, self.whole)
             self.contrast[j] = np.exp(-1j * d) - 1
 
     def amplitudes(self, mask, dy, dx):
@@ -110,6 +104,36 @@ class OverlayModel:
     def power(self, mask, dy, dx):
         """Return the order powers (fractions of the beam) of that plate, S + (K, K)."""
         return np.abs(self.amplitudes(mask, dy, dx)) ** 2
+
+
+class EtchedOverlayModel(OverlayModel):
+    """The model of one mask's shift on a plate whose etches are off their depths, where the
+    errors change at no cost: the other masks' transmission A is a sum over the classes
+    of their bits (4 for 8 levels), each with its phase, so each class's window arrays
+    are computed once and an evaluation only weighs them."""
+
+    def __init__(self, levels, n_levels, kernel_size, mask):
+        super().__init__(levels, n_levels, kernel_size, masks_modelled=())
+        self.mask = mask
+        self.others = [k for k in range(len(self.masks)) if k != mask]
+        code = sum(self.masks[k].bitmap.astype(int) << i for i, k in enumerate(self.others))
+        # bits[c, i]: whether class c's pixels are etched by the i-th other mask
+        self.bits = (np.arange(2 ** len(self.others))[:, None] >> np.arange(len(self.others))) & 1
+        self.classes = [
+            _window_arrays(
+                self.dft, (code == c).astype(complex), self.masks[mask].bitmap, self.whole
+            )
+            for c in range(len(self.bits))
+        ]
+
+    def set_etch_errors(self, errors):
+        """Take the plate's etches as off by ``errors`` (fractions, deepest mask first)."""
+        errors = np.asarray(errors, float)
+        depth = self.phi * (1 + errors)
+        weights = np.exp(-1j * self.bits @ depth[self.others])
+        self.rest[self.mask] = sum(w * r for w, (r, _) in zip(weights, self.classes, strict=True))
+        self.etched[self.mask] = sum(w * g for w, (_, g) in zip(weights, self.classes, strict=True))
+        self.contrast[self.mask] = np.exp(-1j * depth[self.mask]) - 1
 
 
 def fit_overlay_error(window, sigma, levels, n_levels):
@@ -197,7 +221,7 @@ def fit_overlay_and_etch(window, sigma, levels, n_levels, mask, shift, etch_erro
     """
     from scipy.optimize import least_squares
 
-    probe = OverlayModel(levels, n_levels, window.shape[0], only=mask)
+    probe = EtchedOverlayModel(levels, n_levels, window.shape[0], mask)
     free = np.flatnonzero(probe.used)
     wts = np.ones(window.shape) if sigma is None else 1 / np.maximum(np.asarray(sigma), 1e-30)
     meas = np.asarray(window, float) * wts
@@ -205,8 +229,8 @@ def fit_overlay_and_etch(window, sigma, levels, n_levels, mask, shift, etch_erro
     def power(x):
         errors = np.zeros(len(probe.used))
         errors[free] = x[2:]
-        model = OverlayModel(levels, n_levels, window.shape[0], errors, only=mask)
-        return model.power(mask, x[0], x[1])
+        probe.set_etch_errors(errors)
+        return probe.power(mask, x[0], x[1])
 
     def residuals(x, held=None):  # held: a parameter kept at 0, left out of x
         x = x if held is None else np.insert(x, held, 0.0)

@@ -4,7 +4,13 @@ import numpy as np
 import pytest
 
 from doe.fraunhofer import order_amplitudes, pixel_envelope, window_indices
-from fab.overlay import REACH_PX, OverlayModel, fit_overlay_and_etch, fit_overlay_error
+from fab.overlay import (
+    REACH_PX,
+    EtchedOverlayModel,
+    OverlayModel,
+    fit_overlay_and_etch,
+    fit_overlay_error,
+)
 from fab.plate import PlateFaults, plate_far_field, plate_phase
 
 N, K, L = 24, 7, 8
@@ -117,8 +123,13 @@ def test_a_design_no_mask_structures_has_no_overlay_fit():
 def test_a_shifted_mask_on_a_plate_etched_off_gives_the_supersampled_plate(levels, mask):
     errors = (0.1, -0.2, 0.15)
     expected = supersampled_window(levels, mask, (1.25, -0.5), 4, errors)
-    model = OverlayModel(levels, L, K, errors, only=mask)
+    model = EtchedOverlayModel(levels, L, K, mask)
+    model.set_etch_errors(errors)
     assert np.allclose(model.power(mask, 1.25, -0.5), expected, rtol=1e-9, atol=1e-15)
+    model.set_etch_errors((0, 0, 0))  # and the errors undone: the plain overlay's model
+    assert np.allclose(
+        model.power(mask, 1.25, -0.5), OverlayModel(levels, L, K).power(mask, 1.25, -0.5)
+    )
 
 
 @pytest.mark.parametrize(
