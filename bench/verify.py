@@ -58,6 +58,13 @@ def main_bench():
     overlay = PlateFaults(overlay_mask=1, overlay_shift=(2e-6, 0.0))
     print(f"== dense random levels, M2_mid 2 um off (N={n}, K={k}; fails: overlay_error)")
     _bench_plate(plates["dense random levels"], n_levels, k, der, pitch_px, overlay)
+    # Two faults at once: neither fit alone explains the PSF, so both are fitted together.
+    both = PlateFaults(etch_errors=(0.0, 0.3), overlay_mask=0, overlay_shift=(3e-6, 0.0))
+    print(
+        f"== dense random levels, M1_deep 3 um off and M2_mid 30 % too deep (N={n}, K={k}; "
+        "fails: overlay_error, etch_depth_error)"
+    )
+    _bench_plate(plates["dense random levels"], n_levels, k, der, pitch_px, both)
 
 
 def _bench_plate(levels, n_levels, k, der, pitch_px, faults=None):
@@ -114,12 +121,13 @@ def _bench_plate(levels, n_levels, k, der, pitch_px, faults=None):
             t3 = time.perf_counter()
             _psf, eff = simulate_levels(levels, n_levels, k)
             thr = resolve_thresholds(None, eff, design_order_power(levels, n_levels)[0, 0])
-            analyse(grid, levels, n_levels, k, "as-designed", thr)
+            result, _ = analyse(grid, levels, n_levels, k, "as-designed", thr)
             t4 = time.perf_counter()
             for key, dt in zip(stages, (t1 - t, t2 - t1, t3 - t2, t4 - t3), strict=True):
                 stages[key].append(dt)
         for key, times in stages.items():
             print(f"  {key:15s} median {statistics.median(times):.3f} s")
+        print(f"  diagnosis: {', '.join(result['diagnosis'])}")
 
         # The whole command as a user runs it: a new process, which pays for Python,
         # the imports and matplotlib's first figure (timed in this warm process, half
