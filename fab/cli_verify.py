@@ -375,6 +375,10 @@ def _in_um_and_nm(fit, design):
         return
     if "shift_px" in fit and design.mask_pixel_pitch:
         fit["shift_um"] = [v * design.mask_pixel_pitch * 1e6 for v in fit["shift_px"]]
+        if fit.get("shift_sigma_px"):  # None for a fit at the edge of its reach
+            fit["shift_sigma_um"] = [
+                v * design.mask_pixel_pitch * 1e6 for v in fit["shift_sigma_px"]
+            ]
     if "errors" in fit and len(fit["masks"]) == len(design.etch_depths):  # deepest first
         depths = zip(fit["errors"], design.etch_depths, strict=True)
         fit["errors_nm"] = [e * d * 1e9 for e, d in depths]
@@ -390,12 +394,13 @@ def _fault_hint(result):
         return None
     faults, checks = [], []
     if "shift_px" in fit:
-        unit, shift = (
-            ("um", fit["shift_um"]) if "shift_um" in fit else ("mask pixels", fit["shift_px"])
-        )
+        in_um = "shift_um" in fit
+        unit, shift = ("um", fit["shift_um"]) if in_um else ("mask pixels", fit["shift_px"])
+        sd = fit.get("shift_sigma_um" if in_um else "shift_sigma_px")
+        pm = [f" ± {v:.2f}" if sd else "" for v in (sd or [0, 0])]
         faults.append(
-            f"mask {fit['mask']} printed off the other masks by {shift[0]:+.2f} {unit} in y "
-            f"(up) and {shift[1]:+.2f} {unit} in x (right)"
+            f"mask {fit['mask']} printed off the other masks by {shift[0]:+.2f}{pm[0]} {unit} "
+            f"in y (up) and {shift[1]:+.2f}{pm[1]} {unit} in x (right)"
         )
         checks.append("that exposure's alignment")
     if "errors" in fit:

@@ -776,6 +776,7 @@ def _overlay_fit(measured_psf, window, frame_score, levels, n_levels):
     return {
         "mask": fit["mask"],
         "shift_px": fit["shift_px"],
+        "shift_sigma_px": fit["shift_sigma"],
         "significance": fit["chi2_drop"],
         **_fitted_plate_figures(measured_psf, fit["psf"], plate, frame_score),
     }
@@ -815,9 +816,11 @@ def _overlay_and_etch_fit(result, measured_psf, window, frame_score, levels, n_l
     return {
         "mask": fit["mask"],
         "shift_px": fit["shift_px"],
+        "shift_sigma_px": fit["shift_sigma"],
         "shift_significance": fit["shift_chi2"],
         "masks": etch["masks"],
         "errors": [float(e) for e in fit["eps"]],
+        "errors_sigma": [float(e) for e in fit["eps_sigma"]],
         "mask_significance": fit["mask_chi2"],
         "reduced_chi2": fit["reduced_chi2"],
         "at_search_edge": fit["at_search_edge"],

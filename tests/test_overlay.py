@@ -146,3 +146,35 @@ def test_the_joint_fit_finds_an_overlay_and_an_etch_error_together(levels, mask,
     assert fit["shift_chi2"] > 100 and fit["chi2"] < 1e-6
     assert [c > 100 for c in fit["mask_chi2"]] == [e != 0 for e in errors]
     assert fit["chi2_drop"] > 100 and not fit["at_search_edge"]
+
+
+def test_the_joint_fit_s_sigmas_are_the_spread_of_its_values_over_noise(levels):
+    window = supersampled_window(levels, 1, (1.0, -0.6), 5, (0.2, 0.0, 0.1))
+    sigma = 0.002 * window.max() + 0.03 * window
+    rng = np.random.default_rng(0)
+    fits = [
+        fit_overlay_and_etch(window + rng.normal(0, 1, window.shape) * sigma, sigma, levels, L,
+                             1, (1.0, -0.6), (0.2, 0.0, 0.1))
+        for _ in range(40)
+    ]  # fmt: skip
+    values = [np.r_[f["shift_px"], f["eps"]] for f in fits]
+    quoted = np.median([np.r_[f["shift_sigma"], f["eps_sigma"]] for f in fits], axis=0)
+    spread = np.std(values, axis=0)
+    assert np.all((quoted > spread / 1.5) & (quoted < spread * 1.5)), (quoted, spread)
+
+
+def test_the_overlay_fit_s_sigmas_are_the_spread_of_its_shifts_over_noise(levels):
+    window = supersampled_window(levels, 1, (1.0, -0.6), 5)
+    sigma = 0.002 * window.max() + 0.03 * window
+    rng = np.random.default_rng(1)
+    fits = [fit_overlay_error(window + rng.normal(0, 1, window.shape) * sigma, sigma, levels, L)
+            for _ in range(40)]  # fmt: skip
+    spread = np.std([f["shift_px"] for f in fits], axis=0)
+    quoted = np.median([f["shift_sigma"] for f in fits], axis=0)
+    assert np.all((quoted > spread / 1.5) & (quoted < spread * 1.5)), (quoted, spread)
+    assert (
+        fit_overlay_error(supersampled_window(levels, 1, (2.0, 0.0), 5), sigma, levels, L)[
+            "shift_sigma"
+        ]
+        is None
+    )  # at the edge of the reach: no curvature to take

@@ -1216,8 +1216,10 @@ def test_a_mask_8um_off_is_diagnosed_as_an_overlay_error(
     assert fit["correlation"] > 0.999 > report["correlation"]
     assert report["measured_psf_usable"] is True  # the real plate's PSF, to calibrate with
     err = capsys.readouterr().err
-    assert re.search(rf"mask {name} printed off the other masks by \+7\.\d\d um in y \(up\) "
-                     r"and -2\.\d\d um in x \(right\)", err)  # fmt: skip
+    sd = fit["shift_sigma_um"]  # quoted with the shift: its 1-sigma from the fit's curvature
+    assert 0 < max(sd) < 0.25
+    assert re.search(rf"mask {name} printed off the other masks by \+7\.\d\d ± {sd[0]:.2f} um "
+                     rf"in y \(up\) and -2\.\d\d ± {sd[1]:.2f} um in x \(right\)", err)  # fmt: skip
     html = (out / "verify_report.html").read_text()
     assert re.search(rf"{name} by y \+1\.5\d, x -0\.\d\d mask pixels "
                      r"\(\+7\.\d\d um, -2\.\d\d um\); correlation 0\.99\d\d with that "
@@ -1342,6 +1344,9 @@ def test_a_plate_with_an_overlay_and_an_etch_off_names_both(
     )
     err = capsys.readouterr().err
     assert f"mask {mask} printed off the other masks by" in err and "off their depth: " in err
+    sd = fit["shift_sigma_um"]  # the shift quoted with its 1-sigma, in um
+    assert 0 < max(sd) < 0.5 and f"{fit['shift_um'][0]:+.2f} ± {sd[0]:.2f} um in y" in err
+    assert all(0 <= e < 0.02 for e in fit["errors_sigma"])
     title, from_design, from_fitted = fitted_plate_panels(saved_figures)
     assert title.startswith(f"fitted plate: {mask} shifted y +1.") and " etch +" in title
     assert from_fitted < from_design / 3
