@@ -790,14 +790,21 @@ def _etch_fit(measured_psf, window, frame_score, levels, n_levels):
         return None
     plate = plate_phase(levels, n_levels, PlateFaults(etch_errors=tuple(fit["eps"])))
     return {
-        "masks": fit["masks"],
+        **_etch_error_figures(fit["masks"], fit),
+        "significance": fit["chi2_drop"],
+        **_fitted_plate_figures(measured_psf, fit["psf"], plate, frame_score),
+    }
+
+
+def _etch_error_figures(masks, fit):
+    """Return the JSON-ready etch errors of a fit (one a mask, deepest first)."""
+    return {
+        "masks": masks,
         "errors": [float(e) for e in fit["eps"]],
         "errors_sigma": [float(e) for e in fit["eps_sigma"]],
         "mask_significance": fit["mask_chi2"],
         "reduced_chi2": fit["reduced_chi2"],
         "at_search_edge": fit["at_search_edge"],
-        "significance": fit["chi2_drop"],
-        **_fitted_plate_figures(measured_psf, fit["psf"], plate, frame_score),
     }
 
 
@@ -818,12 +825,7 @@ def _overlay_and_etch_fit(result, measured_psf, window, frame_score, levels, n_l
         "shift_px": fit["shift_px"],
         "shift_sigma_px": fit["shift_sigma"],
         "shift_significance": fit["shift_chi2"],
-        "masks": etch["masks"],
-        "errors": [float(e) for e in fit["eps"]],
-        "errors_sigma": [float(e) for e in fit["eps_sigma"]],
-        "mask_significance": fit["mask_chi2"],
-        "reduced_chi2": fit["reduced_chi2"],
-        "at_search_edge": fit["at_search_edge"],
+        **_etch_error_figures(etch["masks"], fit),
         # over the better of the two fits alone: what the second fault is worth
         "significance": min(
             fit["chi2_drop"] - overlay["significance"], fit["chi2_drop"] - etch["significance"]
