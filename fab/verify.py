@@ -765,20 +765,16 @@ def _overlay_fit(measured_psf, window, frame_score, levels, n_levels):
     the frame correlation, which is also taken for the fitted plate: a dense
     design's every order changes with the overlay, not only the window's.
     """
-
     fit = fit_overlay_error(*window, levels, n_levels)
     if fit is None:
         return None
-    # The plate cut into 8 x 8 sub-pixels (its shift rounded to 1/8 px): exact orders
-    # at any distance, aliases and envelope included.
     faults = PlateFaults(overlay_mask=fit["mask_index"], overlay_shift=tuple(fit["shift_px"]))
-    plate = plate_phase(levels, n_levels, faults, mask_pixel_pitch=1.0, supersample=8)
     return {
         "mask": fit["mask"],
         "shift_px": fit["shift_px"],
         "shift_sigma_px": fit["shift_sigma"],
         "significance": fit["chi2_drop"],
-        **_fitted_plate_figures(measured_psf, fit["psf"], plate, frame_score),
+        **_fitted_plate_figures(measured_psf, fit["psf"], faults, levels, n_levels, frame_score),
     }
 
 
@@ -788,11 +784,11 @@ def _etch_fit(measured_psf, window, frame_score, levels, n_levels):
     fit = fit_etch_errors(*window, levels, n_levels)
     if fit is None:
         return None
-    plate = plate_phase(levels, n_levels, PlateFaults(etch_errors=tuple(fit["eps"])))
+    faults = PlateFaults(etch_errors=tuple(fit["eps"]))
     return {
         **_etch_error_figures(fit["masks"], fit),
         "significance": fit["chi2_drop"],
-        **_fitted_plate_figures(measured_psf, fit["psf"], plate, frame_score),
+        **_fitted_plate_figures(measured_psf, fit["psf"], faults, levels, n_levels, frame_score),
     }
 
 
@@ -819,7 +815,6 @@ def _overlay_and_etch_fit(result, measured_psf, window, frame_score, levels, n_l
     faults = PlateFaults(
         etch_errors=tuple(fit["eps"]), overlay_mask=mask, overlay_shift=tuple(fit["shift_px"])
     )
-    plate = plate_phase(levels, n_levels, faults, mask_pixel_pitch=1.0, supersample=8)
     return {
         "mask": fit["mask"],
         "shift_px": fit["shift_px"],
@@ -831,7 +826,7 @@ def _overlay_and_etch_fit(result, measured_psf, window, frame_score, levels, n_l
             fit["chi2_drop"] - overlay["significance"], fit["chi2_drop"] - etch["significance"]
         )
         / max(fit["reduced_chi2"], 1.0),
-        **_fitted_plate_figures(measured_psf, fit["psf"], plate, frame_score),
+        **_fitted_plate_figures(measured_psf, fit["psf"], faults, levels, n_levels, frame_score),
     }
 
 
@@ -847,10 +842,14 @@ def etched_off(fit):
     ]
 
 
-def _fitted_plate_figures(measured_psf, fitted_psf, plate, frame_score):
-    """Return how a fitted faulty plate (its phase ``plate``) meets the measurement: its
+def _fitted_plate_figures(measured_psf, fitted_psf, faults, levels, n_levels, frame_score):
+    """Return how the design's plate with the fitted ``faults`` meets the measurement: its
     window's correlation and rmse with the measured PSF, its frame's correlation, and
     the window itself."""
+    # A shifted mask's plate cut into 8 x 8 sub-pixels (the shift rounded to 1/8 px):
+    # exact orders at any distance, aliases and envelope included.
+    supersample = 8 if any(faults.overlay_shift) else 1
+    plate = plate_phase(levels, n_levels, faults, mask_pixel_pitch=1.0, supersample=supersample)
     return {
         "correlation": correlation(measured_psf, fitted_psf),
         "rmse": rmse(measured_psf, fitted_psf),
