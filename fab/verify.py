@@ -383,6 +383,13 @@ def _mask_fields(levels, n_levels, mask_index=0):
     )
 
 
+def _window_orders(n, k):
+    """Return the FFT indices of the K window orders of an N-pixel tile, and their (K, K)
+    square-pixel envelope."""
+    env = pixel_envelope(np.arange(k) - k // 2, n)
+    return window_indices(n, k), env[:, None] * env[None, :]
+
+
 def fit_etch_error(window, sigma, levels, n_levels, mask_index=0, search=0.5, step=1e-3):
     """Fit the signed depth error of one mask's etch that best explains the measured window.
 
@@ -414,10 +421,7 @@ def fit_etch_error(window, sigma, levels, n_levels, mask_index=0, search=0.5, st
     if mask.bitmap.all() or not mask.bitmap.any():
         return None
     k = window.shape[0]
-    n = levels.shape[0]
-    idx = (np.arange(k) - k // 2) % n
-    env = pixel_envelope(np.arange(k) - k // 2, n)
-    env = env[:, None] * env[None, :]
+    idx, env = _window_orders(levels.shape[0], k)
     u_amp, c_amp = (f[np.ix_(idx, idx)].ravel() for f in (u_full, c_full))
     # whole multiples of the step: np.arange's 0.10000000000000053 passed a 10 % tolerance
     # that -0.1 did not
@@ -471,10 +475,8 @@ def fit_etch_errors(window, sigma, levels, n_levels, search=0.5):
     free = [j for j, mk in enumerate(masks) if 0 < mk.bitmap.mean() < 1]
     if not free:
         return None
-    k, n = window.shape[0], levels.shape[0]
-    idx = (np.arange(k) - k // 2) % n
-    env = pixel_envelope(np.arange(k) - k // 2, n)
-    env = env[:, None] * env[None, :]
+    k = window.shape[0]
+    idx, env = _window_orders(levels.shape[0], k)
     per_level = np.array(
         [np.fft.fft2(levels == lv)[np.ix_(idx, idx)] / levels.size for lv in range(n_levels)]
     )
