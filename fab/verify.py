@@ -414,7 +414,7 @@ def fit_etch_error(window, sigma, levels, n_levels, mask_index=0, search=0.5, st
     dict or None
         "eps" (+0.1: the etch is 10 % too deep), "chi2_drop" (how much better the
         fit explains the window than eps = 0, in chi-square units when ``sigma`` is
-        given), "psf" (the fitted window, sum 1), "mask" (its name) and "mask_index";
+        given), "psf" (the fitted window, sum 1) and "mask" (its name);
         None when the mask etches all pixels or none (the error leaves no trace).
     """
     u_full, c_full, mask = _mask_fields(levels, n_levels, mask_index)
@@ -442,8 +442,6 @@ def fit_etch_error(window, sigma, levels, n_levels, mask_index=0, search=0.5, st
         "chi2_drop": float(chi2[zero] - chi2[best]),
         "psf": fitted / fitted.sum(),
         "mask": mask.name,
-        "mask_index": mask_index,
-        "at_search_edge": abs(eps[best]) > search - step,
     }
 
 
