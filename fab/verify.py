@@ -744,10 +744,14 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
     def frame_score(period):
         return _frame_score(meas, valid, sigma, period, m0, n0, half)[0]
 
-    for key, fit in (("overlay_error_fit", _overlay_fit), ("etch_error_fit", _etch_fit)):
-        result[key] = (
-            fit(measured_psf, (window, sigma[sl]), frame_score, levels, n_levels) if fails else None
-        )
+    result["overlay_error_fit"] = (
+        _overlay_fit(measured_psf, (window, sigma[sl]), frame_score, levels, n_levels)
+        if fails
+        else None
+    )
+    result["etch_error_fit"] = (  # the joint fit made above for the deepest etch's rule
+        _etch_fit(measured_psf, joint, frame_score, levels, n_levels) if fails else None
+    )
     result["overlay_and_etch_fit"] = None
     if fails and _explaining_fault(result, thresholds) is None:  # two faults at once?
         result["overlay_and_etch_fit"] = _overlay_and_etch_fit(
@@ -778,10 +782,9 @@ def _overlay_fit(measured_psf, window, frame_score, levels, n_levels):
     }
 
 
-def _etch_fit(measured_psf, window, frame_score, levels, n_levels):
-    """Return the JSON-ready joint fit of every mask's etch depth error, or None when no
-    mask etches some pixels and not others."""
-    fit = fit_etch_errors(*window, levels, n_levels)
+def _etch_fit(measured_psf, fit, frame_score, levels, n_levels):
+    """Return the JSON-ready form of ``fit_etch_errors``'s ``fit``, or None for None (no
+    mask etches some pixels and not others)."""
     if fit is None:
         return None
     faults = PlateFaults(etch_errors=tuple(fit["eps"]))
