@@ -414,7 +414,9 @@ def fit_etch_error(window, sigma, levels, n_levels, mask_index=0, search=0.5, st
     dict or None
         "eps" (+0.1: the etch is 10 % too deep), "chi2_drop" (how much better the
         fit explains the window than eps = 0, in chi-square units when ``sigma`` is
-        given), "psf" (the fitted window, sum 1) and "mask" (its name);
+        given, taken in units of the fit's reduced chi-square where that passes 1),
+        "chi2" (the fit's), "reduced_chi2", "psf" (the fitted window, sum 1) and "mask"
+        (its name);
         None when the mask etches all pixels or none (the error leaves no trace).
     """
     u_full, c_full, mask = _mask_fields(levels, n_levels, mask_index)
@@ -437,9 +439,12 @@ def fit_etch_error(window, sigma, levels, n_levels, mask_index=0, search=0.5, st
     best = int(np.argmin(chi2))
     zero = int(np.argmin(np.abs(eps)))
     fitted = (model[best] / wts).reshape(k, k)
+    reduced = float(chi2[best]) / max(k * k - 2, 1)  # the scale and eps
     return {
         "eps": float(eps[best]),
-        "chi2_drop": float(chi2[zero] - chi2[best]),
+        "chi2": float(chi2[best]),
+        "chi2_drop": float(chi2[zero] - chi2[best]) / max(reduced, 1.0),
+        "reduced_chi2": reduced,
         "psf": fitted / fitted.sum(),
         "mask": mask.name,
     }
@@ -460,10 +465,11 @@ def fit_etch_errors(window, sigma, levels, n_levels, search=0.5):
     -------
     dict or None
         "eps" (one error a mask, deepest first; 0 for a mask that etches all pixels
-        or none), "chi2_drop" (against no error), "mask_chi2" (for each mask, how
-        much worse the fit is with its error held at 0 and the others refitted, over
-        the fit's reduced chi-square where that passes 1), "eps_sigma" (their 1-sigma
-        errors, from the fit's curvature, in those units), "reduced_chi2",
+        or none), "chi2" (the fit's), "chi2_drop" (against no error), "mask_chi2" (for
+        each mask, how much worse the fit is with its error held at 0 and the others
+        refitted), both over the fit's reduced chi-square where that passes 1,
+        "eps_sigma" (their 1-sigma errors, from the fit's curvature, in those units),
+        "reduced_chi2",
         "at_search_edge", "psf" (the fitted window, sum 1) and "masks" (names);
         None when no mask etches some pixels and not others.
     """
@@ -521,7 +527,8 @@ def fit_etch_errors(window, sigma, levels, n_levels, search=0.5):
     return {
         "eps": errors(fit.x),
         "eps_sigma": errors(np.sqrt(np.maximum(np.diag(cov), 0.0))),
-        "chi2_drop": float((residuals(np.zeros(len(free))) ** 2).sum() - chi2),
+        "chi2": float(chi2),
+        "chi2_drop": float((residuals(np.zeros(len(free))) ** 2).sum() - chi2) / max(reduced, 1.0),
         "mask_chi2": mask_chi2,
         "reduced_chi2": float(reduced),
         "at_search_edge": bool(np.any(np.abs(fit.x) > search - 1e-3)),
@@ -738,8 +745,10 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
             "hot_pixel_orders": grid.spike_orders,
         }
     )
-    # Plate faults are fitted only to explain a PSF that fails (a second or so at N = 175).
-    fails = _psf_fails(result, thresholds)
+    # Plate faults are fitted only to explain a PSF or a zero order that fails (a second or
+    # so at N = 175): a mid etch 30 % too deep brightened a sparse design's zero order by
+    # 14 sigma, its PSF still at 0.987, and verify named no etch.
+    fails = _psf_fails(result, thresholds) or _zero_order_brightened(result, thresholds)
 
     def frame_score(period):
         return _frame_score(meas, valid, sigma, period, m0, n0, half)[0]
@@ -778,6 +787,7 @@ def _overlay_fit(measured_psf, window, frame_score, levels, n_levels):
         "shift_px": fit["shift_px"],
         "shift_sigma_px": fit["shift_sigma"],
         "significance": fit["chi2_drop"],
+        "chi2": fit["chi2"],
         **_fitted_plate_figures(measured_psf, fit["psf"], faults, levels, n_levels, frame_score),
     }
 
@@ -791,6 +801,7 @@ def _etch_fit(measured_psf, fit, frame_score, levels, n_levels):
     return {
         **_etch_error_figures(fit["masks"], fit),
         "significance": fit["chi2_drop"],
+        "chi2": fit["chi2"],
         **_fitted_plate_figures(measured_psf, fit["psf"], faults, levels, n_levels, frame_score),
     }
 
@@ -825,10 +836,9 @@ def _overlay_and_etch_fit(result, measured_psf, window, frame_score, levels, n_l
         "shift_significance": fit["shift_chi2"],
         **_etch_error_figures(etch["masks"], fit),
         # over the better of the two fits alone: what the second fault is worth
-        "significance": min(
-            fit["chi2_drop"] - overlay["significance"], fit["chi2_drop"] - etch["significance"]
-        )
+        "significance": (min(overlay["chi2"], etch["chi2"]) - fit["chi2"])
         / max(fit["reduced_chi2"], 1.0),
+        "chi2": fit["chi2"],
         **_fitted_plate_figures(measured_psf, fit["psf"], faults, levels, n_levels, frame_score),
     }
 
@@ -903,6 +913,21 @@ def _psf_fails(result, thresholds):
         result["correlation"] < thresholds["correlation_min"]
         or result["rmse"] > thresholds["rmse_max"]
     )
+
+
+def _zero_order_fails(result, thresholds):
+    """Whether the zero order is brighter than its threshold by ``SIGNIFICANCE`` sigma."""
+    return (
+        result["zero_order"] - thresholds["zero_order_max"]
+        > SIGNIFICANCE * result["zero_order_sigma"]
+    )
+
+
+def _zero_order_brightened(result, thresholds):
+    """Whether the zero order fails and is decisively brighter than the design's own: a
+    plate fault to look for (a design may miss an absolute ``zero_order_max`` itself)."""
+    excess = result["zero_order_excess"] > SIGNIFICANCE * result["zero_order_sigma"]
+    return excess and _zero_order_fails(result, thresholds)
 
 
 def _search_summary(searches, valid, rows, cols, period, design_psf):
@@ -1109,7 +1134,7 @@ def winning_reflection(result):
 
 def _deep_etch_off(result, thresholds):
     """Whether the deepest etch's own fit is off decisively: beyond its tolerance, or, on a
-    PSF that fails, by what brings the PSF within the thresholds.
+    PSF that fails or a zero order brightened, by what brings the PSF within the thresholds.
 
     A deep etch 9.8 % off failed a random design's PSF (correlation 0.61) as a bare
     psf_mismatch, its fit explaining the window at 0.9999.
@@ -1123,11 +1148,16 @@ def _deep_etch_off(result, thresholds):
     )
     tolerance = thresholds["deep_etch_error_max"]
     joint = result["deep_etch_error_joint_fit"]  # the other etches' errors fitted too
-    agrees = joint is None or (
-        abs(joint) > tolerance
-        and result["deep_etch_error_joint_significance"] > (SIGNIFICANCE + 1) ** 2
+    joint_off = joint is None or (
+        result["deep_etch_error_joint_significance"] > (SIGNIFICANCE + 1) ** 2
     )
-    return (abs(fit) > tolerance and agrees) or (_psf_fails(result, thresholds) and explains)
+    if abs(fit) > tolerance and (joint is None or (abs(joint) > tolerance and joint_off)):
+        return True
+    if _psf_fails(result, thresholds):
+        return explains
+    # a zero order brightened, the PSF within: the deepest only where the others' fit agrees
+    # (a sparse design's mid etch 45 % off moved the deepest's own fit to +10.3 %)
+    return _zero_order_brightened(result, thresholds) and explains and joint_off
 
 
 def diagnose(result, thresholds):
@@ -1157,10 +1187,7 @@ def diagnose(result, thresholds):
     process = []
     if codes:  # a plate that is not this design: its process figures mean nothing
         return codes
-    if (
-        result["zero_order"] - thresholds["zero_order_max"]
-        > SIGNIFICANCE * result["zero_order_sigma"]
-    ):
+    if _zero_order_fails(result, thresholds):
         process.append("zero_order_excess")
     fault = _explaining_fault(result, thresholds)
     if fault in ("overlay_error", "overlay_and_etch"):

@@ -178,3 +178,18 @@ def test_the_overlay_fit_s_sigmas_are_the_spread_of_its_shifts_over_noise(levels
         ]
         is None
     )  # at the edge of the reach: no curvature to take
+
+
+def test_the_overlay_fit_s_gain_is_in_units_of_its_reduced_chi_square(levels):
+    # Sigmas quoted 2x short inflate chi-square 4x; the gain must not grow with them.
+    # A perfect plate's noise under short sigmas was once named a 0.19 px overlay.
+    window = supersampled_window(levels, 1, (0.3, -0.2), 5)
+    sigma = 0.002 * window.max() + 0.03 * window
+    noisy = window + np.random.default_rng(2).normal(0, 1, window.shape) * sigma
+    honest, short = (fit_overlay_error(noisy, s, levels, L) for s in (sigma, sigma / 2))
+    assert short["reduced_chi2"] == pytest.approx(4 * honest["reduced_chi2"])
+    assert short["reduced_chi2"] > 1 and honest["shift_px"] == short["shift_px"]
+    raw = honest["chi2_drop"] * max(honest["reduced_chi2"], 1.0)
+    assert short["chi2_drop"] == pytest.approx(4 * raw / short["reduced_chi2"])
+    long = fit_overlay_error(noisy, 3 * sigma, levels, L)  # sigmas too long: taken as they are
+    assert long["reduced_chi2"] < 1 and long["chi2_drop"] == pytest.approx(raw / 9)

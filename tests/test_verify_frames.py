@@ -147,6 +147,7 @@ def _good_result(**changes):
         "overlay_and_etch_fit": None,
     }
     result.update(changes)
+    result.setdefault("zero_order_excess", result["zero_order"] - 0.01)  # the design's 0.01
     return result
 
 
@@ -206,6 +207,25 @@ def test_a_deep_etch_within_its_tolerance_is_named_when_it_explains_a_failing_ps
     assert diagnose(_good_result(**failing, rmse_with_fitted_etch=0.1), t) == ["psf_mismatch"]
     weak = dict(failing, deep_etch_error_fit_significance=8.0)
     assert diagnose(_good_result(**weak), t) == ["psf_mismatch"]
+
+
+def test_a_deep_etch_within_its_tolerance_is_named_when_it_explains_a_brightened_zero_order():
+    # The PSF within, the zero order 4 % over the design's: zero_order_excess alone told
+    # the lab nothing of which etch to remeasure.
+    t = resolve_thresholds(None, design_efficiency=0.80, design_zero_order=0.01)
+    bright = dict(zero_order=0.05, deep_etch_error_fit=0.06, deep_etch_error_fit_significance=600.0)
+    agreed = dict(deep_etch_error_joint_fit=0.058, deep_etch_error_joint_significance=57.0)
+    assert diagnose(_good_result(**bright, **agreed), t) == ["zero_order_excess", "deep_etch_error"]
+    # the others' fit puts the deepest at 0: the brightening is another etch's
+    noise = dict(deep_etch_error_joint_fit=-0.001, deep_etch_error_joint_significance=0.1)
+    assert diagnose(_good_result(**bright, **noise), t) == ["zero_order_excess"]
+    unexplained = dict(bright, **agreed, correlation_with_fitted_etch=0.9)
+    assert diagnose(_good_result(**unexplained), t) == ["zero_order_excess"]
+    # over an absolute zero_order_max but no brighter than the design's own: no plate fault
+    absolute = dict(correlation_min=0.99, rmse_max=0.02, efficiency_min=0.5, zero_order_max=0.005)
+    strict = resolve_thresholds(absolute, 0.80, 0.05)
+    as_designed = dict(bright, **agreed, zero_order_excess=0.0)
+    assert diagnose(_good_result(**as_designed), strict) == ["zero_order_excess"]
 
 
 def _overlay(**changes):
