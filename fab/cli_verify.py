@@ -496,6 +496,12 @@ def _notes(result, capture, design):
             "the figures and measured_psf.npy describe the plate as it is; correlation "
             "and rmse still compare it with the design"
         )
+    if result.get("reflection_set_aside"):
+        notes.append(
+            f"a reflection of the design ({result['reflection_set_aside']}) fits the orders "
+            "better than the bare design, but the design with a fitted plate fault fits "
+            "them better still: measured as the design"
+        )
     if "zero_order_ambiguous" in result.get("diagnosis", []):
         z = result["zero_order_search"]
         gains = ", ".join(f"{k} {v:.3g}" for k, v in z["delta_chi2"].items())

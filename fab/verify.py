@@ -612,6 +612,11 @@ def _searches_by_orientation(grid, levels, n_levels, kernel_size):
 def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
     """Measure the PSF in a registered order grid, compare it with the design and diagnose.
 
+    A plate that a reflection of the design fits better than the bare design does is
+    measured as that reflection, unless the design with a fitted fault (an etch or an
+    overlay) explains the window and fits the frame better still
+    (``result["reflection_set_aside"]`` then names the reflection).
+
     Parameters
     ----------
     grid : fab.lattice.OrderGrid
@@ -633,6 +638,26 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
         float64, >= 0, sum 1, or None when the window runs off the frame
         (``result["window_in_frame"]`` False) or holds no light.
     """
+    args = (grid, levels, n_levels, kernel_size, orientation, thresholds)
+    result, measured_psf = _analyse_as(None, *args)
+    reflection = result["measured_as"]
+    if reflection == "design":
+        return result, measured_psf
+    # A deep etch 45 % off gave the default design's bare plate a reduced chi-square of
+    # 40, a mirror fitted its frame better, and the plate was measured as mirrored.
+    as_design, design_psf = _analyse_as("design", *args)
+    frame = _frame_of_explaining_fault(as_design, thresholds)
+    if frame is None or not frame > result["frame_correlation"][reflection]:
+        return result, measured_psf
+    as_design["reflection_set_aside"] = reflection
+    as_design["diagnosis"] = diagnose(as_design, thresholds)
+    as_design["pass"] = as_design["diagnosis"] == ["ok"]
+    return as_design, design_psf
+
+
+def _analyse_as(plate, grid, levels, n_levels, kernel_size, orientation, thresholds):
+    """``analyse`` with the plate measured as ``plate`` ("design" or a reflection; None:
+    the reflection that wins, or the design)."""
     power, valid, sigma = _in_design_frame(grid, orientation)
     rows, cols = to_design_frame(grid.rows, orientation), to_design_frame(grid.cols, orientation)
     sat = to_design_frame(grid.saturated, orientation)
@@ -657,10 +682,11 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
     # A plate that a reflection of the design explains (conjugate or mirrored) is
     # measured as what it is, at its own zero order: at the design's, three orders
     # away, its figures and measured PSF described nothing.
-    plate = winning_reflection(result) or "design"
+    plate = plate or winning_reflection(result) or "design"
     levels, period = _PLATE_LEVELS[plate](levels, n_levels), _TRANSFORMS[plate](period)
     m0, n0 = searches[plate]["m0"], searches[plate]["n0"]
     result["measured_as"] = plate
+    result["reflection_set_aside"] = None
     result["zero_order_px"] = [float(rows[m0, n0]), float(cols[m0, n0])]
     sl = (slice(m0 - half, m0 + half + 1), slice(n0 - half, n0 + half + 1))
     in_frame = (
@@ -1104,20 +1130,43 @@ def _explaining_fault(result, thresholds):
     return max(fits, key=lambda code: fits[code]["correlation"], default=None)
 
 
-def _ambiguous(search, thresholds):
+def _ambiguous(result, thresholds):
     """Whether the capture cannot tell where the zero order is, when it matters.
 
     Either the design fits nearly as well with its zero order one place
     further, or a reflection of the design (whose PSF differs from the
-    design's beyond the acceptance) fits nearly as well as the design.
+    design's beyond the acceptance) fits nearly as well as the design, and
+    no fitted fault of the design explains the window and fits the frame better.
     """
+    search = result["zero_order_search"]
     if search["runner_up_margin"] < DECISIVE_CHI2:
         return True
+    # a mid etch 45 % off left a mirror within 9 of the bare design (ambiguous), where
+    # the design with the fitted etch explained the window at 0.9999 and the frame at 1.000
+    fault = _frame_of_explaining_fault(result, thresholds)
     return any(
         abs(d) <= DECISIVE_CHI2
         and search["transform_psf_correlation"][t] < thresholds["correlation_min"]
+        and not (fault is not None and fault > result["frame_correlation"][t])
         for t, d in search["delta_chi2"].items()
     )
+
+
+def _frame_of_explaining_fault(result, thresholds):
+    """Return the best frame correlation of the design's plates with a fitted fault that
+    explain the window within the thresholds, decisively and within the fit's reach;
+    None when none does."""
+    frames = []
+    for key in EXPLAINING_FIT.values():
+        fit = result.get(key)
+        if fit is None or fit.get("at_search_edge"):
+            continue
+        within = fit["correlation"] >= thresholds["correlation_min"]
+        within &= fit["rmse"] <= thresholds["rmse_max"]
+        reach = max(abs(v) for v in fit.get("shift_px", [0.0])) < OVERLAY_REACH_PX
+        if within and reach and fit["significance"] > (SIGNIFICANCE + 1) ** 2:
+            frames.append(fit["frame_correlation"])
+    return max(frames, default=None)
 
 
 def winning_reflection(result):
@@ -1174,15 +1223,14 @@ def diagnose(result, thresholds):
         codes.append("saturated")
     if result["window_snr"] < thresholds["min_window_snr"]:
         codes.append("low_signal")
-    search = result["zero_order_search"]
-    reflection = winning_reflection(result)
+    reflection = None if result["reflection_set_aside"] else winning_reflection(result)
     # The reflection must explain the window too: a plate of another design won as the
     # conjugate of a nearly point-symmetric one (frame 0.83) and matched it at 0.85.
     if reflection and result["correlation_as_measured"] >= EXPLAINED_MIN:
         codes.append("conjugate_plate" if reflection == "rot180" else "mirrored")
     elif not codes and (reflection or _other_design(result)):  # clipped or noisy windows
         codes.append("other_design")  # explain nothing
-    elif not codes and _ambiguous(search, thresholds):
+    elif not codes and _ambiguous(result, thresholds):
         codes.append("zero_order_ambiguous")
     process = []
     if codes:  # a plate that is not this design: its process figures mean nothing

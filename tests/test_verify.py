@@ -3,6 +3,7 @@
 import dataclasses
 import json
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -1465,6 +1466,56 @@ def test_a_mid_etch_that_only_brightens_the_zero_order_is_named(tmp_path, sparse
     assert [name for name, _ in etched_off(fit)] == ["M2_mid"]
     assert fit["errors"][1] == pytest.approx(eps, abs=0.03)
     assert "M2_mid" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def default_design():
+    # the default run's levels.npy (doefab run --out out, a3e3e7a): nearly point-symmetric
+    return np.load(Path(__file__).parent / "data" / "default_levels.npy")
+
+
+def test_a_big_etch_error_is_not_read_as_a_mirrored_plate(tmp_path, default_design):
+    # The deepest etch 45 % too deep gave the bare design a reduced chi-square of 40; a
+    # mirror fitted the frame better, the plate was measured at the mirror's zero order
+    # and read as mirrored (or as another design). The lab would have turned the plate.
+    faults = PlateFaults(etch_errors=(0.45, 0.0, 0.0))
+    code, report, _ = verify_faulty_plate(tmp_path, default_design, faults, 11)
+    assert code == 1 and report["diagnosis"] == ["deep_etch_error", "psf_mismatch"]
+    assert report["measured_as"] == "design" and report["reflection_set_aside"] == "mirror-y"
+    assert report["deep_etch_error_fit"] == pytest.approx(0.45, abs=0.01)
+    assert any(
+        "(mirror-y)" in note and "measured as the design" in note for note in report["notes"]
+    )
+
+
+def test_a_big_mid_etch_error_does_not_leave_the_zero_order_ambiguous(tmp_path, default_design):
+    # M2 45 % too shallow left a mirror within 9 in chi-square of the bare design:
+    # zero_order_ambiguous, though the fitted etch explained the window at 0.9999.
+    faults = PlateFaults(etch_errors=(0.0, -0.45, 0.0))
+    code, report, _ = verify_faulty_plate(tmp_path, default_design, faults, 11, STRICT_ACCEPTANCE)
+    assert abs(report["zero_order_search"]["delta_chi2"]["mirror-y"]) < 25  # the mirror near
+    assert code == 1 and report["diagnosis"] == ["etch_depth_error", "psf_mismatch"]
+    assert report["etch_error_fit"]["errors"][1] == pytest.approx(-0.45, abs=0.01)
+    assert report["reflection_set_aside"] is None
+
+
+def test_a_diagonal_overlay_does_not_leave_the_zero_order_ambiguous(tmp_path, designed):
+    # M2 one mask pixel off in y and in x left the conjugate within 3 of the bare design
+    faults = PlateFaults(overlay_mask=1, overlay_shift=(5e-6, 5e-6))
+    code, report, _ = verify_faulty_plate(
+        tmp_path, designed, faults, 11, supersample=4, pixel_pitch_nm=4990
+    )
+    assert abs(report["zero_order_search"]["delta_chi2"]["rot180"]) < 25
+    assert code == 1 and report["diagnosis"][0] == "overlay_error"
+    fit = report["overlay_error_fit"]
+    assert fit["mask"] == "M2_mid" and fit["shift_px"] == pytest.approx([1.0, 1.0], abs=0.05)
+
+
+def test_a_conjugate_plate_of_a_nearly_symmetric_design_stays_conjugate(tmp_path, default_design):
+    # no fitted fault of the design explains a conjugate plate: the reflection stands
+    code, report, _ = verify_faulty_plate(tmp_path, default_design, PlateFaults(conjugate=True), 11)
+    assert code == 1 and report["diagnosis"] == ["conjugate_plate"]
+    assert report["measured_as"] == "rot180" and report["reflection_set_aside"] is None
 
 
 def test_a_zero_order_as_bright_as_the_design_s_own_runs_no_fault_fit(tmp_path, sparse):

@@ -145,6 +145,7 @@ def _good_result(**changes):
         "overlay_error_fit": None,
         "etch_error_fit": None,
         "overlay_and_etch_fit": None,
+        "reflection_set_aside": None,
     }
     result.update(changes)
     result.setdefault("zero_order_excess", result["zero_order"] - 0.01)  # the design's 0.01
@@ -437,3 +438,72 @@ def test_lattice_pitch_and_rotation_are_those_of_its_two_step_vectors():
     assert lattice.pitch_px == pytest.approx((10 + np.hypot(4, 8)) / 2)
     # +v steps 8 right and 4 down: clockwise as displayed, by atan(4 / 8)
     assert lattice.rotation_deg == pytest.approx(-np.degrees(np.arctan2(4, 8)))
+
+
+def test_a_reflection_near_the_design_is_no_ambiguity_where_a_fitted_fault_explains_more():
+    # M2 45 % off left a mirror within 9 of the bare design: zero_order_ambiguous, though
+    # the design with the fitted etch explained the window at 0.9999, the frame at 1.000
+    strict = dict(correlation_min=0.99, rmse_max=0.02, efficiency_min=0.5, zero_order_max=0.05)
+    t = resolve_thresholds(strict, 0.80, 0.01)
+    search = _good_result()["zero_order_search"]
+    near = {**search, "delta_chi2": {**search["delta_chi2"], "mirror-y": -9.0}}
+    frames = {"design": 0.9, "rot180": 0.3, "mirror-x": 0.3, "mirror-y": 0.92}
+    failing = dict(correlation=0.96, correlation_with_fitted_etch=0.96, rmse=0.03,
+                   zero_order_search=near, frame_correlation=frames)  # fmt: skip
+    assert diagnose(_good_result(**failing), t) == ["zero_order_ambiguous"]
+    explained = _good_result(**failing, etch_error_fit=_etch(frame_correlation=1.0))
+    assert diagnose(explained, t) == ["etch_depth_error", "psf_mismatch"]
+    for weak in (
+        _etch(frame_correlation=0.91),  # the mirror fits the frame better
+        _etch(frame_correlation=1.0, significance=8.0),  # not decisive
+        _etch(frame_correlation=1.0, correlation=0.98),  # not within the thresholds
+        _etch(frame_correlation=1.0, rmse=0.05),
+        _etch(frame_correlation=1.0, at_search_edge=True),  # may lie beyond the search
+    ):
+        assert diagnose(_good_result(**failing, etch_error_fit=weak), t) == ["zero_order_ambiguous"]
+    # an overlay pinned at the edge of its reach explains nothing either
+    pinned = _overlay(shift_px=[2.0, 0.5], frame_correlation=1.0)
+    assert diagnose(_good_result(**failing, overlay_error_fit=pinned), t) == [
+        "zero_order_ambiguous"
+    ]
+
+
+def test_a_reflection_set_aside_is_not_named():
+    t = resolve_thresholds(None, design_efficiency=0.80, design_zero_order=0.01)
+    search = _good_result()["zero_order_search"]
+    wins = {**search, "delta_chi2": {**search["delta_chi2"], "mirror-y": 60.0}}
+    frames = {"design": 0.9, "rot180": 0.3, "mirror-x": 0.3, "mirror-y": 0.92}
+    mirrored = dict(zero_order_search=wins, frame_correlation=frames)
+    assert diagnose(_good_result(**mirrored), t) == ["mirrored"]
+    assert diagnose(_good_result(**mirrored, reflection_set_aside="mirror-y"), t) == ["ok"]
+
+
+def test_a_winning_reflection_is_set_aside_only_for_a_fault_that_fits_the_frame_better(
+    monkeypatch,
+):
+    # A deep etch 45 % off had a mirror fit the default design's frame better than the
+    # bare design; the design with the fitted etch fitted it better still.
+    import fab.verify as verify
+
+    t = resolve_thresholds(None, design_efficiency=0.80, design_zero_order=0.01)
+    frames = {"design": 0.9, "rot180": 0.3, "mirror-x": 0.3, "mirror-y": 0.95}
+    reflected = _good_result(frame_correlation=frames, measured_as="mirror-y")
+    for fault_frame, set_aside in ((0.99, True), (0.94, False)):
+        as_design = _good_result(
+            frame_correlation=frames,
+            measured_as="design",
+            correlation=0.6,
+            rmse=0.1,
+            etch_error_fit=_etch(errors=(0.45, 0.0, 0.0), frame_correlation=fault_frame),
+        )
+        calls = []
+
+        def fake(plate, *args, as_design=as_design, calls=calls):
+            calls.append(plate)
+            return (dict(reflected) if plate is None else dict(as_design)), None
+
+        monkeypatch.setattr(verify, "_analyse_as", fake)
+        result, _ = verify.analyse(None, None, 8, 11, "as-designed", t)
+        assert calls == [None, "design"]
+        assert result["measured_as"] == ("design" if set_aside else "mirror-y")
+        assert result["reflection_set_aside"] == ("mirror-y" if set_aside else None)
