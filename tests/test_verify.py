@@ -903,7 +903,7 @@ def test_the_etch_fits_gains_are_in_units_of_their_reduced_chi_square(levels, jo
     # Sigmas quoted 2x short inflate chi-square 4x; the gains must not grow with them
     # (the deepest etch's own fit and the joint fit's total were taken as they came).
     orders = np.meshgrid(np.arange(K) - K // 2, np.arange(K) - K // 2, indexing="ij")
-    window = plate_far_field(plate_phase(levels, L, PlateFaults(etch_errors=(0.04, 0.03))))(*orders)
+    window = plate_far_field(plate_phase(levels, L, PlateFaults(etch_errors=(0.1, 0.1))))(*orders)
     sigma = 0.002 * window.max() + 0.03 * window
     noisy = window + np.random.default_rng(4).normal(0, 1, window.shape) * sigma
 
@@ -916,6 +916,20 @@ def test_the_etch_fits_gains_are_in_units_of_their_reduced_chi_square(levels, jo
     raw = honest["chi2_drop"] * max(honest["reduced_chi2"], 1.0)
     assert short["chi2_drop"] == pytest.approx(4 * raw / short["reduced_chi2"], rel=1e-3)
     assert long["chi2_drop"] == pytest.approx(raw / 9, rel=1e-3)  # too long: as they are
+
+
+@pytest.mark.parametrize("eps", [-0.4, 0.3])
+def test_the_joint_etch_fit_holds_an_unneeded_error_at_0_where_two_masks_trade_off(eps):
+    # Levels 5 and 6 only (a near-delta design's): the window sees 2 eps_M2 - eps_M3
+    # alone. M2 40 % too shallow read as M2 -26.7 % with M3 +26.7 %, a point anywhere
+    # along the valley; M3 alone cannot explain it within +-50 %, M2 alone can.
+    two = np.random.default_rng(9).choice(np.array([5, 6], np.uint8), (N, N), p=[0.75, 0.25])
+    orders = np.meshgrid(np.arange(K) - K // 2, np.arange(K) - K // 2, indexing="ij")
+    window = plate_far_field(plate_phase(two, L, PlateFaults(etch_errors=(0, eps, 0))))(*orders)
+    fit = fit_etch_errors(window, 1e-4 * window.max() + 0.01 * window, two, L)
+    assert fit["mask_chi2"][1] > 9 > fit["mask_chi2"][2]
+    assert fit["eps"] == pytest.approx([0.0, eps, 0.0], abs=0.005)
+    assert fit["psf"] == pytest.approx(window / window.sum(), abs=1e-6)
 
 
 def test_the_joint_etch_fit_of_a_design_using_one_mask():
@@ -1516,6 +1530,24 @@ def test_a_conjugate_plate_of_a_nearly_symmetric_design_stays_conjugate(tmp_path
     code, report, _ = verify_faulty_plate(tmp_path, default_design, PlateFaults(conjugate=True), 11)
     assert code == 1 and report["diagnosis"] == ["conjugate_plate"]
     assert report["measured_as"] == "rot180" and report["reflection_set_aside"] is None
+
+
+def test_a_near_delta_design_s_mid_etch_off_is_named_not_another_design(tmp_path):
+    # M2 30 % too shallow put 97.6 % of the beam in the zero order of a near-delta
+    # design (0.898); the rest, near the noise, correlated at 0.21 with the design's
+    # frame: other_design, though the window matched at 0.9995. The fitted plate lights
+    # its zero order alone, which leaves the frame nothing to judge.
+    from doe.retrieval import retrieve_phase
+    from doe.targets import make_target
+
+    delta = retrieve_phase(make_target("near_delta", K), 175, L, seed=0).levels
+    faults = PlateFaults(etch_errors=(0.0, -0.3, 0.0))
+    code, report, _ = verify_faulty_plate(tmp_path, delta, faults, 11)
+    assert report["frame_correlation"]["design"] < 0.8 < report["correlation"]
+    assert code == 1 and report["diagnosis"] == ["zero_order_excess", "etch_depth_error"]
+    fit = report["etch_error_fit"]
+    assert [name for name, _ in etched_off(fit)] == ["M2_mid"]
+    assert abs(fit["errors"][1] + 0.3) < 2 * fit["errors_sigma"][1] < 0.1
 
 
 def test_a_zero_order_as_bright_as_the_design_s_own_runs_no_fault_fit(tmp_path, sparse):

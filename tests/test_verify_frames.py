@@ -507,3 +507,19 @@ def test_a_winning_reflection_is_set_aside_only_for_a_fault_that_fits_the_frame_
         assert calls == [None, "design"]
         assert result["measured_as"] == ("design" if set_aside else "mirror-y")
         assert result["reflection_set_aside"] == ("mirror-y" if set_aside else None)
+
+
+def test_a_fitted_plate_lighting_its_zero_order_alone_leaves_the_frame_unjudged():
+    # a near-delta design's mid etch 30 % off: the orders beside the zero order fell to
+    # the noise, and correlated at 0.21 with the design's (other_design)
+    t = resolve_thresholds(None, design_efficiency=0.80, design_zero_order=0.01)
+    frames = {"design": 0.21, "rot180": 0.21, "mirror-x": 0.21, "mirror-y": 0.21}
+    plate = dict(frame_correlation=frames, correlation=0.9995, zero_order=0.05)
+    flat = _etch(frame_correlation=float("nan"), correlation=1.0)
+    assert diagnose(_good_result(**plate, etch_error_fit=flat), t) == [
+        "zero_order_excess",
+        "etch_depth_error",
+    ]
+    assert diagnose(_good_result(**plate), t) == ["other_design"]  # no such fit
+    weak = _etch(frame_correlation=float("nan"), correlation=1.0, significance=8.0)
+    assert diagnose(_good_result(**plate, etch_error_fit=weak), t) == ["other_design"]
