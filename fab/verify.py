@@ -1133,20 +1133,32 @@ def _explaining_fault(result, thresholds):
         and fit["rmse"] <= thresholds["rmse_max"]
         and fit["correlation"] > (result["correlation_with_fitted_etch"] or -1.0)
     }
-    # A fit left out at the edge of its range that explains the window better than the
-    # one kept: the fault is that one, beyond its reach (an 11 um overlay of M1 was
-    # named a 7.5 % etch error of M2, whose fit passed the strict thresholds).
+    pinned = _pinned_correlation(result)
+    fits = {code: fit for code, fit in fits.items() if fit["correlation"] > pinned}
+    return max(fits, key=lambda code: fits[code]["correlation"], default=None)
+
+
+def _pinned_correlation(result):
+    """Return the window correlation of the best decisive fit left out at the edge of its
+    range (-1 when none is).
+
+    A fault named must explain the window better: it is that one, beyond its reach
+    (an 11 um overlay of M1 was named a 7.5 % etch error of M2, whose fit passed the
+    strict thresholds, and on a sparse design the deepest etch, 5 % off).
+    """
     overlay, etch = result["overlay_error_fit"], result["etch_error_fit"]
     pinned = [
         fit["correlation"]
         for fit, left_out in (
-            (overlay, "overlay_error" not in significant),
+            (
+                overlay,
+                overlay is not None and max(map(abs, overlay["shift_px"])) >= OVERLAY_REACH_PX,
+            ),
             (etch, etch is not None and etch["at_search_edge"]),
         )
         if fit is not None and left_out and fit["significance"] > (SIGNIFICANCE + 1) ** 2
     ]
-    fits = {code: fit for code, fit in fits.items() if fit["correlation"] > max(pinned, default=-1)}
-    return max(fits, key=lambda code: fits[code]["correlation"], default=None)
+    return max(pinned, default=-1.0)
 
 
 def _ambiguous(result, thresholds):
@@ -1267,7 +1279,11 @@ def diagnose(result, thresholds):
         deep = [err for name, err in off if name == etch["masks"][0]]
         if deep and abs(deep[0]) > thresholds["deep_etch_error_max"]:
             process.append("deep_etch_error")
-    elif fault is None and _deep_etch_off(result, thresholds):  # not with an overlay's
+    elif (
+        fault is None
+        and _deep_etch_off(result, thresholds)
+        and result["correlation_with_fitted_etch"] > _pinned_correlation(result)
+    ):  # not with an overlay's
         process.append("deep_etch_error")
     codes += process
     if not codes or codes == process:

@@ -523,3 +523,24 @@ def test_a_fitted_plate_lighting_its_zero_order_alone_leaves_the_frame_unjudged(
     assert diagnose(_good_result(**plate), t) == ["other_design"]  # no such fit
     weak = _etch(frame_correlation=float("nan"), correlation=1.0, significance=8.0)
     assert diagnose(_good_result(**plate, etch_error_fit=weak), t) == ["other_design"]
+
+
+def test_the_deepest_etch_is_not_named_where_a_fit_at_the_edge_of_its_reach_explains_more():
+    # An 11 um overlay of M1 (2.25 mask pixels, past the fit's 2) on a sparse design was
+    # named deep_etch_error: the overlay fit, pinned at 2.0 px, matched the window at
+    # 0.9998, the deepest etch's own fit at 0.9994.
+    t = resolve_thresholds(None, design_efficiency=0.80, design_zero_order=0.01)
+    deep = dict(
+        deep_etch_error_fit=0.12,
+        deep_etch_error_fit_significance=500.0,
+        deep_etch_error_joint_fit=0.12,
+        deep_etch_error_joint_significance=400.0,
+        correlation_with_fitted_etch=0.9994,
+    )
+    assert diagnose(_good_result(**deep), t) == ["deep_etch_error"]
+    pinned = _overlay(shift_px=[2.0, -0.24], correlation=0.9998)
+    assert diagnose(_good_result(**deep, overlay_error_fit=pinned), t) == ["ok"]
+    worse = _overlay(shift_px=[2.0, -0.24], correlation=0.999)
+    assert diagnose(_good_result(**deep, overlay_error_fit=worse), t) == ["deep_etch_error"]
+    inside = _overlay(shift_px=[1.9, -0.24], correlation=0.9998, significance=8.0)
+    assert diagnose(_good_result(**deep, overlay_error_fit=inside), t) == ["deep_etch_error"]
