@@ -342,6 +342,7 @@ def _verify(args):
         _pitch_hint(result, on_lattice, lattice.pitch_px, args),
         _orientation_hint(result, grid, design, args.orientation),
         _fault_hint(report),
+        _beyond_reach_hint(report),
     ]
     for hint in filter(None, hints):
         report["notes"].append(hint)
@@ -382,6 +383,30 @@ def _in_um_and_nm(fit, design):
     if "errors" in fit and len(fit["masks"]) == len(design.etch_depths):  # deepest first
         depths = zip(fit["errors"], design.etch_depths, strict=True)
         fit["errors_nm"] = [e * d * 1e9 for e, d in depths]
+
+
+def _beyond_reach_hint(report):
+    """Return a note when the window is a mask printed off the others by more than the
+    reach verify names an overlay in (none is named then)."""
+    from fab.overlay import REACH_PX
+    from fab.verify import SIGNIFICANCE
+
+    fit = report["overlay_error_fit"]
+    if (
+        fit is None
+        or "overlay_error" in report["diagnosis"]
+        or max(map(abs, fit["shift_px"])) < REACH_PX
+        or fit["significance"] <= (SIGNIFICANCE + 1) ** 2
+        or fit["correlation"] < report["thresholds"]["correlation_min"]
+    ):
+        return None
+    unit, shift = ("um", fit["shift_um"]) if "shift_um" in fit else ("mask pixels", fit["shift_px"])
+    return (
+        f"the window matches the design with mask {fit['mask']} printed off the other masks "
+        f"by {shift[0]:+.2f} {unit} in y (up) and {shift[1]:+.2f} {unit} in x (right) "
+        f"(correlation {fit['correlation']:.4f}), at or beyond the {REACH_PX:g} mask pixels "
+        "within which verify names an overlay: check that exposure's alignment"
+    )
 
 
 def _fault_hint(result):

@@ -21,9 +21,13 @@ import numpy as np
 
 from fab.masks import mask_name, masks_from_levels
 
-# Fitted shifts reach this far each way (10 um at the default 4.99 um pixel):
+# Fitted shifts are named this far each way (10 um at the default 4.99 um pixel):
 # farther, the plate is not this design aligned by any lab's process.
 REACH_PX = 2.0
+# and searched a little farther, so that a shift past the reach lands past it: on
+# a search that ended at the reach, an overlay of 2.25 px stopped at 1.83-1.98 px,
+# inside, and was named short.
+SEARCH_PX = 2.5
 # The search: a grid at COARSE_PX, then one at FINE_PX around its best point.
 COARSE_PX = 0.1
 FINE_PX = 0.01
@@ -56,7 +60,7 @@ def _window_arrays(dft, field, bitmap, whole):
 
 
 class OverlayModel:
-    """Window orders of the design with one mask shifted, for any shift within ``REACH_PX``."""
+    """Window orders of the design with one mask shifted, for any shift within ``SEARCH_PX``."""
 
     def __init__(self, levels, n_levels, kernel_size, masks_modelled=None):
         levels = np.asarray(levels)
@@ -68,7 +72,7 @@ class OverlayModel:
         self.phi = np.array([2 * np.pi * mk.steps / n_levels for mk in self.masks])
         phase = -sum(d * mk.bitmap for d, mk in zip(self.phi, self.masks, strict=True))
         self.dft = np.exp(-2j * np.pi * np.outer(self.orders, np.arange(n)) / n) / n
-        self.whole = np.arange(int(np.floor(-REACH_PX)), int(np.ceil(REACH_PX)) + 2)
+        self.whole = np.arange(int(np.floor(-SEARCH_PX)), int(np.ceil(SEARCH_PX)) + 2)
         self.rest, self.etched, self.contrast = {}, {}, {}
         for j in range(len(self.masks)) if masks_modelled is None else masks_modelled:
             d, mk = self.phi[j], self.masks[j]
@@ -84,9 +88,9 @@ class OverlayModel:
         """
         rows, cols = -np.asarray(dy, float), np.asarray(dx, float)  # +y is up: towards row 0
         if not (
-            np.abs(rows).max(initial=0) <= REACH_PX and np.abs(cols).max(initial=0) <= REACH_PX
+            np.abs(rows).max(initial=0) <= SEARCH_PX and np.abs(cols).max(initial=0) <= SEARCH_PX
         ):
-            raise ValueError(f"a shift beyond the model's reach of {REACH_PX} px")
+            raise ValueError(f"a shift beyond the model's reach of {SEARCH_PX} px")
         p, q = np.floor(rows).astype(int), np.floor(cols).astype(int)
         r0, r1 = (r[..., :, None] for r in _part_integrals(self.orders, self.n, rows - p))
         c0, c1 = (c[..., None, :] for c in _part_integrals(self.orders, self.n, cols - q))
@@ -140,7 +144,7 @@ def fit_overlay_error(window, sigma, levels, n_levels):
     """Fit the mask and shift that best explain the measured window.
 
     Weighted least squares with a free overall scale, over every mask and
-    shifts within ``REACH_PX`` each way (grid search, then a finer grid).
+    shifts within ``SEARCH_PX`` each way (grid search, then a finer grid).
 
     Parameters
     ----------
@@ -156,7 +160,7 @@ def fit_overlay_error(window, sigma, levels, n_levels):
     dict or None
         "mask" (name, e.g. "M2_mid"), "mask_index" (0 = deepest), "shift_px"
         ([dy, dx], mask pixels, +y up), "shift_sigma" (their 1-sigma errors, None at
-        the edge of the reach), "chi2" (the fit's), "chi2_drop" (how much
+        the edge of the search), "chi2" (the fit's), "chi2_drop" (how much
         better than no shift, in chi-square units when ``sigma`` is given, over
         the fit's reduced chi-square where that passes 1), "reduced_chi2" and
         "psf" (the fitted window, sum 1); None when no mask has both etched and
@@ -175,7 +179,7 @@ def fit_overlay_error(window, sigma, levels, n_levels):
 
     def best_on(offsets, mask, centre):
         dy, dx = (
-            np.clip(c + g, -REACH_PX, REACH_PX)
+            np.clip(c + g, -SEARCH_PX, SEARCH_PX)
             for c, g in zip(centre, np.meshgrid(offsets, offsets, indexing="ij"), strict=True)
         )
         values = chi2(mask, dy, dx)
@@ -186,7 +190,7 @@ def fit_overlay_error(window, sigma, levels, n_levels):
         n = round(reach / step)
         return step * np.arange(-n, n + 1)
 
-    coarse, fine = grid(REACH_PX, COARSE_PX), grid(COARSE_PX, FINE_PX)
+    coarse, fine = grid(SEARCH_PX, COARSE_PX), grid(COARSE_PX, FINE_PX)
     fits = []
     for j in np.flatnonzero(model.used):
         _, centre = best_on(coarse, j, (0.0, 0.0))
@@ -213,12 +217,12 @@ def fit_overlay_error(window, sigma, levels, n_levels):
 def _shift_sigma(chi2, dy, dx, best, dof, h=FINE_PX):
     """Return the 1-sigma errors [dy, dx] of a fitted shift from the chi-square's curvature
     (finite differences of step ``h``, in units of its reduced chi-square where that
-    passes 1), or None at the edge of the reach, where the curvature is not there to take.
+    passes 1), or None at the edge of the search, where the curvature is not there to take.
 
     A sparse design's few bright orders leave the valley flat: its shift wandered by
     0.1-0.4 px over noise, with nothing said of it.
     """
-    if max(abs(dy), abs(dx)) + h > REACH_PX:
+    if max(abs(dy), abs(dx)) + h > SEARCH_PX:
         return None
     o = np.array([-h, 0.0, h])
     grid = chi2(dy + o[:, None], dx + o[None, :])  # rows: dy, columns: dx
@@ -244,7 +248,7 @@ def fit_overlay_and_etch(window, sigma, levels, n_levels, mask, shift, etch_erro
 
     For a plate with two faults at once, which each fit alone explains only in part:
     weighted least squares with a free scale from ``shift`` (dy, dx, mask pixels) of
-    mask index ``mask`` and ``etch_errors`` (deepest first), within ``REACH_PX`` and
+    mask index ``mask`` and ``etch_errors`` (deepest first), within ``SEARCH_PX`` and
     +-50 %. Each etch error's significance is the chi-square rise with it held at 0
     and the rest refitted; the shift's, the quadratic form of the pair in the fit's
     curvature; both over the fit's reduced chi-square where that passes 1.
@@ -277,7 +281,7 @@ def fit_overlay_and_etch(window, sigma, levels, n_levels, mask, shift, etch_erro
         p = power(x) * wts
         return (p * ((p * meas).sum() / (p * p).sum()) - meas).ravel()
 
-    reach = np.array([REACH_PX, REACH_PX] + [0.5] * len(free))
+    reach = np.array([SEARCH_PX, SEARCH_PX] + [0.5] * len(free))
     inside = reach * (1 - 1e-6)  # least_squares wants its start inside the bounds
     x0 = np.clip(np.r_[shift, np.asarray(etch_errors, float)[free]], -inside, inside)
     fit = least_squares(residuals, x0, bounds=(-reach, reach))

@@ -1059,7 +1059,16 @@ def _other_design(result):
     unrelated to another design's); a compact one only in the window, where a
     plate of this design with a depth or overlay error still matches the fitted model.
     """
-    fits = _significant_fits(result).values()
+    fits = list(_significant_fits(result).values())
+    # and an overlay fit beyond the reach a shift is named in: still this design (M2 of
+    # a random design 11 um off, fitted at 2.25 px, matched the frame at 0.99)
+    overlay = result["overlay_error_fit"]
+    if (
+        overlay is not None
+        and not _within_reach(overlay)
+        and overlay["significance"] > (SIGNIFICANCE + 1) ** 2
+    ):
+        fits.append(overlay)
     frame = best_frame_correlation(result)
     frames = [fit["frame_correlation"] for fit in fits]
     # The joint etch fit's plate counts for the frame even when it needs the deepest etch
@@ -1098,7 +1107,7 @@ def _significant_fits(result):
     """
     fits = {}
     overlay = result["overlay_error_fit"]
-    if overlay is not None and max(abs(v) for v in overlay["shift_px"]) < OVERLAY_REACH_PX:
+    if overlay is not None and _within_reach(overlay):
         fits["overlay_error"] = overlay
     etch = result["etch_error_fit"]
     # named for the shallower masks: the deepest alone is deep_etch_error's
@@ -1106,12 +1115,18 @@ def _significant_fits(result):
         if any(name != etch["masks"][0] for name, _ in etched_off(etch)):
             fits["etch_depth_error"] = etch
     both = result["overlay_and_etch_fit"]
-    if both is not None and not both["at_search_edge"]:
+    if both is not None and not both["at_search_edge"] and _within_reach(both):
         if both["shift_significance"] > (SIGNIFICANCE + 1) ** 2 and etched_off(both):
             fits["overlay_and_etch"] = both
     return {
         code: fit for code, fit in fits.items() if fit["significance"] > (SIGNIFICANCE + 1) ** 2
     }
+
+
+def _within_reach(fit):
+    """Whether a fit's shift (if it has one) lies within the reach a shift is named in;
+    the search goes a little farther, so that a shift beyond it is seen to be."""
+    return max(map(abs, fit.get("shift_px", [0.0]))) < OVERLAY_REACH_PX
 
 
 # The fit in the result behind each explanation _explaining_fault can return.
@@ -1150,10 +1165,7 @@ def _pinned_correlation(result):
     pinned = [
         fit["correlation"]
         for fit, left_out in (
-            (
-                overlay,
-                overlay is not None and max(map(abs, overlay["shift_px"])) >= OVERLAY_REACH_PX,
-            ),
+            (overlay, overlay is not None and not _within_reach(overlay)),
             (etch, etch is not None and etch["at_search_edge"]),
         )
         if fit is not None and left_out and fit["significance"] > (SIGNIFICANCE + 1) ** 2
@@ -1194,8 +1206,7 @@ def _frame_of_explaining_fault(result, thresholds):
             continue
         within = fit["correlation"] >= thresholds["correlation_min"]
         within &= fit["rmse"] <= thresholds["rmse_max"]
-        reach = max(abs(v) for v in fit.get("shift_px", [0.0])) < OVERLAY_REACH_PX
-        if within and reach and fit["significance"] > (SIGNIFICANCE + 1) ** 2:
+        if within and _within_reach(fit) and fit["significance"] > (SIGNIFICANCE + 1) ** 2:
             frames.append(fit["frame_correlation"])
     return max(frames, default=None)
 

@@ -5,7 +5,7 @@ import pytest
 
 from doe.fraunhofer import order_amplitudes, pixel_envelope, window_indices
 from fab.overlay import (
-    REACH_PX,
+    SEARCH_PX,
     EtchedOverlayModel,
     OverlayModel,
     fit_overlay_and_etch,
@@ -93,9 +93,9 @@ def test_whole_pixel_shift_rolls_the_mask_bitmap_towards_row_0_for_plus_y(levels
 
 def test_shifts_beyond_the_reach_are_refused(model):
     with pytest.raises(ValueError, match="reach"):
-        model.power(1, REACH_PX + 0.1, 0.0)
+        model.power(1, SEARCH_PX + 0.1, 0.0)
     with pytest.raises(ValueError, match="reach"):
-        model.power(1, 0.0, -REACH_PX - 0.1)
+        model.power(1, 0.0, -SEARCH_PX - 0.1)
 
 
 @pytest.mark.parametrize("mask, shift", [(0, (0.73, -0.41)), (1, (-1.62, 0.3)), (2, (0.0, 1.18))])
@@ -173,11 +173,11 @@ def test_the_overlay_fit_s_sigmas_are_the_spread_of_its_shifts_over_noise(levels
     quoted = np.median([f["shift_sigma"] for f in fits], axis=0)
     assert np.all((quoted > spread / 1.5) & (quoted < spread * 1.5)), (quoted, spread)
     assert (
-        fit_overlay_error(supersampled_window(levels, 1, (2.0, 0.0), 5), sigma, levels, L)[
+        fit_overlay_error(supersampled_window(levels, 1, (SEARCH_PX, 0.0), 2), sigma, levels, L)[
             "shift_sigma"
         ]
         is None
-    )  # at the edge of the reach: no curvature to take
+    )  # at the edge of the search: no curvature to take
 
 
 def test_the_overlay_fit_s_gain_is_in_units_of_its_reduced_chi_square(levels):

@@ -1204,16 +1204,33 @@ def test_designed_plate_of_another_design_fails(tmp_path, designed):
     assert not any("the orders match the design seen with" in n for n in report["notes"])
 
 
-def test_an_orientation_hint_never_names_the_orientation_given(tmp_path, designed):
-    # The deep mask 12 um off, beyond the overlay fit's reach: the orders outside the
-    # window still match the design as seen, the window does not (other_design).
-    # "Verify again with --orientation as-designed", the flag just used, would send
-    # the lab round in a circle.
+def test_an_orientation_hint_never_names_the_orientation_given(monkeypatch):
+    # The deep mask 12 um off once failed as other_design with the orders outside the
+    # window matching the design as seen: "verify again with --orientation as-designed",
+    # the flag just used, would have sent the lab round in a circle.
+    import fab.verify
+    from fab.cli_verify import _orientation_hint
+
+    design = dataclasses.make_dataclass("D", ["levels", "n_levels", "kernel_size"])(0, L, K)
+    result = {"diagnosis": ["other_design"]}
+    matching = ["as-designed", "mirror-x"]
+    monkeypatch.setattr(fab.verify, "orientations_matching", lambda *args: matching)
+    hint = _orientation_hint(result, None, design, "as-designed")
+    assert "--orientation mirror-x" in hint and "as-designed" not in hint
+    matching = ["as-designed"]
+    assert _orientation_hint(result, None, design, "as-designed") is None
+
+
+def test_a_mask_12um_off_is_said_to_lie_beyond_the_overlay_reach(tmp_path, designed):
+    # 12 um = 2.4 mask pixels: past the 2 an overlay is named in, fitted at 2.49 (the
+    # capture simulated on a 1/4 px grid: 2.5). It was other_design, the lab told that
+    # another plate had arrived.
     faults = PlateFaults(overlay_mask=0, overlay_shift=(12e-6, 0.0))
     code, report, _ = run_verify(tmp_path, designed, dict(seed=11, faults=faults, supersample=4))
-    assert code == 1 and report["diagnosis"] == ["other_design"]
-    assert report["frame_correlation"]["design"] >= 0.8  # as-designed matches the frame
-    assert not any("--orientation as-designed" in n for n in report["notes"])
+    assert code == 1 and "other_design" not in report["diagnosis"]
+    assert "psf_mismatch" in report["diagnosis"] and "overlay_error" not in report["diagnosis"]
+    assert report["overlay_error_fit"]["shift_px"] == pytest.approx([2.5, 0.0], abs=0.02)
+    assert any("beyond the 2 mask pixels" in note for note in report["notes"])
 
 
 def verify_faulty_plate(tmp_path, levels, faults, seed, acceptance=None, supersample=1, **manifest):
@@ -1560,22 +1577,34 @@ def test_a_zero_order_as_bright_as_the_design_s_own_runs_no_fault_fit(tmp_path, 
     assert report["overlay_error_fit"] is None and report["etch_error_fit"] is None
 
 
-def test_an_overlay_beyond_the_fit_reach_is_not_named_an_etch_error(tmp_path):
-    # 11 um of the deepest mask (2.25 mask pixels, past the overlay fit's 2): the overlay
-    # fit, pinned at 2 px, explains the window best (0.9999) and is left out, and the mid
-    # etch's fit (0.998, within the strict thresholds) was named instead.
+@pytest.mark.parametrize("design", ["blob", "random"])
+def test_an_overlay_beyond_the_fit_reach_is_not_named_but_said(tmp_path, levels, design, capsys):
+    # 11 um of a mask (2.25 mask pixels, past the 2 an overlay is named in). On a search
+    # that ended at 2 px the fit stopped at or inside it: on the blob the mid etch's fit
+    # (0.998, within the strict thresholds) was named instead; on a random design the
+    # overlay was named 0.3 px short. The search now goes to 2.5 px and finds 2.25.
     from doe.retrieval import retrieve_phase
     from doe.targets import make_target
 
-    blob = retrieve_phase(make_target("compact_blob", K), 175, L, seed=0).levels
-    faults = PlateFaults(overlay_mask=0, overlay_shift=(11e-6, 0.0))
+    if design == "blob":
+        tile = retrieve_phase(make_target("compact_blob", K), 175, L, seed=0).levels
+        mask, acceptance = 0, STRICT_ACCEPTANCE
+    else:
+        tile, mask, acceptance = levels, 1, None
+    faults = PlateFaults(overlay_mask=mask, overlay_shift=(11e-6, 0.0))
     code, report, _ = verify_faulty_plate(
-        tmp_path, blob, faults, 11, STRICT_ACCEPTANCE, supersample=4
+        tmp_path, tile, faults, 11, acceptance, supersample=4, pixel_pitch_nm=4990
     )
-    assert report["overlay_error_fit"]["shift_px"][0] == pytest.approx(2.0)  # pinned
-    assert report["etch_error_fit"]["correlation"] < report["overlay_error_fit"]["correlation"]
+    fit = report["overlay_error_fit"]
+    assert fit["mask"] == ("M1_deep", "M2_mid")[mask]
+    truth = round(11 / 4.99 * 4) / 4  # the shift as simulated, on the 1/4 px grid
+    assert fit["shift_px"] == pytest.approx([truth, 0.0], abs=0.05)
     assert code == 1 and "psf_mismatch" in report["diagnosis"]
-    assert not {"etch_depth_error", "overlay_error", "deep_etch_error"} & set(report["diagnosis"])
+    named = {"etch_depth_error", "overlay_error", "deep_etch_error", "other_design"}
+    assert not named & set(report["diagnosis"])
+    err = capsys.readouterr().err
+    assert f"mask {fit['mask']} printed off the other masks by +{truth * 4.99:.1f}" in err
+    assert "beyond the 2 mask pixels" in err
 
 
 def test_clipped_14bit_capture_is_flagged_saturated(tmp_path, levels):

@@ -243,11 +243,12 @@ def test_an_overlay_fit_names_a_failing_plate_only_when_it_explains_it_decisivel
     assert diagnose(explained, t) == ["overlay_error", "psf_mismatch"]
     for weak in (
         _overlay(significance=8.0),  # under 3 sigma
-        _overlay(shift_px=[2.0, 0.3]),  # pinned to the edge of the fitted range
-        _overlay(shift_px=[0.2, -2.0]),
         _overlay(correlation=0.94),  # not within the thresholds either
     ):
         assert diagnose(_good_result(**failing, overlay_error_fit=weak), t) == ["other_design"]
+    # beyond the reach an overlay is named in: not named, but still this design's plate
+    for beyond in (_overlay(shift_px=[2.0, 0.3]), _overlay(shift_px=[0.2, -2.4])):
+        assert diagnose(_good_result(**failing, overlay_error_fit=beyond), t) == ["psf_mismatch"]
     # within the thresholds but no better than a deep-etch error: that is named instead
     etch = dict(failing, correlation_with_fitted_etch=0.999, deep_etch_error_fit=0.2,
                 deep_etch_error_fit_significance=1e4)  # fmt: skip
