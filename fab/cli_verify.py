@@ -389,13 +389,13 @@ def _beyond_reach_hint(report):
     """Return a note when the window is a mask printed off the others by more than the
     reach verify names an overlay in (none is named then)."""
     from fab.overlay import REACH_PX
-    from fab.verify import SIGNIFICANCE
+    from fab.verify import SIGNIFICANCE, within_reach
 
     fit = report["overlay_error_fit"]
     if (
         fit is None
         or "overlay_error" in report["diagnosis"]
-        or max(map(abs, fit["shift_px"])) < REACH_PX
+        or within_reach(fit)
         or fit["significance"] <= (SIGNIFICANCE + 1) ** 2
         or fit["correlation"] < report["thresholds"]["correlation_min"]
     ):

@@ -1065,7 +1065,7 @@ def _other_design(result):
     overlay = result["overlay_error_fit"]
     if (
         overlay is not None
-        and not _within_reach(overlay)
+        and not within_reach(overlay)
         and overlay["significance"] > (SIGNIFICANCE + 1) ** 2
     ):
         fits.append(overlay)
@@ -1108,7 +1108,7 @@ def _significant_fits(result):
     """
     fits = {}
     overlay = result["overlay_error_fit"]
-    if overlay is not None and _within_reach(overlay):
+    if overlay is not None and within_reach(overlay):
         fits["overlay_error"] = overlay
     etch = result["etch_error_fit"]
     # named for the shallower masks: the deepest alone is deep_etch_error's
@@ -1116,7 +1116,7 @@ def _significant_fits(result):
         if any(name != etch["masks"][0] for name, _ in etched_off(etch)):
             fits["etch_depth_error"] = etch
     both = result["overlay_and_etch_fit"]
-    if both is not None and not both["at_search_edge"] and _within_reach(both):
+    if both is not None and not both["at_search_edge"] and within_reach(both):
         if both["shift_significance"] > (SIGNIFICANCE + 1) ** 2 and etched_off(both):
             fits["overlay_and_etch"] = both
     return {
@@ -1124,7 +1124,7 @@ def _significant_fits(result):
     }
 
 
-def _within_reach(fit):
+def within_reach(fit):
     """Whether a fit's shift (if it has one) lies within the reach a shift is named in;
     the search goes a little farther, so that a shift beyond it is seen to be."""
     return max(map(abs, fit.get("shift_px", [0.0]))) < OVERLAY_REACH_PX
@@ -1166,7 +1166,7 @@ def _pinned_correlation(result):
     pinned = [
         fit["correlation"]
         for fit, left_out in (
-            (overlay, overlay is not None and not _within_reach(overlay)),
+            (overlay, overlay is not None and not within_reach(overlay)),
             (etch, etch is not None and etch["at_search_edge"]),
         )
         if fit is not None and left_out and fit["significance"] > (SIGNIFICANCE + 1) ** 2
@@ -1207,7 +1207,7 @@ def _frame_of_explaining_fault(result, thresholds):
             continue
         within = fit["correlation"] >= thresholds["correlation_min"]
         within &= fit["rmse"] <= thresholds["rmse_max"]
-        if within and _within_reach(fit) and fit["significance"] > (SIGNIFICANCE + 1) ** 2:
+        if within and within_reach(fit) and fit["significance"] > (SIGNIFICANCE + 1) ** 2:
             frames.append(fit["frame_correlation"])
     return max(frames, default=None)
 
