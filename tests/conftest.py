@@ -30,6 +30,23 @@ def saved_figures(monkeypatch):
     return saved
 
 
+@pytest.fixture
+def sigmas_match_spread():
+    """Return check(fit, window, sigma, runs, seed, values, sigmas): fit ``runs`` copies of
+    ``window`` with Gaussian noise of ``sigma`` added (``fit(noisy)``), and assert that the
+    median 1-sigma the fits quote (``sigmas(fit)``) is within 1.5 times the spread of
+    their ``values(fit)``."""
+
+    def check(fit, window, sigma, runs, seed, values, sigmas):
+        rng = np.random.default_rng(seed)
+        fits = [fit(window + rng.normal(0, 1, window.shape) * sigma) for _ in range(runs)]
+        spread = np.std([values(f) for f in fits], axis=0)
+        quoted = np.median([sigmas(f) for f in fits], axis=0)
+        assert np.all((quoted > spread / 1.5) & (quoted < spread * 1.5)), (quoted, spread)
+
+    return check
+
+
 def _window_from_contract(levels, n_levels, k):
     """The contract's window powers, written out literally (the oracle for the model)."""
     n = levels.shape[0]

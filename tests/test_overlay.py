@@ -148,30 +148,31 @@ def test_the_joint_fit_finds_an_overlay_and_an_etch_error_together(levels, mask,
     assert fit["chi2_drop"] > 100 and not fit["at_search_edge"]
 
 
-def test_the_joint_fit_s_sigmas_are_the_spread_of_its_values_over_noise(levels):
+def test_the_joint_fit_s_sigmas_are_the_spread_of_its_values_over_noise(
+    levels, sigmas_match_spread
+):
     window = supersampled_window(levels, 1, (1.0, -0.6), 5, (0.2, 0.0, 0.1))
     sigma = 0.002 * window.max() + 0.03 * window
-    rng = np.random.default_rng(0)
-    fits = [
-        fit_overlay_and_etch(window + rng.normal(0, 1, window.shape) * sigma, sigma, levels, L,
-                             1, (1.0, -0.6), (0.2, 0.0, 0.1))
-        for _ in range(40)
-    ]  # fmt: skip
-    values = [np.r_[f["shift_px"], f["eps"]] for f in fits]
-    quoted = np.median([np.r_[f["shift_sigma"], f["eps_sigma"]] for f in fits], axis=0)
-    spread = np.std(values, axis=0)
-    assert np.all((quoted > spread / 1.5) & (quoted < spread * 1.5)), (quoted, spread)
+    sigmas_match_spread(
+        lambda noisy: fit_overlay_and_etch(
+            noisy, sigma, levels, L, 1, (1.0, -0.6), (0.2, 0.0, 0.1)
+        ),
+        window, sigma, runs=40, seed=0,
+        values=lambda f: np.r_[f["shift_px"], f["eps"]],
+        sigmas=lambda f: np.r_[f["shift_sigma"], f["eps_sigma"]],
+    )  # fmt: skip
 
 
-def test_the_overlay_fit_s_sigmas_are_the_spread_of_its_shifts_over_noise(levels):
+def test_the_overlay_fit_s_sigmas_are_the_spread_of_its_shifts_over_noise(
+    levels, sigmas_match_spread
+):
     window = supersampled_window(levels, 1, (1.0, -0.6), 5)
     sigma = 0.002 * window.max() + 0.03 * window
-    rng = np.random.default_rng(1)
-    fits = [fit_overlay_error(window + rng.normal(0, 1, window.shape) * sigma, sigma, levels, L)
-            for _ in range(40)]  # fmt: skip
-    spread = np.std([f["shift_px"] for f in fits], axis=0)
-    quoted = np.median([f["shift_sigma"] for f in fits], axis=0)
-    assert np.all((quoted > spread / 1.5) & (quoted < spread * 1.5)), (quoted, spread)
+    sigmas_match_spread(
+        lambda noisy: fit_overlay_error(noisy, sigma, levels, L),
+        window, sigma, runs=40, seed=1,
+        values=lambda f: f["shift_px"], sigmas=lambda f: f["shift_sigma"],
+    )  # fmt: skip
     assert (
         fit_overlay_error(supersampled_window(levels, 1, (SEARCH_PX, 0.0), 2), sigma, levels, L)[
             "shift_sigma"

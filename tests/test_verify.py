@@ -885,17 +885,18 @@ def test_the_joint_etch_fit_inverts_a_plate_with_every_etch_off(levels, errors):
     assert fit["psf"] == pytest.approx(window / window.sum(), abs=1e-6)
 
 
-def test_the_joint_etch_fit_s_sigmas_are_the_spread_of_its_errors_over_noise(levels):
+def test_the_joint_etch_fit_s_sigmas_are_the_spread_of_its_errors_over_noise(
+    levels, sigmas_match_spread
+):
     orders = np.meshgrid(np.arange(K) - K // 2, np.arange(K) - K // 2, indexing="ij")
     errors = (0.1, -0.2, 0.15)
     window = plate_far_field(plate_phase(levels, L, PlateFaults(etch_errors=errors)))(*orders)
     sigma = 0.002 * window.max() + 0.03 * window
-    rng = np.random.default_rng(0)
-    fits = [fit_etch_errors(window + rng.normal(0, 1, window.shape) * sigma, sigma, levels, L)
-            for _ in range(60)]  # fmt: skip
-    spread = np.std([f["eps"] for f in fits], axis=0)
-    quoted = np.median([f["eps_sigma"] for f in fits], axis=0)
-    assert np.all((quoted > spread / 1.5) & (quoted < spread * 1.5)), (quoted, spread)
+    sigmas_match_spread(
+        lambda noisy: fit_etch_errors(noisy, sigma, levels, L),
+        window, sigma, runs=60, seed=0,
+        values=lambda f: f["eps"], sigmas=lambda f: f["eps_sigma"],
+    )  # fmt: skip
 
 
 @pytest.mark.parametrize("joint", [False, True])
