@@ -1076,11 +1076,7 @@ def _other_design(result):
     # order changes with it (a random tile with its deep etch 30 % off had a frame
     # correlation of 0.77 with the design and failed as other_design).
     etch = result["etch_error_fit"]
-    if (
-        etch is not None
-        and not etch["at_search_edge"]
-        and etch["significance"] > (SIGNIFICANCE + 1) ** 2
-    ):
+    if _decisive(etch):
         frames.append(etch["frame_correlation"])
     for value in frames:  # NaN (no frame to judge) loses to any number
         frame = float(np.fmax(frame, value))
@@ -1101,27 +1097,40 @@ def _other_design(result):
 
 def _significant_fits(result):
     """Return the fitted faults (by diagnosis code) that explain the window decisively better
-    than the design does.
-
-    Not one pinned to the edge of its fitted range: the fault may lie beyond it, and
-    the window's few orders then fit a wrong value within it all too well.
-    """
+    than the design does (``_decisive``)."""
     fits = {}
     overlay = result["overlay_error_fit"]
-    if overlay is not None and within_reach(overlay):
+    if _decisive(overlay):
         fits["overlay_error"] = overlay
     etch = result["etch_error_fit"]
     # named for the shallower masks: the deepest alone is deep_etch_error's
-    if etch is not None and not etch["at_search_edge"]:
-        if any(name != etch["masks"][0] for name, _ in etched_off(etch)):
-            fits["etch_depth_error"] = etch
+    if _decisive(etch) and any(name != etch["masks"][0] for name, _ in etched_off(etch)):
+        fits["etch_depth_error"] = etch
     both = result["overlay_and_etch_fit"]
-    if both is not None and not both["at_search_edge"] and within_reach(both):
-        if both["shift_significance"] > (SIGNIFICANCE + 1) ** 2 and etched_off(both):
-            fits["overlay_and_etch"] = both
-    return {
-        code: fit for code, fit in fits.items() if fit["significance"] > (SIGNIFICANCE + 1) ** 2
-    }
+    both_needed = both is not None and both["shift_significance"] > (SIGNIFICANCE + 1) ** 2
+    if _decisive(both) and both_needed and etched_off(both):
+        fits["overlay_and_etch"] = both
+    return fits
+
+
+def _decisive(fit):
+    """Whether a fit gains a chi-square over (SIGNIFICANCE + 1)^2 and stops inside its search
+    and the reach a shift is named in (else the fault may lie beyond, and the window's
+    few orders fit a wrong value within it all too well)."""
+    return (
+        fit is not None
+        and not fit.get("at_search_edge")
+        and within_reach(fit)
+        and fit["significance"] > (SIGNIFICANCE + 1) ** 2
+    )
+
+
+def _explains(fit, thresholds):
+    """Whether a fitted plate's window meets the correlation and rmse thresholds."""
+    return (
+        fit["correlation"] >= thresholds["correlation_min"]
+        and fit["rmse"] <= thresholds["rmse_max"]
+    )
 
 
 def within_reach(fit):
@@ -1145,8 +1154,7 @@ def _explaining_fault(result, thresholds):
     fits = {
         code: fit
         for code, fit in significant.items()
-        if fit["correlation"] >= thresholds["correlation_min"]
-        and fit["rmse"] <= thresholds["rmse_max"]
+        if _explains(fit, thresholds)
         and fit["correlation"] > (result["correlation_with_fitted_etch"] or -1.0)
     }
     pinned = _pinned_correlation(result)
@@ -1200,15 +1208,10 @@ def _frame_of_explaining_fault(result, thresholds):
     """Return the best frame correlation of the design's plates with a fitted fault that
     explain the window within the thresholds, decisively and within the fit's reach;
     None when none does."""
-    frames = []
-    for key in EXPLAINING_FIT.values():
-        fit = result.get(key)
-        if fit is None or fit.get("at_search_edge"):
-            continue
-        within = fit["correlation"] >= thresholds["correlation_min"]
-        within &= fit["rmse"] <= thresholds["rmse_max"]
-        if within and within_reach(fit) and fit["significance"] > (SIGNIFICANCE + 1) ** 2:
-            frames.append(fit["frame_correlation"])
+    fits = (result.get(key) for key in EXPLAINING_FIT.values())  # none off the frame
+    frames = [
+        fit["frame_correlation"] for fit in fits if _decisive(fit) and _explains(fit, thresholds)
+    ]
     return max(frames, default=None)
 
 
