@@ -235,6 +235,7 @@ def _verify(args):
     from doe.files import save_npy, staged_output, write_json
     from doe.fraunhofer import correlation, simulate_levels
     from fab.capture import read_capture, repair_pixels
+    from fab.diagnosis import best_frame_correlation, is_judged
     from fab.lattice import (
         LatticeNotFound,
         measure_orders,
@@ -243,13 +244,7 @@ def _verify(args):
         repair_hot_pixels,
         repair_stray_spikes,
     )
-    from fab.verify import (
-        analyse,
-        best_frame_correlation,
-        design_order_power,
-        is_judged,
-        resolve_thresholds,
-    )
+    from fab.verify import analyse, design_order_power, resolve_thresholds
 
     flags.positive("--pixel-pitch-um", args.pixel_pitch_um)
     flags.positive("--lattice-pitch-um", args.lattice_pitch_um)
@@ -388,8 +383,8 @@ def _in_um_and_nm(fit, design):
 def _beyond_reach_hint(report):
     """Return a note when the window is a mask printed off the others by more than the
     reach verify names an overlay in (none is named then)."""
+    from fab.diagnosis import SIGNIFICANCE, within_reach
     from fab.overlay import REACH_PX
-    from fab.verify import SIGNIFICANCE, within_reach
 
     fit = report["overlay_error_fit"]
     if (
@@ -412,7 +407,7 @@ def _beyond_reach_hint(report):
 def _fault_hint(result):
     """Return a note naming the plate faults that explain the PSF: a mask printed off the
     others, etches off their depths, or both."""
-    from fab.verify import etched_off, explaining_fit
+    from fab.diagnosis import etched_off, explaining_fit
 
     fit = explaining_fit(result)
     if fit is None:

@@ -10,7 +10,8 @@ not the brightest dot. Then the K x K window is the measured PSF, compared with
 leave fingerprints are named: zero-order excess and a deep-etch depth error
 (fitted to the window, and implied by the zero order), a point-reflected
 pattern (conjugate plate: etch and glass swapped), a mirrored one, a plate of
-another design, low signal, saturation.
+another design, low signal, saturation. The faults' fits live in ``fab.etch_fit``
+and ``fab.overlay``; the rules that name them, in ``fab.diagnosis``.
 
 Far-field model of a real plate: order (m, n) carries
 ``|DFT[m mod N, n mod N]|^2 sinc^2(m/N) sinc^2(n/N)`` of the power (square
@@ -32,8 +33,18 @@ from doe.fraunhofer import (
     simulate_levels,
     window_indices,
 )
-from fab.masks import masks_from_levels
-from fab.overlay import REACH_PX as OVERLAY_REACH_PX
+from fab.diagnosis import (
+    DECISIVE_CHI2,
+    OTHER_DESIGN_MAX,
+    SIGNIFICANCE,
+    diagnose,
+    explaining_fault,
+    frame_of_explaining_fault,
+    psf_fails,
+    winning_reflection,
+    zero_order_brightened,
+)
+from fab.etch_fit import fit_etch_error, fit_etch_errors, implied_deep_etch_error
 from fab.overlay import fit_overlay_and_etch, fit_overlay_error
 from fab.plate import PlateFaults, plate_phase
 
@@ -70,19 +81,6 @@ PREDICTED_SIGMAS = 3.0
 PHOTOMETRIC_FLOOR = 0.01
 # A fitted deep-etch depth error beyond this (fraction) fails the plate.
 DEEP_ETCH_TOLERANCE = 0.10
-# Failing checks must be this many sigma beyond their threshold (noise is not a fault).
-SIGNIFICANCE = 2.0
-# A reflection of the design (rot180: conjugate plate; mirrors) is named when it explains
-# the visible orders better than the design by this chi-square (after inflation by the
-# best fit's reduced chi-square) and its frame correlation reaches OTHER_DESIGN_MAX; the
-# zero order is ambiguous when the runner-up offset, or a reflection whose PSF differs
-# from the design's, comes within it.
-DECISIVE_CHI2 = 25.0
-# Below this frame correlation (design and reflections) the plate is another design ...
-OTHER_DESIGN_MAX = 0.8
-# ... as it is when neither the design nor the design with a fitted deep-etch error
-# reaches this PSF correlation.
-EXPLAINED_MIN = 0.95
 
 # The design's order powers under each point symmetry a faulty plate can show.
 _TRANSFORMS = {
@@ -98,22 +96,6 @@ _PLATE_LEVELS = {
     "mirror-x": lambda lv, n_levels: np.ascontiguousarray(lv[:, ::-1]),
     "mirror-y": lambda lv, n_levels: np.ascontiguousarray(lv[::-1, :]),
 }
-# Diagnoses after which the process figures are not judged: the plate is not this
-# design as oriented, or its figures cannot be trusted.
-UNJUDGED_AFTER = (
-    "saturated", "low_signal", "conjugate_plate", "mirrored", "other_design",
-    "zero_order_ambiguous",
-)  # fmt: skip
-
-
-def is_judged(diagnosis):
-    """Whether the plate's PSF and process figures are judged after this diagnosis.
-
-    Not after one that the plate is not this design as oriented, or that its
-    figures cannot be trusted (``UNJUDGED_AFTER``); its measured PSF is then no
-    PSF to train for either.
-    """
-    return not set(diagnosis) & set(UNJUDGED_AFTER)
 
 
 def resolve_thresholds(acceptance, design_efficiency, design_zero_order):
@@ -370,213 +352,6 @@ def locate_zero_order(measured, valid, sigma, period_power, half=5):
     }
 
 
-def _mask_fields(levels, n_levels, mask_index=0):
-    """Return the far-field amplitudes (N, N) of the pixels a mask (0 = deepest) leaves and
-    etches, and the mask: the two sum to the design's."""
-    mask = masks_from_levels(levels, n_levels, level_step=1.0)[mask_index]
-    field = np.exp(1j * level_phase(levels, n_levels))
-    etched = mask.bitmap
-    return (
-        np.fft.fft2(np.where(etched, 0, field)) / etched.size,
-        np.fft.fft2(np.where(etched, field, 0)) / etched.size,
-        mask,
-    )
-
-
-def _window_orders(n, k):
-    """Return the FFT indices of the K window orders of an N-pixel tile, and their (K, K)
-    square-pixel envelope."""
-    env = pixel_envelope(np.arange(k) - k // 2, n)
-    return window_indices(n, k), env[:, None] * env[None, :]
-
-
-def fit_etch_error(window, sigma, levels, n_levels, mask_index=0, search=0.5, step=1e-3):
-    """Fit the signed depth error of one mask's etch that best explains the measured window.
-
-    An error eps adds the phase -eps * phi to the pixels the mask etches (phi: its
-    designed phase, pi for the deepest of 8 levels), so order (m, n) carries
-    ``|U_mn + C_mn exp(-i phi eps)|^2`` (U, C: far fields of the pixels left and
-    etched). Unlike the zero order alone, the window's orders tell a too deep etch
-    from a too shallow one (unless the design is point-symmetric). Weighted least
-    squares over eps with a free overall scale.
-
-    Parameters
-    ----------
-    window : (K, K) float array
-        Measured order powers in the design frame (any units).
-    sigma : (K, K) float array or None
-        Their 1-sigma errors (None: equal weights).
-    mask_index : int
-        The mask, 0 = deepest (exposed first).
-
-    Returns
-    -------
-    dict or None
-        "eps" (+0.1: the etch is 10 % too deep), "chi2_drop" (how much better the
-        fit explains the window than eps = 0, in chi-square units when ``sigma`` is
-        given, taken in units of the fit's reduced chi-square where that passes 1),
-        "chi2" (the fit's), "reduced_chi2", "psf" (the fitted window, sum 1) and "mask"
-        (its name);
-        None when the mask etches all pixels or none (the error leaves no trace).
-    """
-    u_full, c_full, mask = _mask_fields(levels, n_levels, mask_index)
-    if mask.bitmap.all() or not mask.bitmap.any():
-        return None
-    k = window.shape[0]
-    idx, env = _window_orders(levels.shape[0], k)
-    u_amp, c_amp = (f[np.ix_(idx, idx)].ravel() for f in (u_full, c_full))
-    # whole multiples of the step: np.arange's 0.10000000000000053 passed a 10 % tolerance
-    # that -0.1 did not
-    eps = step * np.arange(-round(search / step), round(search / step) + 1)
-    phi = 2 * np.pi * mask.steps / n_levels
-    model = np.abs(u_amp[None, :] + c_amp[None, :] * np.exp(-1j * phi * eps)[:, None]) ** 2
-    model *= env.ravel()[None, :]
-    wts = np.ones(k * k) if sigma is None else 1 / np.maximum(np.ravel(sigma), 1e-30)
-    meas = np.asarray(window, float).ravel() * wts
-    model = model * wts[None, :]
-    scale = (model @ meas) / np.einsum("ij,ij->i", model, model)
-    chi2 = ((model * scale[:, None] - meas[None, :]) ** 2).sum(axis=1)
-    best = int(np.argmin(chi2))
-    zero = int(np.argmin(np.abs(eps)))
-    fitted = (model[best] / wts).reshape(k, k)
-    reduced = float(chi2[best]) / max(k * k - 2, 1)  # the scale and eps
-    return {
-        "eps": float(eps[best]),
-        "chi2": float(chi2[best]),
-        "chi2_drop": float(chi2[zero] - chi2[best]) / max(reduced, 1.0),
-        "reduced_chi2": reduced,
-        "psf": fitted / fitted.sum(),
-        "mask": mask.name,
-    }
-
-
-def fit_etch_errors(window, sigma, levels, n_levels, search=0.5):
-    """Fit the depth errors of every mask's etch at once.
-
-    A plate's etches are all off by a little; one mask's error fitted alone takes up
-    some of the others'. With errors eps_j, level l carries the phase
-    ``-sum_j b_jl phi_j (1 + eps_j)`` (b_jl: whether mask j etches level l; phi_j its
-    designed phase), so the window is ``|sum_l exp(i phase_l) F_l|^2`` with F_l the
-    window far field of level l's pixels: exact, and a few K^2 operations an
-    evaluation. Weighted least squares with a free scale, from no error, within
-    ``search`` each way.
-
-    Returns
-    -------
-    dict or None
-        "eps" (one error a mask, deepest first; 0 for a mask that etches all pixels
-        or none), "chi2" (the fit's), "chi2_drop" (against no error), "mask_chi2" (for
-        each mask, how much worse the fit is with its error held at 0 and the others
-        refitted), both over the fit's reduced chi-square where that passes 1,
-        "eps_sigma" (their 1-sigma errors, from the fit's curvature, in those units),
-        "reduced_chi2",
-        "at_search_edge", "psf" (the fitted window, sum 1) and "masks" (names);
-        None when no mask etches some pixels and not others.
-    """
-    from scipy.optimize import least_squares
-
-    masks = masks_from_levels(levels, n_levels, level_step=1.0)
-    free = [j for j, mk in enumerate(masks) if 0 < mk.bitmap.mean() < 1]
-    if not free:
-        return None
-    k = window.shape[0]
-    idx, env = _window_orders(levels.shape[0], k)
-    per_level = np.array(
-        [np.fft.fft2(levels == lv)[np.ix_(idx, idx)] / levels.size for lv in range(n_levels)]
-    )
-    # Mask j etches level l when its steps are in the level's depth L - 1 - l (binary).
-    etched = np.array([[(n_levels - 1 - lv) & mk.steps != 0 for mk in masks]
-                       for lv in range(n_levels)])  # fmt: skip
-    phi = np.array([2 * np.pi * mk.steps / n_levels for mk in masks])
-    wts = np.ones((k, k)) if sigma is None else 1 / np.maximum(np.asarray(sigma), 1e-30)
-    meas = np.asarray(window, float) * wts
-
-    def power(eps):
-        phase = -(etched * phi * (1 + eps)).sum(axis=1)
-        return np.abs(np.tensordot(np.exp(1j * phase), per_level, axes=1)) ** 2 * env
-
-    def errors(x, held=()):
-        eps = np.zeros(len(masks))
-        eps[[j for j in free if j not in held]] = x
-        return eps
-
-    def residuals(x, held=()):
-        p = power(errors(x, held)) * wts
-        return (p * ((p * meas).sum() / (p * p).sum()) - meas).ravel()
-
-    def best_fit(x0, held=()):
-        return least_squares(residuals, x0, bounds=(-search, search), args=(held,))
-
-    # From no error it found the errors of 120 simulated plates (each etch within
-    # +-45 %; a random, the retrieved asymmetric and the default run's design).
-    fit = best_fit(np.zeros(len(free)))
-    chi2 = 2 * fit.cost
-    # The photometry's sigmas run 1.2-1.5 times short (reduced chi-square 1.5-2.3 for the
-    # true plate): in those units, a random design's 0.6 % mid-etch "error" was worth 13.8.
-    reduced = chi2 / max(k * k - len(free) - 1, 1)
-    mask_chi2 = [0.0] * len(masks)
-    for i, j in enumerate(free):
-        if len(free) == 1:
-            rise = (residuals(np.zeros(0), (j,)) ** 2).sum() - chi2
-        else:
-            rise = 2 * best_fit(np.delete(fit.x, i), (j,)).cost - chi2
-        mask_chi2[j] = float(rise / max(reduced, 1.0))
-
-    # The errors the window does not need are held at 0 and the rest refitted: where two
-    # masks trade off (a near-delta design's M2 and M3), the full fit stopped anywhere
-    # along the valley (M2 45 % too shallow read as M2 -34 % with M3 +33 %, ± 1e8 %).
-    def sigmas(fit):  # 1-sigma errors from the fit's curvature, in the same units
-        cov = np.linalg.pinv(fit.jac.T @ fit.jac) * max(reduced, 1.0)
-        return np.sqrt(np.maximum(np.diag(cov), 0.0))
-
-    eps_sigma = errors(sigmas(fit))  # a held error's: how well the window could tell it
-    held = tuple(j for j in free if mask_chi2[j] <= (SIGNIFICANCE + 1) ** 2)
-    if held and len(held) < len(free):
-        kept = [i for i, j in enumerate(free) if j not in held]
-        fit = best_fit(fit.x[kept], held)
-        eps_sigma[[free[i] for i in kept]] = sigmas(fit)
-    else:
-        held = ()
-    chi2 = 2 * fit.cost  # of the errors returned
-    fitted = power(errors(fit.x, held))
-    return {
-        "eps": errors(fit.x, held),
-        "eps_sigma": eps_sigma,
-        "chi2": float(chi2),
-        "chi2_drop": float((residuals(np.zeros(len(free))) ** 2).sum() - chi2) / max(reduced, 1.0),
-        "mask_chi2": mask_chi2,
-        "reduced_chi2": float(reduced),
-        "at_search_edge": bool(np.any(np.abs(fit.x) > search - 1e-3)),
-        "psf": fitted / fitted.sum(),
-        "masks": [mk.name for mk in masks],
-    }
-
-
-def implied_deep_etch_error(levels, n_levels, zero_order_power, sign_hint=None):
-    """Invert the zero-order power for the fractional depth error of the deepest etch.
-
-    With U and C the zero-order amplitudes of the pixels the deepest mask leaves
-    and etches, an extra phase delta on the etched pixels gives
-    ``|U + C exp(i delta)|^2 = |U|^2 + |C|^2 + 2 |U| |C| cos(delta + arg C - arg U)``;
-    the deepest mask's phase is pi, so delta = -pi eps. The zero order alone has
-    two solutions (too deep, too shallow): the one nearer ``sign_hint`` (e.g.
-    from ``fit_etch_error``) is returned, otherwise the smaller |eps|.
-    Returns None when the design makes the zero order insensitive.
-    """
-    u_amp, c_amp = (f[0, 0] for f in _mask_fields(levels, n_levels)[:2])
-    a = abs(u_amp) ** 2 + abs(c_amp) ** 2
-    b = 2 * abs(u_amp) * abs(c_amp)
-    if b < 1e-12:
-        return None
-    psi = np.angle(c_amp) - np.angle(u_amp)
-    alpha = np.arccos(np.clip((zero_order_power - a) / b, -1, 1))
-    deltas = np.angle(np.exp(1j * np.array([-psi + alpha, -psi - alpha])))
-    eps = -deltas / np.pi
-    if sign_hint is not None:
-        return float(eps[np.argmin(np.abs(eps - sign_hint))])
-    return float(eps[np.argmin(np.abs(eps))])
-
-
 def _in_design_frame(grid, orientation):
     """Return the order powers, their validity and 1-sigma errors in the design frame."""
     power = to_design_frame(grid.power, orientation)
@@ -661,7 +436,7 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
     # A deep etch 45 % off gave the default design's bare plate a reduced chi-square of
     # 40, a mirror fitted its frame better, and the plate was measured as mirrored.
     as_design, design_psf = _analyse_as("design", *args)
-    frame = _frame_of_explaining_fault(as_design, thresholds)
+    frame = frame_of_explaining_fault(as_design, thresholds)
     if frame is None or not frame > result["frame_correlation"][reflection]:
         return result, measured_psf
     as_design["reflection_set_aside"] = reflection
@@ -789,7 +564,7 @@ def _analyse_as(plate, grid, levels, n_levels, kernel_size, orientation, thresho
     # Plate faults are fitted only to explain a PSF or a zero order that fails (a second or
     # so at N = 175): a mid etch 30 % too deep brightened a sparse design's zero order by
     # 14 sigma, its PSF still at 0.987, and verify named no etch.
-    fails = _psf_fails(result, thresholds) or _zero_order_brightened(result, thresholds)
+    fails = psf_fails(result, thresholds) or zero_order_brightened(result, thresholds)
 
     def frame_score(period):
         return _frame_score(meas, valid, sigma, period, m0, n0, half)[0]
@@ -803,7 +578,7 @@ def _analyse_as(plate, grid, levels, n_levels, kernel_size, orientation, thresho
         _etch_fit(measured_psf, joint, frame_score, levels, n_levels) if fails else None
     )
     result["overlay_and_etch_fit"] = None
-    if fails and _explaining_fault(result, thresholds) is None:  # two faults at once?
+    if fails and explaining_fault(result, thresholds) is None:  # two faults at once?
         result["overlay_and_etch_fit"] = _overlay_and_etch_fit(
             result, measured_psf, (window, sigma[sl]), frame_score, levels, n_levels
         )
@@ -884,18 +659,6 @@ def _overlay_and_etch_fit(result, measured_psf, window, frame_score, levels, n_l
     }
 
 
-def etched_off(fit):
-    """Return [(mask, error)] of the masks whose error the joint etch fit needs (chi-square
-    rise over (SIGNIFICANCE + 1)^2 without it), deepest first."""
-    return [
-        (name, err)
-        for name, err, chi2 in zip(
-            fit["masks"], fit["errors"], fit["mask_significance"], strict=True
-        )
-        if chi2 > (SIGNIFICANCE + 1) ** 2
-    ]
-
-
 def _fitted_plate_figures(measured_psf, fitted_psf, faults, levels, n_levels, frame_score):
     """Return how the design's plate with the fitted ``faults`` meets the measurement: its
     window's correlation and rmse with the measured PSF, its frame's correlation, and
@@ -910,65 +673,6 @@ def _fitted_plate_figures(measured_psf, fitted_psf, faults, levels, n_levels, fr
         "frame_correlation": frame_score(np.abs(order_amplitudes(plate)) ** 2),
         "psf": fitted_psf.tolist(),
     }
-
-
-def explaining_fit(result):
-    """Return the fit (overlay, etch depths, or both) behind the faults the diagnosis names,
-    or None (none named, or the deepest etch's own fit alone)."""
-    diagnosis = set(result["diagnosis"])
-    if "overlay_error" in diagnosis:
-        both = diagnosis & {"etch_depth_error", "deep_etch_error"}
-        return result["overlay_and_etch_fit" if both else "overlay_error_fit"]
-    return result["etch_error_fit"] if "etch_depth_error" in diagnosis else None
-
-
-def fitted_fault(result):
-    """Return (what, psf) of the plate fault the diagnosis names, or None.
-
-    ``what`` says the fault in a few words; ``psf`` is the K x K window of the
-    design's plate with that fault, fitted to the measurement (sum 1).
-    """
-    fit = explaining_fit(result)
-    if fit is not None:
-        parts = []
-        if "shift_px" in fit:
-            dy, dx = fit["shift_px"]
-            parts.append(f"{fit['mask']} shifted y {dy:+.2f}, x {dx:+.2f} mask px")
-        if "errors" in fit:
-            parts += [f"{name} etch {err:+.1%}" for name, err in etched_off(fit)]
-        return ", ".join(parts), np.array(fit["psf"])
-    if "deep_etch_error" in result["diagnosis"]:
-        what = f"the deepest mask etched {_too(result['deep_etch_error_fit'])}"
-        return what, np.array(result["deep_etch_error_fit_psf"])
-    return None
-
-
-def _too(error):
-    """'12.0 % too deep' for +0.12, 'too shallow' for a negative error."""
-    return f"{abs(error):.1%} too {'deep' if error > 0 else 'shallow'}"
-
-
-def _psf_fails(result, thresholds):
-    """Whether the measured PSF misses the design's by the correlation or rmse threshold."""
-    return (
-        result["correlation"] < thresholds["correlation_min"]
-        or result["rmse"] > thresholds["rmse_max"]
-    )
-
-
-def _zero_order_fails(result, thresholds):
-    """Whether the zero order is brighter than its threshold by ``SIGNIFICANCE`` sigma."""
-    return (
-        result["zero_order"] - thresholds["zero_order_max"]
-        > SIGNIFICANCE * result["zero_order_sigma"]
-    )
-
-
-def _zero_order_brightened(result, thresholds):
-    """Whether the zero order fails and is decisively brighter than the design's own: a
-    plate fault to look for (a design may miss an absolute ``zero_order_max`` itself)."""
-    excess = result["zero_order_excess"] > SIGNIFICANCE * result["zero_order_sigma"]
-    return excess and _zero_order_fails(result, thresholds)
 
 
 def _search_summary(searches, valid, rows, cols, period, design_psf):
@@ -1040,273 +744,3 @@ def beam_power(meas, sigma, valid, model, window):
         "model_share": share,
         "orders": int(use.sum()),
     }
-
-
-def best_frame_correlation(result):
-    """Return the best frame correlation of the design and its reflections (NaN if none).
-
-    None is defined for a design with light in its zero order alone; NaN then
-    compares False with any threshold, so the frame decides nothing.
-    """
-    scores = [s for s in result["frame_correlation"].values() if np.isfinite(s)]
-    return max(scores, default=float("nan"))
-
-
-def _other_design(result):
-    """Whether neither the design nor the design with a fitted fault explains the plate.
-
-    A dense design shows it in the whole frame (its speckle of weak orders is
-    unrelated to another design's); a compact one only in the window, where a
-    plate of this design with a depth or overlay error still matches the fitted model.
-    """
-    fits = list(_significant_fits(result).values())
-    # and an overlay fit beyond the reach a shift is named in: still this design (M2 of
-    # a random design 11 um off, fitted at 2.25 px, matched the frame at 0.99)
-    overlay = result["overlay_error_fit"]
-    if (
-        overlay is not None
-        and not within_reach(overlay)
-        and overlay["significance"] > (SIGNIFICANCE + 1) ** 2
-    ):
-        fits.append(overlay)
-    frame = best_frame_correlation(result)
-    frames = [fit["frame_correlation"] for fit in fits]
-    # The joint etch fit's plate counts for the frame even when it needs the deepest etch
-    # alone (deep_etch_error's, not among the significant fits): a dense design's every
-    # order changes with it (a random tile with its deep etch 30 % off had a frame
-    # correlation of 0.77 with the design and failed as other_design).
-    etch = result["etch_error_fit"]
-    if _decisive(etch):
-        frames.append(etch["frame_correlation"])
-    for value in frames:  # NaN (no frame to judge) loses to any number
-        frame = float(np.fmax(frame, value))
-    # but a fitted plate that lights its zero order alone leaves the frame nothing to
-    # judge: a near-delta design's mid etch 30 % off put 97.6 % of the beam in the zero
-    # order, and the rest, near the noise, correlated at 0.21 with the design's
-    # (other_design, though the window matched at 0.9995)
-    flat = any(value is None or np.isnan(value) for value in frames)
-    if frame < OTHER_DESIGN_MAX and not flat:
-        return True
-    explained = max(
-        result["correlation"],
-        result["correlation_with_fitted_etch"] or -1.0,
-        *(fit["correlation"] for fit in fits),
-    )
-    return explained < EXPLAINED_MIN
-
-
-def _significant_fits(result):
-    """Return the fitted faults (by diagnosis code) that explain the window decisively better
-    than the design does (``_decisive``)."""
-    fits = {}
-    overlay = result["overlay_error_fit"]
-    if _decisive(overlay):
-        fits["overlay_error"] = overlay
-    etch = result["etch_error_fit"]
-    # named for the shallower masks: the deepest alone is deep_etch_error's
-    if _decisive(etch) and any(name != etch["masks"][0] for name, _ in etched_off(etch)):
-        fits["etch_depth_error"] = etch
-    both = result["overlay_and_etch_fit"]
-    both_needed = both is not None and both["shift_significance"] > (SIGNIFICANCE + 1) ** 2
-    if _decisive(both) and both_needed and etched_off(both):
-        fits["overlay_and_etch"] = both
-    return fits
-
-
-def _decisive(fit):
-    """Whether a fit gains a chi-square over (SIGNIFICANCE + 1)^2 and stops inside its search
-    and the reach a shift is named in (else the fault may lie beyond, and the window's
-    few orders fit a wrong value within it all too well)."""
-    return (
-        fit is not None
-        and not fit.get("at_search_edge")
-        and within_reach(fit)
-        and fit["significance"] > (SIGNIFICANCE + 1) ** 2
-    )
-
-
-def _explains(fit, thresholds):
-    """Whether a fitted plate's window meets the correlation and rmse thresholds."""
-    return (
-        fit["correlation"] >= thresholds["correlation_min"]
-        and fit["rmse"] <= thresholds["rmse_max"]
-    )
-
-
-def within_reach(fit):
-    """Whether a fit's shift (if it has one) lies within the reach a shift is named in;
-    the search goes a little farther, so that a shift beyond it is seen to be."""
-    return max(map(abs, fit.get("shift_px", [0.0]))) < OVERLAY_REACH_PX
-
-
-# The fit in the result behind each explanation _explaining_fault can return.
-EXPLAINING_FIT = {
-    "overlay_error": "overlay_error_fit",
-    "etch_depth_error": "etch_error_fit",
-    "overlay_and_etch": "overlay_and_etch_fit",
-}
-
-
-def _explaining_fault(result, thresholds):
-    """Return the diagnosis code of the fitted fault that explains the failing PSF: within
-    the thresholds, and better than a deep-etch error and than the other fault; or None."""
-    significant = _significant_fits(result)
-    fits = {
-        code: fit
-        for code, fit in significant.items()
-        if _explains(fit, thresholds)
-        and fit["correlation"] > (result["correlation_with_fitted_etch"] or -1.0)
-    }
-    pinned = _pinned_correlation(result)
-    fits = {code: fit for code, fit in fits.items() if fit["correlation"] > pinned}
-    return max(fits, key=lambda code: fits[code]["correlation"], default=None)
-
-
-def _pinned_correlation(result):
-    """Return the window correlation of the best decisive fit left out at the edge of its
-    range (-1 when none is).
-
-    A fault named must explain the window better: it is that one, beyond its reach
-    (an 11 um overlay of M1 was named a 7.5 % etch error of M2, whose fit passed the
-    strict thresholds, and on a sparse design the deepest etch, 5 % off).
-    """
-    overlay, etch = result["overlay_error_fit"], result["etch_error_fit"]
-    pinned = [
-        fit["correlation"]
-        for fit, left_out in (
-            (overlay, overlay is not None and not within_reach(overlay)),
-            (etch, etch is not None and etch["at_search_edge"]),
-        )
-        if fit is not None and left_out and fit["significance"] > (SIGNIFICANCE + 1) ** 2
-    ]
-    return max(pinned, default=-1.0)
-
-
-def _ambiguous(result, thresholds):
-    """Whether the capture cannot tell where the zero order is, when it matters.
-
-    Either the design fits nearly as well with its zero order one place
-    further, or a reflection of the design (whose PSF differs from the
-    design's beyond the acceptance) fits nearly as well as the design, and
-    no fitted fault of the design explains the window and fits the frame better.
-    """
-    search = result["zero_order_search"]
-    if search["runner_up_margin"] < DECISIVE_CHI2:
-        return True
-    # a mid etch 45 % off left a mirror within 9 of the bare design (ambiguous), where
-    # the design with the fitted etch explained the window at 0.9999 and the frame at 1.000
-    fault = _frame_of_explaining_fault(result, thresholds)
-    return any(
-        abs(d) <= DECISIVE_CHI2
-        and search["transform_psf_correlation"][t] < thresholds["correlation_min"]
-        and not (fault is not None and fault > result["frame_correlation"][t])
-        for t, d in search["delta_chi2"].items()
-    )
-
-
-def _frame_of_explaining_fault(result, thresholds):
-    """Return the best frame correlation of the design's plates with a fitted fault that
-    explain the window within the thresholds, decisively and within the fit's reach;
-    None when none does."""
-    fits = (result.get(key) for key in EXPLAINING_FIT.values())  # none off the frame
-    frames = [
-        fit["frame_correlation"] for fit in fits if _decisive(fit) and _explains(fit, thresholds)
-    ]
-    return max(frames, default=None)
-
-
-def winning_reflection(result):
-    """Return the reflection of the design that explains the capture decisively better, or None.
-
-    "rot180" is a conjugate plate (etch and glass swapped), "mirror-x"/"mirror-y"
-    a mirrored one.
-    """
-    frame = result["frame_correlation"]
-    delta = result["zero_order_search"]["delta_chi2"]
-    better = [t for t in delta if delta[t] > DECISIVE_CHI2 and frame[t] >= OTHER_DESIGN_MAX]
-    return max(better, key=lambda t: delta[t]) if better else None
-
-
-def _deep_etch_off(result, thresholds):
-    """Whether the deepest etch's own fit is off decisively: beyond its tolerance, or, on a
-    PSF that fails or a zero order brightened, by what brings the PSF within the thresholds.
-
-    A deep etch 9.8 % off failed a random design's PSF (correlation 0.61) as a bare
-    psf_mismatch, its fit explaining the window at 0.9999.
-    """
-    fit = result["deep_etch_error_fit"]
-    if fit is None or result["deep_etch_error_fit_significance"] <= (SIGNIFICANCE + 1) ** 2:
-        return False
-    explains = (
-        result["correlation_with_fitted_etch"] >= thresholds["correlation_min"]
-        and result["rmse_with_fitted_etch"] <= thresholds["rmse_max"]
-    )
-    tolerance = thresholds["deep_etch_error_max"]
-    joint = result["deep_etch_error_joint_fit"]  # the other etches' errors fitted too
-    joint_off = joint is None or (
-        result["deep_etch_error_joint_significance"] > (SIGNIFICANCE + 1) ** 2
-    )
-    if abs(fit) > tolerance and (joint is None or (abs(joint) > tolerance and joint_off)):
-        return True
-    if _psf_fails(result, thresholds):
-        return explains
-    # a zero order brightened, the PSF within: the deepest only where the others' fit agrees
-    # (a sparse design's mid etch 45 % off moved the deepest's own fit to +10.3 %)
-    return _zero_order_brightened(result, thresholds) and explains and joint_off
-
-
-def diagnose(result, thresholds):
-    """Return the list of short diagnosis codes (["ok"] when every check holds).
-
-    Codes: "saturated", "low_signal", "conjugate_plate", "mirrored",
-    "other_design", "zero_order_ambiguous", "zero_order_excess", "overlay_error",
-    "etch_depth_error" (a mask other than the deepest), "deep_etch_error", "psf_mismatch",
-    "low_efficiency". A check on a noisy figure (zero order, efficiency) fails only
-    when it misses its threshold by ``SIGNIFICANCE`` sigma.
-    """
-    codes = []
-    if result["saturated_dots"]:
-        codes.append("saturated")
-    if result["window_snr"] < thresholds["min_window_snr"]:
-        codes.append("low_signal")
-    reflection = None if result["reflection_set_aside"] else winning_reflection(result)
-    # The reflection must explain the window too: a plate of another design won as the
-    # conjugate of a nearly point-symmetric one (frame 0.83) and matched it at 0.85.
-    if reflection and result["correlation_as_measured"] >= EXPLAINED_MIN:
-        codes.append("conjugate_plate" if reflection == "rot180" else "mirrored")
-    elif not codes and (reflection or _other_design(result)):  # clipped or noisy windows
-        codes.append("other_design")  # explain nothing
-    elif not codes and _ambiguous(result, thresholds):
-        codes.append("zero_order_ambiguous")
-    process = []
-    if codes:  # a plate that is not this design: its process figures mean nothing
-        return codes
-    if _zero_order_fails(result, thresholds):
-        process.append("zero_order_excess")
-    fault = _explaining_fault(result, thresholds)
-    if fault in ("overlay_error", "overlay_and_etch"):
-        process.append("overlay_error")
-    if fault in ("etch_depth_error", "overlay_and_etch"):  # deepest fitted with the others
-        etch = result[EXPLAINING_FIT[fault]]
-        off = etched_off(etch)
-        if any(name != etch["masks"][0] for name, _ in off):
-            process.append("etch_depth_error")
-        deep = [err for name, err in off if name == etch["masks"][0]]
-        if deep and abs(deep[0]) > thresholds["deep_etch_error_max"]:
-            process.append("deep_etch_error")
-    elif (
-        fault is None
-        and _deep_etch_off(result, thresholds)
-        and result["correlation_with_fitted_etch"] > _pinned_correlation(result)
-    ):  # not with an overlay's
-        process.append("deep_etch_error")
-    codes += process
-    if not codes or codes == process:
-        if _psf_fails(result, thresholds):
-            codes.append("psf_mismatch")
-        if (
-            result["efficiency"] + SIGNIFICANCE * result["efficiency_sigma"]
-            < thresholds["efficiency_min"]
-        ):
-            codes.append("low_efficiency")
-    return codes or ["ok"]

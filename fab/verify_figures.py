@@ -9,7 +9,7 @@ import html
 import numpy as np
 
 from doe.figures import value_and_limit
-from fab.verify import fitted_fault, is_judged
+from fab.diagnosis import fitted_fault, is_judged
 
 _PNG_META = {"Software": None}
 

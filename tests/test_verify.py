@@ -25,17 +25,11 @@ from fab.capture import (
     write_image,
 )
 from fab.capture_sim import simulate_capture
+from fab.diagnosis import etched_off
+from fab.etch_fit import fit_etch_error, fit_etch_errors, implied_deep_etch_error
 from fab.lattice import Lattice, LatticeNotFound, measure_orders, register_lattice
 from fab.plate import PlateFaults, plate_far_field, plate_phase
-from fab.verify import (
-    analyse,
-    design_order_power,
-    etched_off,
-    fit_etch_error,
-    fit_etch_errors,
-    implied_deep_etch_error,
-    resolve_thresholds,
-)
+from fab.verify import analyse, design_order_power, resolve_thresholds
 
 N, K, L = 35, 11, 8
 PITCH_UM, CAMERA_UM = 37.504, 3.45
