@@ -89,7 +89,9 @@ def register(sub):
     p = sub.add_parser("sr", help="super-resolve raw SPAD frames (npy or images)")
     p.add_argument("model_dir", help="folder written by `doefab learn`")
     p.add_argument("raw", nargs="+", help="raw frames: .npy (H, W) or (T, H, W), or image files")
-    p.add_argument("--out", required=True, help="output folder (<name>_sr.npy, <name>_sr.png)")
+    p.add_argument(
+        "--out", required=True, help="output folder (<name>_sr.npy, <name>_sr.png, <name>_sr.json)"
+    )
     p.add_argument("--photons", type=float, help="counts of white (default: the model's)")
     p.add_argument("--force", action="store_true", help="overwrite existing outputs")
     p.set_defaults(func=_sr)
@@ -206,6 +208,10 @@ def _learn(args):
             raise InputError("--psf", str(e)) from None
         learn_psf = False
     else:
+        if not Path(spec).exists():  # a misspelt name, or a file that is not there
+            raise InputError(
+                "--psf", f"{spec!r} is no file and none of {', '.join(PSF_CHOICES)}, gaussian:SIGMA"
+            )
         psf0, learn_psf = read_psf(spec), False
         check_psf_grid(spec, design)
     learned_from = Path(args.init) / "psf.npy" if args.init else None
@@ -213,12 +219,22 @@ def _learn(args):
     config = with_overrides(config, learn_psf=learn_psf)
 
     margin = psf0.shape[0] - 1
+    need = config.patch + margin  # a patch blurred by the PSF without padding
+    why = f"--patch {config.patch} plus the PSF's {margin}-pixel margin"
     if args.images:
-        names, images = imgio.read_folder(args.images, min_size=config.patch + margin)
+        names, images = imgio.read_folder(args.images, need, f"{why}; a smaller --patch fits")
         source = str(args.images)
     else:
         names, images = imgio.default_images(seed=0)
         source = "embedded (scikit-image bundled photos + dead leaves)"
+        smallest = min(min(img.shape) for img in images)
+        if smallest < need:  # make_batch failed on the first too small image it drew
+            fits = (smallest - margin) // sensor.factor * sensor.factor
+            raise InputError(
+                "--patch",
+                f"{why} needs images of {need} pixels, the smallest embedded one has "
+                f"{smallest}: use --patch {fits} or less, or --images",
+            )
     images = augment_scales(images, config.patch + margin)
 
     out = Path(args.out)
@@ -229,6 +245,7 @@ def _learn(args):
         _refuse_overwrite(out, OUTPUTS)
     # The checkpoint goes there: a folder it cannot write to is refused now, not after
     # the training (a read-only --out once failed, with a traceback, at the end).
+    created = not out.exists()
     try:
         out.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryFile(dir=out):
@@ -246,9 +263,20 @@ def _learn(args):
             "steps); --device cpu repeats bit for bit",
             file=sys.stderr,
         )
-    result = train(
-        config, images, sensor, psf0, init_state=init_state, checkpoint=checkpoint, device=device
-    )
+    try:
+        result = train(
+            config,
+            images,
+            sensor,
+            psf0,
+            init_state=init_state,
+            checkpoint=checkpoint,
+            device=device,
+        )
+    except BaseException:
+        if created and not any(out.iterdir()):  # a first run that diverged leaves no folder
+            out.rmdir()
+        raise
     if torch.distributed.is_available() and torch.distributed.is_initialized():
         rank = torch.distributed.get_rank()
         torch.distributed.barrier()

@@ -385,7 +385,8 @@ def _transient(args):
             file=sys.stderr,
         )
     print(
-        f"transient: {frames.shape[0]} frames of {frames.shape[1]} x {frames.shape[2]}; "
+        f"transient: {frames.shape[0]} frames of {frames.shape[1]} x {frames.shape[2]} "
+        "(rows x columns); "
         f"wrote {args.out}"
     )
     return 0

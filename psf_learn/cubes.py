@@ -68,10 +68,11 @@ def frame_order(path):
     """Sort key of a frame file: its name with every run of digits compared as a number.
 
     Cameras write ``frame_2`` as often as ``frame_002``; compared as text,
-    ``frame_10`` would come before ``frame_2`` and scramble the scan.
+    ``frame_10`` would come before ``frame_2`` and scramble the scan. A decimal
+    is one number: digit runs alone put ``gate_0.1ns`` (1) before ``gate_0.02ns`` (2).
     """
-    parts = re.split(r"(\d+)", path.name)
-    return [(1, int(p), p) if p.isdigit() else (0, 0, p) for p in parts]
+    parts = re.split(r"(\d+(?:\.\d+)?)", path.name)
+    return [(1, float(p), p) if p[:1].isdigit() else (0, 0, p) for p in parts]
 
 
 def _read_frame_folder(folder):
@@ -91,8 +92,8 @@ def _read_frame_folder(folder):
         if f.shape != shape:
             raise InputError(
                 p,
-                f"frame is {f.shape[1]} x {f.shape[0]}, the first frame "
-                f"{files[0].name} is {shape[1]} x {shape[0]}",
+                f"frame is {f.shape[0]} x {f.shape[1]} (rows x columns), the first frame "
+                f"{files[0].name} is {shape[0]} x {shape[1]}",
             )
         if f.dtype != dtype:  # e.g. float frames in [0, 1] among 16-bit counts
             raise InputError(

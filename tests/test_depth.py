@@ -616,15 +616,16 @@ def test_a_gate_model_the_response_cannot_be_built_from_is_refused(params, why):
         GateModel(**params)
 
 
-@pytest.mark.parametrize("name", ["shift_{k:03d}.png", "shift_{k}.png"])
+@pytest.mark.parametrize("name", ["shift_{k:03d}.png", "shift_{k}.png", "gate_{t:g}ns.png"])
 def test_frame_folder_is_read_as_uint16_in_name_order(tmp_path, name):
-    # Unpadded numbers count as numbers: shift_2 comes before shift_10.
+    # Unpadded numbers count as numbers: shift_2 comes before shift_10, and a gate delay
+    # written as a decimal is one number: gate_0.02ns before gate_0.1ns before gate_0.12ns.
     rng = np.random.default_rng(13)
     cube = rng.integers(0, 4000, size=(5, 7, 12)).astype(np.uint16)
     folder = tmp_path / "frames"
     folder.mkdir()
     for k in range(cube.shape[-1]):
-        write_frame_png16(folder / name.format(k=k), cube[..., k] / 65535.0)
+        write_frame_png16(folder / name.format(k=k, t=0.02 * k), cube[..., k] / 65535.0)
     (folder / "._shift_000.png").write_bytes(b"\x00\x05\x16\x07 macOS metadata")
     np.testing.assert_array_equal(read_cube(folder), cube.astype(np.float64))
 
@@ -770,6 +771,29 @@ def test_cli_depth_and_transient_super_resolve(tmp_path, response, sr_model):
     frames = np.load(out2 / "frames.npy")
     assert frames.shape == (5, 12, 16)
     np.testing.assert_array_equal(frames[:, ::4, ::4], np.moveaxis(np.load(short), -1, 0))
+
+
+def test_a_super_resolved_cube_has_one_white_its_maximum_and_no_negative_counts(
+    tmp_path, monkeypatch
+):
+    # One white level keeps the frames on a common scale; a network's undershoot below 0
+    # is not a count. The stand-in records its white and undershoots by half of it.
+    from psf_learn.cli_depth import _super_resolve_cube
+
+    whites = []
+
+    def super_resolve(model, frames, photons=None):
+        whites.append(photons)
+        return np.repeat(np.repeat(frames, 4, axis=-2), 4, axis=-1) - 0.5 * photons
+
+    sr = types.SimpleNamespace(super_resolve=super_resolve)
+    monkeypatch.setitem(sys.modules, "psf_learn.sr", sr)
+    cube = np.random.default_rng(3).integers(0, 50, size=(3, 4, 6)).astype(np.float64)
+    cube[1, 2, 3] = 80.0
+    hr = _super_resolve_cube(tmp_path, cube)
+    assert whites == [80.0]
+    upsampled = np.repeat(np.repeat(cube, 4, axis=0), 4, axis=1)
+    np.testing.assert_array_equal(hr, np.clip(upsampled - 40.0, 0.0, None))
 
 
 def test_cli_force_leaves_no_frames_or_sr_maps_of_an_older_cube(tmp_path, response, sr_model):

@@ -667,9 +667,30 @@ def test_training_images_must_hold_a_patch_and_the_psf_margin(tmp_path, capsys):
     images.mkdir()
     io.imsave(images / "small.png", np.full((25, 40), 128, np.uint8), check_contrast=False)
     assert main(["learn", "--out", str(tmp_path / "out"), "--images", str(images), *SMALL]) == 2
-    assert "small.png" in capsys.readouterr().err and not (tmp_path / "out").exists()
+    err = capsys.readouterr().err  # the image, and what sets the size, named
+    assert "small.png: image (25, 40) is smaller than 26 pixels (--patch 16 plus the PSF's" in err
+    assert not (tmp_path / "out").exists()
     io.imsave(images / "small.png", np.full((26, 40), 128, np.uint8), check_contrast=False)
     assert main(["learn", "--out", str(tmp_path / "out"), "--images", str(images), *SMALL]) == 0
+
+
+def test_a_patch_larger_than_the_smallest_embedded_image_is_refused(tmp_path, capsys):
+    # 248 + 10 > the 256 x 256 dead leaves: make_batch raised "high <= 0" (exit 3) when it
+    # drew one, and an empty --out was left behind
+    out = tmp_path / "out"
+    args = ["learn", "--out", str(out), "--steps", "1", "--features", "4", "--stages", "1"]
+    assert main([*args, "--batch", "2", "--patch", "248"]) == 2
+    err = capsys.readouterr().err
+    assert "--patch 248 plus the PSF's 10-pixel margin needs images of 258 pixels" in err
+    assert "use --patch 244 or less, or --images" in err and not out.exists()
+
+
+def test_a_psf_that_is_neither_a_file_nor_a_choice_is_refused_naming_the_choices(tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["learn", "--out", str(out), "--psf", "gausian", *SMALL]) == 2
+    err = capsys.readouterr().err
+    assert "--psf: 'gausian' is no file and none of learned, delta, box, gaussian" in err
+    assert not out.exists()
 
 
 def test_evaluate_writes_json(trained, tmp_path, capsys):
@@ -928,6 +949,8 @@ def test_a_training_that_diverges_is_refused_naming_the_learning_rate(tmp_path, 
         r"--lr: the training diverged at step \d+ .*lower --lr", err[0]
     )
     assert not any((out / name).exists() for name in ("psf.npy", "model.pt", "learn.json"))
+    # nor a folder left empty by a first run (a checkpoint, had one been written, stays)
+    assert not out.exists() or any(out.iterdir())
     assert main([*args, "--restart"]) == 0  # a sane rate trains
 
 
