@@ -82,8 +82,8 @@ def load_design_dir(design_dir, design):
         if got is not None and got != n_levels:
             raise InputError(
                 info,
-                f"the design was quantised to {got} levels but the "
-                f"configuration has {n_levels}; pass the matching --config",
+                f"the design was quantised to {got} levels but the configuration has "
+                f"{n_levels}; pass a --config whose [fabrication] levels = {got}",
             )
         # a tile etched for another wavelength, glass or sub-pixel grid is a wrong plate
         differences = design_differences(record.get("design"), design, TILE_KEYS)
@@ -145,7 +145,7 @@ def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=Tru
     """
     from tqdm import tqdm
 
-    from doe.design import lattice_problem, load_design
+    from doe.design import MAX_TILE_PIXELS, derive, lattice_problem, load_design
     from doe.files import previous_files, save_npy, staged_output
     from doe.fraunhofer import simulate_levels
     from fab import manifest as fm
@@ -159,6 +159,12 @@ def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=Tru
     n_levels = design.fabrication.levels
     levels, target = load_design_dir(design_dir, design)
     n = levels.shape[0]
+    if n > MAX_TILE_PIXELS:  # as doefab retrieve --tile-pixels and the design check refuse
+        raise InputError(
+            Path(design_dir) / "levels.npy",
+            f"N = {n} pixels per tile, more than {MAX_TILE_PIXELS} (GDS, tolerance and "
+            "mesh time and memory grow as N^2)",
+        )
     der = tile_derived(design, n)
     pitch_nm = round(der.mask_pixel_pitch * 1e9)
     if pitch_nm <= 0:
@@ -182,15 +188,22 @@ def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=Tru
     problem = lattice_problem(der, k, design.fabrication.grid)
     if problem:
         raise InputError(Path(design_dir) / "levels.npy", f"N = {n} pixels per tile: {problem}")
+    notes = []  # printed once the output folder is accepted: a refusal is one line
+    nominal = derive(design).tile_pixels
+    if n > nominal:  # finer pixels than the process was chosen for
+        notes.append(
+            f"warning: N = {n} gives {pitch_nm} nm mask pixels, finer than the design's "
+            f"{design.fabrication.feature_size * 1e6:g} um feature size (N = {nominal}, "
+            "[fabrication] feature_size_um); check that the process can print them"
+        )
     simulated, efficiency = simulate_levels(levels, n_levels, k)
     extra = {}
     if target is None:
         target = simulated
         extra["target_psf_source"] = "simulated from levels.npy (DESIGN_DIR had no target_psf.npy)"
-        print(
-            "doefab fab: no target_psf.npy in the design folder; using the simulated PSF of "
-            "levels.npy as the target",
-            file=sys.stderr,
+        notes.append(
+            "no target_psf.npy in the design folder; using the simulated PSF of "
+            "levels.npy as the target"
         )
     tiles = (der.tiles, der.tiles)
     aperture_nm = round(design.fabrication.aperture * 1e9)
@@ -205,6 +218,8 @@ def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=Tru
     known += [fm.OASIS_NAME] if oasis else []
     stale = previous_files(Path(out) / fm.MANIFEST_NAME, _package_files)
     with staged_output(out, force, names=known, stale=stale) as stage:
+        for note in notes:
+            print(f"doefab fab: {note}", file=sys.stderr)
         bar.set_postfix_str("gds")
         lib, layout = build_library(masks, pitch_nm, tiles, design.name, aperture_nm)
         write_gds(lib, stage / fm.GDS_NAME)

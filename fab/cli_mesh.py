@@ -86,9 +86,9 @@ def read_fab_dir(fab_dir, thickness_mm=None):
         if key not in man:
             raise InputError(path, f"missing key {key!r}")
     try:
-        n_levels, n = int(man["levels"]), int(man["tile_pixels"])
+        n_levels, n = _whole(man["levels"]), _whole(man["tile_pixels"])
         step, pitch = float(man["level_step_nm"]) * 1e-9, float(man["pixel_pitch_nm"]) * 1e-9
-        tiles = [int(t) for t in man["tiles"]]
+        tiles = [_whole(t) for t in man["tiles"]]
         origin = [float(v) * 1e-6 for v in man.get("array_origin_nm", [0.0, 0.0])]
     except (TypeError, ValueError, OverflowError) as e:  # int(1e400): OverflowError
         raise InputError(path, f"malformed value ({e})") from None
@@ -144,6 +144,13 @@ def read_fab_dir(fab_dir, thickness_mm=None):
         "thickness_source": where,
         "levels_path": levels_path,
     }
+
+
+def _whole(value):
+    """Return ``value`` as an int, refusing 8.9 or True (int() would make them 8 and 1)."""
+    if isinstance(value, bool) or float(value) != int(value):
+        raise ValueError(f"{value!r} is not a whole number")
+    return int(value)
 
 
 def parse_formats(text):

@@ -43,6 +43,7 @@ VERNIER_OFFSET_NM = 250_000  # comb pairs 250 um from the cross (below it and le
 LABEL_HEIGHT_NM = 150_000  # at most; smaller when many masks share the label band
 LABEL_GAP_NM = 50_000  # clearance of the labels to the aperture frame and the mark blocks
 OUTLINE_WIDTH_NM = 20_000
+LABEL_BIAS = 0.013  # glyph outline grown by this many text heights (joins corner touches)
 
 
 @dataclass(frozen=True)
@@ -187,10 +188,14 @@ def _label(text, row, rows, a, h, layer):
     width_room = 2 * (h - OUTLINE_WIDTH_NM - LABEL_GAP_NM)
     size = min(LABEL_HEIGHT_NM, 0.8 * pitch / (y1 - y0), width_room / (x1 - x0))
     cx, cy = -size * (x0 + x1) / 2, top - (row + 0.5) * pitch - size * (y0 + y1) / 2
-    return [
-        gdstk.Polygon(np.round(p.points * size + (cx, cy)) / 1000, layer=layer, datatype=0)
-        for p in probe
-    ]
+    # The font draws diagonals ("0", "&") as squares meeting only at a corner: a
+    # zero-width neck that mask DRC flags and a writer may or may not bridge. A small
+    # bias joins them (neck 2.8 x bias) and keeps the one-unit gaps (1/16 - 2 x bias).
+    glyphs = gdstk.offset(
+        [gdstk.Polygon(p.points * size + (cx, cy)) for p in probe],
+        LABEL_BIAS * size, join="miter", use_union=True,
+    )  # fmt: skip
+    return [gdstk.Polygon(np.round(p.points) / 1000, layer=layer, datatype=0) for p in glyphs]
 
 
 def etchable(text):

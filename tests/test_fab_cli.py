@@ -191,7 +191,8 @@ def test_levels_mismatch_with_retrieval_json_exit_2(tmp_path, capsys):
     make_design_dir(d, n=15)
     (d / "retrieval.json").write_text(json.dumps({"levels": 4}))
     assert main(["fab", str(d), "--out", str(tmp_path / "out")]) == 2
-    assert "retrieval.json" in capsys.readouterr().err
+    err = capsys.readouterr().err  # and what the --config must say
+    assert "retrieval.json" in err and "a --config whose [fabrication] levels = 4" in err
     assert not (tmp_path / "out").exists()
 
 
@@ -331,6 +332,37 @@ def test_a_grid_too_coarse_for_the_tiles_pitch_exit_2(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "levels.npy: N = 400 pixels per tile: the 1000 nm grid snaps" in err
     assert "+9.17% off the sub-pixel pitch" in err, err
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_tile_finer_than_the_feature_size_is_made_with_a_warning(tmp_path, capsys):
+    # 97 um features make the design's 873 um tile N = 9 pixels; N = 11 prints 79.4 um
+    # pixels, which the process was not chosen for. The warning and the note on the
+    # missing target come once the output folder is accepted: a refusal is one line.
+    cfg = tmp_path / "coarse.toml"
+    cfg.write_text("[fabrication]\nfeature_size_um = 97.0\n[psf]\nkernel_size = 3\n")
+    d = tmp_path / "design"
+    make_design_dir(d, n=11, target=False)
+    args = ["fab", str(d), "--out", str(tmp_path / "out"), "--config", str(cfg)]
+    assert main(args) == 0
+    err = capsys.readouterr().err
+    pitch = json.loads((tmp_path / "out" / "fab_manifest.json").read_text())["pixel_pitch_nm"]
+    assert f"warning: N = 11 gives {pitch} nm mask pixels, finer than the design's 97 um" in err
+    assert "(N = 9, [fabrication] feature_size_um)" in err and "no target_psf.npy" in err
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--force" in err
+
+
+def test_a_tile_of_more_pixels_than_any_design_is_refused(tmp_path, capsys):
+    # N = 5000 went through with 175 nm pixels (2 GB, 136 s for a uniform map)
+    d = tmp_path / "design"
+    d.mkdir()
+    np.save(d / "levels.npy", np.zeros((4097, 4097), np.uint8))
+    assert main(["fab", str(d), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert f"{d / 'levels.npy'}: N = 4097 pixels per tile, more than 4096" in err
     assert not (tmp_path / "out").exists()
 
 

@@ -4,6 +4,7 @@ grid, byte-identical files, marks outside the aperture, layer images read back w
 import dataclasses
 import itertools
 import re
+import string
 import tempfile
 from pathlib import Path
 
@@ -284,6 +285,22 @@ def test_labels_etch_names_outside_ascii_legibly():
 
     assert label_points("µ-plate_été") == label_points("u-plate_ete")
     assert label_points("设计") == label_points("??")
+
+
+@pytest.mark.parametrize("name", ["sun2020", string.punctuation, string.ascii_letters + "0123"])
+def test_labels_hold_no_zero_width_neck_or_gap(name):
+    # gdstk's font draws the slash of "0" and parts of "&" as squares that meet only at
+    # a corner: a zero-width neck that mask DRC flags (8 on each layer of sun2020's).
+    masks = masks_from_levels(random_levels(6, seed=3), 8, STEP)
+    polys, _ = mk_marks.marks_and_labels(masks, 7_000_000, name)
+    for layer in {p.layer for p in polys}:
+        region = kdb.Region()
+        for p in (p for p in polys if p.layer == layer):
+            points = np.round(p.points * 1000).astype(int).tolist()
+            region.insert(kdb.Polygon([kdb.Point(x, y) for x, y in points]))
+        region.merge()
+        assert region.width_check(1).is_empty(), (name, layer)
+        assert region.space_check(1).is_empty(), (name, layer)
 
 
 def test_marks_of_too_many_masks_for_the_aperture_are_refused():

@@ -476,6 +476,10 @@ def test_cli_refuses_crop_beyond_aperture(tmp_path, capsys, tiles):
         ({"pixel_pitch_nm": 1e-300}, "must lie between 1 pm and 1 m"),
         ({"pixel_pitch_nm": float("inf")}, "must lie between 1 pm and 1 m"),
         ({"array_origin_nm": [float("inf"), 0.0]}, "array_origin_nm be finite"),
+        # int() made 8.9 levels 8 and 2.7 tiles 2, without a word (exit 0)
+        ({"levels": 8.9}, "8.9 is not a whole number"),
+        ({"tiles": [2.7, 3]}, "2.7 is not a whole number"),
+        ({"tile_pixels": True}, "True is not a whole number"),
     ],
 )
 def test_cli_bad_manifest_exits_2_naming_the_file(tmp_path, capsys, change, needle):

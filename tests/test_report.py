@@ -271,6 +271,23 @@ def test_tile_figures_show_row_0_at_the_top_and_column_0_at_the_left(
     assert lit(ax, cells, colour_at(ax, 0, 0)) == ["top right"]
 
 
+@pytest.mark.parametrize("n_levels", [8, 16, 256])
+def test_the_level_maps_colour_bar_labels_each_of_up_to_16_levels(
+    tmp_path, saved_figures, n_levels
+):
+    # 256 labels, one a level, printed over each other as a black bar
+    from fab import figures
+
+    levels = (np.arange(16, dtype=np.uint8).reshape(4, 4) * (n_levels // 16)).astype(np.uint8)
+    figures.level_map(tmp_path / "levels.png", levels, n_levels, 5e-6)
+    bar = saved_figures[-1].axes[1]
+    ticks = [t for t in bar.get_yticks() if -0.5 <= t <= n_levels - 0.5]
+    if n_levels <= 16:
+        assert ticks == list(range(n_levels))
+    else:
+        assert 3 <= len(ticks) <= 12 and all(t == round(t) for t in ticks)
+
+
 @pytest.mark.parametrize("shape", ["circle", "square"])
 def test_dot_lattice_outlines_each_active_area_in_its_shape(tmp_path, saved_figures, shape):
     from matplotlib.patches import Circle, Rectangle
