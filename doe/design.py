@@ -180,6 +180,8 @@ def load_design(path=None):
     base = _read_preset(DEFAULT_PRESET)
     if path is None:
         return parse_design(base, DEFAULT_PRESET)
+    if not str(path).strip():  # Path("") is the current folder: "cannot read '.'"
+        raise InputError("--config", "is empty: give a design file or a preset name")
     if str(path) in preset_names():
         if Path(path).exists():  # which one the lab meant cannot be guessed
             raise InputError(

@@ -118,6 +118,7 @@ def _run_stages(args, run_dir, design):
     from doe.cli import main as doefab
     from fab.pipeline import (
         check_overwrite,
+        discard_unfinished,
         finish_swaps,
         is_current,
         load_state,
@@ -151,6 +152,7 @@ def _run_stages(args, run_dir, design):
         # inputs of later stages exist only once earlier ones ran: plan lazily
         if not args.force and is_current(stage, state, run_dir):
             print(f"[{i}/{len(stages)}] {stage.name}: up to date, skipped", file=sys.stderr)
+            discard_unfinished(stage, run_dir)
             continue
         if not summaries_gone:
             # The front page and manifest describe the stages as they were: a run

@@ -196,8 +196,29 @@ def own_files(stage, state, run_dir):
 
 
 def _own_files(rec, folder):
+    """Every entry of ``folder`` the run did not write: hidden files, links and empty
+    folders included (stage_files skips them, and the swap removed them with the folder)."""
     ours = {*rec.get("files", {}), *rec.get("replaces", {})}
-    return [p for p in stage_files(folder) if p not in ours]
+    folder = Path(folder)
+    own = []
+    for root, dirs, files in os.walk(folder):  # a linked folder is one entry, not followed
+        here = Path(root)
+        for d in [d for d in dirs if (here / d).is_symlink()]:
+            dirs.remove(d)
+            own.append(str((here / d).relative_to(folder)))
+        own += [str((here / f).relative_to(folder)) for f in files]
+        if here != folder and not dirs and not files:
+            own.append(str(here.relative_to(folder)))  # an empty folder of the lab's
+    return sorted(p for p in own if p not in ours)
+
+
+def discard_unfinished(stage, run_dir):
+    """Remove the ``.NAME.new`` of a stage found up to date that an interrupted run left
+    unfinished (it still holds its key): no later run would (a --force run stopped during
+    training left its checkpoint there for good)."""
+    new = Path(run_dir) / f".{stage.name}.new"
+    if (new / ".stage_key").exists():
+        _remove_tree(new)
 
 
 def run_stage(stage, run_dir, state, invoke, force=False):
@@ -256,7 +277,7 @@ def run_stage(stage, run_dir, state, invoke, force=False):
 def _swap_in(new, final, keep):
     """Move the lab's files ``keep`` from ``final`` into ``new``, then replace ``final``."""
     for rel in keep:  # unless the stage wrote a file of that name
-        if (final / rel).exists() and not (new / rel).exists():
+        if ((final / rel).exists() or (final / rel).is_symlink()) and not (new / rel).exists():
             (new / rel).parent.mkdir(parents=True, exist_ok=True)
             (final / rel).rename(new / rel)
     if final.exists():

@@ -367,6 +367,16 @@ def test_a_folder_given_as_the_design_file_exits_2(tmp_path, capsys):
     assert f"{tmp_path}: cannot read" in err and "Traceback" not in err
 
 
+@pytest.mark.parametrize("command", [["config", "show"], ["run", "--out", "r"]])
+def test_an_empty_config_is_refused_naming_the_flag(tmp_path, capsys, monkeypatch, command):
+    # Path("") is the current folder: "cannot read: Is a directory: '.'"
+    monkeypatch.chdir(tmp_path)
+    assert main([*command, "--config", ""]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--config: is empty" in err
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_active_area_may_touch_the_pixel_edge():
     # 30 um across, offset 60 um: its edge lies on the 150 um pixel's edge.
     d = parse_design(with_value("sensor", "active_offset_um", [60.0, -60.0]), "edge.toml")

@@ -45,6 +45,7 @@ def run_all(tmp_path, fake, force=False):
     pipeline.finish_swaps(state, run)
     for stage in stages(tmp_path):
         if not force and is_current(stage, state, run):
+            pipeline.discard_unfinished(stage, run)
             continue
         check_overwrite(stage, state, run, force)
         code = run_stage(stage, run, state, fake, force)
@@ -270,3 +271,40 @@ def test_doefab_run_on_a_folder_with_a_foreign_run_state_exits_2_before_any_stag
     assert sorted(p.name for p in tmp_path.iterdir() if not p.name.startswith(".")) == [
         "run_state.json"
     ]
+
+
+def test_hidden_files_links_and_empty_folders_of_the_lab_survive_a_redone_stage(tmp_path):
+    (tmp_path / "input.txt").write_text("abc")
+    assert run_all(tmp_path, FakeDoefab()) == 0
+    first = tmp_path / "run" / "first"
+    (first / ".git").mkdir()
+    (first / ".git" / "HEAD").write_text("ref")
+    (first / ".notes").write_text("mine")
+    (first / "empty").mkdir()
+    (tmp_path / "elsewhere").mkdir()
+    (tmp_path / "elsewhere" / "capture.tif").write_text("data")
+    (first / "captures").symlink_to(tmp_path / "elsewhere")
+    (tmp_path / "input.txt").write_text("xyz")  # redoes the stage
+    assert run_all(tmp_path, FakeDoefab()) == 0
+    assert (first / "first.txt").read_text() == "XYZ"
+    assert (first / ".git" / "HEAD").read_text() == "ref"
+    assert (first / ".notes").read_text() == "mine"
+    assert (first / "empty").is_dir()
+    assert (first / "captures").is_symlink()
+    assert (first / "captures" / "capture.tif").read_text() == "data"
+
+
+def test_an_unfinished_stage_folder_is_removed_once_its_stage_is_found_up_to_date(tmp_path):
+    # a --force run stopped during a stage left .NAME.new with its key (for learn, its
+    # checkpoint); the next run found the stage up to date, skipped it, and kept the folder
+    (tmp_path / "input.txt").write_text("abc")
+    assert run_all(tmp_path, FakeDoefab()) == 0
+    run = tmp_path / "run"
+    unfinished = run / ".first.new"
+    unfinished.mkdir()
+    (unfinished / ".stage_key").write_text("key of the stopped run")
+    (unfinished / "checkpoint.pt").write_text("half a training")
+    fake = FakeDoefab()
+    assert run_all(tmp_path, fake) == 0
+    assert fake.calls == [] and not unfinished.exists()
+    assert (run / "first" / "first.txt").read_text() == "ABC"

@@ -199,12 +199,18 @@ def test_the_labs_own_files_are_kept_and_not_listed(config, finished, tmp_path):
     out = tmp_path / "out"
     assert psf_run(config, finished, out) == 0
     own = [out / "notes.txt", out / "fab" / "my_notes.txt", out / "fab" / "sub" / "photo.png"]
+    # hidden ones, an empty folder and a link to a folder too: a redone stage removed them
+    own += [out / "fab" / ".notes", out / "fab" / ".git" / "HEAD"]
     for path in own:
         path.parent.mkdir(exist_ok=True)
         path.write_text("the lab's")
+    (out / "fab" / "empty").mkdir()
+    (tmp_path / "captures").mkdir()
+    (out / "fab" / "captures").symlink_to(tmp_path / "captures")
     for extra in ((), ("--seed", "5"), ("--force",)):  # skipped, redone, forced
         assert psf_run(config, finished, out, *extra) == 0, extra
         assert all(path.read_text() == "the lab's" for path in own), extra
+        assert (out / "fab" / "empty").is_dir() and (out / "fab" / "captures").is_symlink()
         listed = [f["path"] for f in json.loads((out / "manifest.json").read_text())["files"]]
         assert "fab/mask.gds" in listed
         assert not {"notes.txt", "fab/my_notes.txt", "fab/sub/photo.png"} & set(listed)
@@ -257,7 +263,7 @@ def test_a_run_stopped_part_way_leaves_no_front_page_of_the_old_stages(
     assert (out / "index.html").is_file() and (out / "manifest.json").is_file()
 
 
-def test_staging_folders_of_a_killed_stage_are_removed(config, finished, tmp_path):
+def test_staging_folders_of_a_killed_stage_are_removed(config, finished, tmp_path, capsys):
     out = tmp_path / "out"
     assert psf_run(config, finished, out) == 0
     leftover = out / "..fab.new.staging-abc123"
@@ -265,6 +271,15 @@ def test_staging_folders_of_a_killed_stage_are_removed(config, finished, tmp_pat
     (leftover / "mask.gds").write_text("half")
     assert psf_run(config, finished, out, "--seed", "5") == 0
     assert not leftover.exists()
+    # and the unfinished folder of a stage a stopped --force run was redoing, once a run
+    # finds that stage up to date (no later run would remove it)
+    unfinished = out / ".fab.new"
+    unfinished.mkdir()
+    (unfinished / ".stage_key").write_text("the stopped run's")
+    capsys.readouterr()
+    assert psf_run(config, finished, out, "--seed", "5") == 0
+    assert "fab: up to date, skipped" in capsys.readouterr().err
+    assert not unfinished.exists()
 
 
 def test_index_labels_the_level_count_of_the_retrieval(tmp_path):
