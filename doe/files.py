@@ -6,10 +6,13 @@ no half-written output behind.
 """
 
 import contextlib
+import glob
 import hashlib
 import json
 import os
+import re
 import shutil
+import socket
 import tempfile
 from pathlib import Path
 
@@ -259,8 +262,33 @@ def _staging_folder(out_dir):
     parent = out_dir.parent
     parent.mkdir(parents=True, exist_ok=True)
     if out_dir.is_dir() and os.stat(out_dir).st_dev != os.stat(parent).st_dev:
-        return Path(tempfile.mkdtemp(dir=out_dir, prefix=".staging-"))
-    return Path(tempfile.mkdtemp(dir=parent, prefix=f".{out_dir.name}.staging-"))
+        where, prefix = out_dir, ".staging-"
+    else:
+        where, prefix = parent, f".{out_dir.name}.staging-"
+    # host and process in the name: a run killed outright (SIGKILL, power cut) left its
+    # folder for good; the next run into out_dir removes those of processes now gone
+    prefix += f"{re.sub(r'[^A-Za-z0-9]', '_', socket.gethostname())}-"
+    _remove_orphans(where, prefix)
+    return Path(tempfile.mkdtemp(dir=where, prefix=f"{prefix}{os.getpid()}-"))
+
+
+def _remove_orphans(where, prefix):
+    """Remove the staging folders ``where/prefix<pid>-*`` of processes of this host that
+    are gone (another host's cannot be told alive from here, and stay)."""
+    for folder in where.glob(f"{glob.escape(prefix)}*"):
+        pid = re.match(r"(\d+)-", folder.name[len(prefix) :])
+        if pid and folder.is_dir() and not _alive(int(pid[1])):
+            shutil.rmtree(folder, ignore_errors=True)
+
+
+def _alive(pid):
+    try:
+        os.kill(pid, 0)  # signal 0: is there such a process
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):  # another user's, or no such pid number
+        return True
+    return True
 
 
 def sha256_file(path):

@@ -39,6 +39,33 @@ def test_staged_output_leaves_nothing_on_failure(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_staging_folders_of_processes_gone_are_removed_by_the_next_run(tmp_path):
+    # a run killed outright (SIGKILL, power cut) cannot clean up: its .out.staging-*
+    # stayed beside --out for good. A live process's, another host's (whose processes
+    # cannot be seen from here) and another output's stay.
+    import re
+    import socket
+
+    dead = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
+    ).stdout.strip()
+    host = re.sub(r"[^A-Za-z0-9]", "_", socket.gethostname())
+    gone = tmp_path / f".out.staging-{host}-{dead}-x1"
+    kept = [
+        tmp_path / f".out.staging-{host}-{os.getpid()}-x2",
+        tmp_path / f".out.staging-elsewhere-{dead}-x3",
+        tmp_path / f".out2.staging-{host}-{dead}-x4",
+    ]
+    for folder in (gone, *kept):
+        folder.mkdir()
+        (folder / "mask.gds").write_text("half")
+    with staged_output(tmp_path / "out", names=["a.txt"]) as stage:
+        assert stage.name.startswith(f".out.staging-{host}-{os.getpid()}-")
+        (stage / "a.txt").write_text("new")
+    assert not gone.exists() and all(folder.exists() for folder in kept)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["out", *(k.name for k in kept)])
+
+
 def test_staged_output_moves_files_and_refuses_overwrite(tmp_path):
     out = tmp_path / "out"
     with staged_output(out) as stage:
