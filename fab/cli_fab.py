@@ -27,7 +27,7 @@ def register(sub):
         "design_dir",
         metavar="DESIGN_DIR",
         help="folder with levels.npy "
-        "(and target_psf.npy; retrieval.json optional), e.g. doefab retrieve's --out",
+        "(target_psf.npy and retrieval.json optional), e.g. doefab retrieve's --out",
     )
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--config", help="design TOML file or preset name (default preset if absent)")

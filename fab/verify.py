@@ -604,6 +604,7 @@ def _overlay_fit(measured_psf, window, frame_score, levels, n_levels):
         "shift_sigma_px": fit["shift_sigma"],
         "significance": fit["chi2_drop"],
         "chi2": fit["chi2"],
+        "reduced_chi2": fit["reduced_chi2"],
         **_fitted_plate_figures(measured_psf, fit["psf"], faults, levels, n_levels, frame_score),
     }
 

@@ -1263,6 +1263,8 @@ def test_a_mask_8um_off_is_diagnosed_as_an_overlay_error(
     assert fit["mask"] == name and fit["shift_px"] == pytest.approx([1.5, -0.5], abs=0.05)
     assert np.allclose(fit["shift_um"], np.multiply(fit["shift_px"], 4.99))
     assert fit["correlation"] > 0.999 > report["correlation"]
+    # recorded, as the etch fits record theirs: the unit of its significance past 1
+    assert fit["reduced_chi2"] == pytest.approx(fit["chi2"] / (K * K - 3))
     assert report["measured_psf_usable"] is True  # the real plate's PSF, to calibrate with
     err = capsys.readouterr().err
     sd = fit["shift_sigma_um"]  # quoted with the shift: its 1-sigma from the fit's curvature
