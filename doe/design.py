@@ -360,6 +360,13 @@ _TILE_SET_BY = (
 
 def _check_consistency(d, source):
     sensor, fab = d.sensor, d.fabrication
+    for key, count in (("columns", sensor.columns), ("rows", sensor.rows)):
+        if count * sensor.pixel_pitch > LONGEST_LENGTH:  # a typing error, as any length past 1 m
+            raise InputError(
+                f"{source}: [sensor] {key}",
+                f"{count} pixels of {sensor.pixel_pitch * 1e6:g} um make a sensor "
+                f"{count * sensor.pixel_pitch:.3g} m across, longer than 1 m",
+            )
     if sensor.active_area > sensor.pixel_pitch:
         raise InputError(
             f"{source}: [sensor] active_area_um",

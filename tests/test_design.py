@@ -332,6 +332,13 @@ def test_config_show_table_lists_every_value_of_the_json_under_its_section(capsy
         ("[fabrication]\naperture_mm = 0.1\n", "larger than the aperture"),
         # a tile a quarter of a micron too large read "(0.873 mm) is larger than ... (0.873 mm)"
         ("[fabrication]\naperture_mm = 0.873\n", "(0.87325 mm) is larger than the aperture (0.873"),
+        # 2^63 - 1 columns passed, with a lattice drift of 6.6e16 um at the sensor's edge
+        (
+            "[sensor]\ncolumns = 9223372036854775807\n",
+            "[sensor] columns: 9223372036854775807 "
+            "pixels of 150 um make a sensor 1.38e+15 m across, longer than 1 m",
+        ),
+        ("[sensor]\nrows = 6667\n", "[sensor] rows: 6667 pixels of 150 um make a sensor 1 m"),
     ],
 )
 def test_config_show_refuses_bad_files_with_exit_2(tmp_path, capsys, content, message):
