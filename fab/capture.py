@@ -326,7 +326,7 @@ def check_dark(raw, dark, dark_source):
             f"dark frame is {dark.data.shape[1]}x{dark.data.shape[0]} "
             f"pixels but the capture is {raw.data.shape[1]}x{raw.data.shape[0]}",
         )
-    if dark.encoding != raw.encoding and dark.data.any():
+    if _code_kind(dark) != _code_kind(raw) and dark.data.any():
         raise InputError(
             dark_source,
             f"dark frame is stored as {dark.encoding} but the "
@@ -350,6 +350,16 @@ def check_dark(raw, dark, dark_source):
                 f"{100 * share:.3g} % of the dark frame's pixels are at full scale "
                 f"({dark.full_scale:g}): it saw light; take it with the light blocked",
             )
+
+
+def _code_kind(raw):
+    """How a file's codes read in DN: a 12-bit sensor's codes read the same stored
+    MSB-aligned in 16 bits or as a BitsPerSample-12 TIFF (a capture as PNG and its dark
+    as such a TIFF were refused as "other camera settings"). A 16-bit file of values
+    <= 4095 stays apart: it may be a 16-bit mode's dark."""
+    if raw.encoding in ("uint16-msb12", "uint12") and raw.full_scale == 4095.0:
+        return "12-bit DN"
+    return raw.encoding
 
 
 def condition_capture(raw, dark=None):

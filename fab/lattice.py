@@ -189,11 +189,14 @@ def register_lattice(image, nominal_pitch_px, refine_iterations=2, quantum=0.0):
     if not pitch0 >= MIN_PITCH_PX:
         raise LatticeNotFound(
             f"the dots would be {pitch0:.3g} px apart, closer than the {MIN_PITCH_PX:g} px "
-            "photometry needs; check --pixel-pitch-um (in um) or magnify the lattice"
+            "photometry needs; check --pixel-pitch-um and --lattice-pitch-um (both in um) "
+            "or magnify the lattice"
         )
     if min(h, w) < 4 * pitch0:
         raise LatticeNotFound(
-            f"image {w}x{h} px holds fewer than 4 dots across at the nominal pitch {pitch0:.3g} px"
+            f"image {w}x{h} px holds fewer than 4 dots across at the nominal pitch "
+            f"{pitch0:.3g} px; "
+            "check --pixel-pitch-um and --lattice-pitch-um (both in um)"
         )
     x, noise, dots, weight = _dots_of(img, pitch0, quantum)
     if dots.shape[0] == 0:
@@ -214,7 +217,8 @@ def register_lattice(image, nominal_pitch_px, refine_iterations=2, quantum=0.0):
         raise LatticeNotFound(
             f"the dots form a lattice of pitch {lattice.pitch_px:.4g} px, "
             f"{ratio - 1:+.0%} off the nominal {pitch0:.4g} px (allowed "
-            f"±{PITCH_TOLERANCE:.0%}); check --pixel-pitch-um"
+            f"±{PITCH_TOLERANCE:.0%}); check --pixel-pitch-um, and give --lattice-pitch-um "
+            "for a lens of another focal length than the design's"
         )
     if lattice.pitch_px < MIN_PITCH_PX:
         raise LatticeNotFound(

@@ -218,10 +218,12 @@ def test_zero_order_check_catches_what_correlation_misses(levels):
     assert result["deep_etch_error_fit"] == pytest.approx(0.15, abs=0.005)
 
 
-def test_conjugate_plate_fails_as_point_reflection(tmp_path, levels):
+def test_conjugate_plate_fails_as_point_reflection(tmp_path, levels, capsys):
     code, report, _ = run_verify(tmp_path, levels, dict(seed=7, faults=PlateFaults(conjugate=True)))
     assert code == 1
     assert "conjugate_plate" in report["diagnosis"]
+    # a verdict on the plate, not a capture to take again
+    assert capsys.readouterr().out.startswith("FAIL: conjugate_plate")
     fc = report["frame_correlation"]
     assert fc["rot180"] > fc["design"] + 0.3
 
@@ -436,18 +438,62 @@ def test_overlay_error_within_budget_passes_and_reports_outside_power(tmp_path, 
     )
 
 
-def test_saturated_capture_fails_with_that_reason(tmp_path, levels):
+def test_saturated_capture_fails_with_that_reason(tmp_path, levels, capsys):
     code, report, _ = run_verify(tmp_path, levels, dict(seed=12, peak_fraction=4.0))
     assert code == 1 and report["pass"] is False
     assert "saturated" in report["diagnosis"]
     assert report["saturated_dots"] > 0
+    # said where the lab reads it, with its remedy: the plate was not judged
+    out = capsys.readouterr()
+    assert out.out.startswith("FAIL (capture not judged): saturated")
+    assert "shorten the exposure" in out.err
 
 
-def test_low_signal_fails(tmp_path, levels):
+def test_low_signal_fails(tmp_path, levels, capsys):
     code, report, _ = run_verify(
         tmp_path, levels, dict(seed=13, peak_fraction=0.01, read_noise_dn=3.0)
     )
     assert code == 1 and "low_signal" in report["diagnosis"]
+    out = capsys.readouterr()  # "FAIL: low_signal" and nothing more was printed
+    assert out.out.startswith("FAIL (capture not judged): low_signal")
+    assert re.search(r"window SNR [\d.]+ is under 30: lengthen the exposure", out.err)
+
+
+def test_hot_pixels_that_may_lie_on_dots_ask_for_a_dark_frame(tmp_path, levels, capsys):
+    # 0.15 % of a default capture's pixels hot and no dark frame read a good plate as
+    # conjugate_plate, without a word about hot pixels
+    run_verify(tmp_path, levels, dict(seed=5, hot_pixels=300), dark=False)
+    err = capsys.readouterr().err
+    assert re.search(r"about \d+ more hot pixels may lie on dots, .*: give --dark", err)
+
+
+@pytest.mark.parametrize(("peak", "advice"), [(240.0, "12- or 16-bit mode"), (100.0, "lengthen")])
+def test_more_signal_is_not_a_longer_exposure_for_a_capture_near_full_scale(peak, advice):
+    # an 8-bit capture at 94 % of full scale was told to lengthen the exposure, which the
+    # next capture failed as saturated
+    from types import SimpleNamespace
+
+    from fab.cli_verify import _more_signal
+
+    capture = SimpleNamespace(full_scale=255.0, image=np.array([[3.0, peak]]))
+    assert advice in _more_signal(capture)
+
+
+def test_no_orientation_is_hinted_when_every_one_fits_as_well(monkeypatch):
+    # a capture that fits every orientation alike (a colour sensor's raw mosaic) listed
+    # all seven others
+    from types import SimpleNamespace
+
+    from fab import cli_verify, verify
+
+    monkeypatch.setattr(verify, "orientations_matching", lambda *a: list(verify.ORIENTATIONS))
+    design = SimpleNamespace(levels=None, n_levels=8, kernel_size=11)
+    result = {"diagnosis": ["other_design"]}
+    assert cli_verify._orientation_hint(result, None, design, "as-designed") is None
+    monkeypatch.setattr(verify, "orientations_matching", lambda *a: ["rot90"])
+    assert "--orientation rot90" in cli_verify._orientation_hint(
+        result, None, design, "as-designed"
+    )
 
 
 def test_truncated_capture_exits_2_naming_the_file(tmp_path, levels, capsys):
@@ -1815,6 +1861,8 @@ def test_registered_origin_is_the_lattice_point_nearest_the_image_centre(levels)
 def test_a_frame_narrower_than_4_pitches_is_refused():
     with pytest.raises(LatticeNotFound, match="image 300x40 px holds fewer than 4 dots across"):
         register_lattice(np.zeros((40, 300)), PITCH_PX)
+    with pytest.raises(LatticeNotFound, match="check --pixel-pitch-um and --lattice-pitch-um"):
+        register_lattice(np.zeros((40, 300)), PITCH_PX)
 
 
 @pytest.mark.parametrize("scale, off", [(1.17, "+17%"), (0.83, "-17%")])
@@ -1823,6 +1871,9 @@ def test_dots_17_percent_off_the_nominal_pitch_are_refused(levels, scale, off):
     # camera pixel pitch given is wrong
     sim = simulate_capture(levels, L, pitch_px=PITCH_PX, scale=scale, shape=(300, 300), seed=1)
     with pytest.raises(LatticeNotFound, match=re.escape(f"{off} off the nominal 10.87 px")):
+        register_lattice(sim["capture"], PITCH_PX)
+    # a lens of another focal length: the flag that mends it is --lattice-pitch-um
+    with pytest.raises(LatticeNotFound, match="give --lattice-pitch-um for a lens of another"):
         register_lattice(sim["capture"], PITCH_PX)
 
 
@@ -1998,6 +2049,26 @@ def test_dark_frame_exposure_must_match_the_capture_within_the_tolerance():
         check_dark(
             raw, dataclasses.replace(raw, exposure=0.01 * (1 + 1.5 * EXPOSURE_RTOL)), "d.tif"
         )
+
+
+def test_a_12_bit_dark_written_msb_aligned_serves_a_12_bit_tiff_capture(tmp_path):
+    # the same camera's 12-bit codes, one file written with BitsPerSample 12, the other
+    # MSB-aligned in 16 bits, were refused as "other camera settings"
+    import OpenImageIO as oiio
+
+    rng = np.random.default_rng(8)
+    codes = rng.integers(50, 4000, (30, 30)).astype(np.uint16)
+    spec = oiio.ImageSpec(30, 30, 1, "uint16")
+    spec.attribute("oiio:BitsPerSample", 12)
+    out = oiio.ImageOutput.create(str(tmp_path / "cap.tif"))
+    out.open(str(tmp_path / "cap.tif"), spec)
+    out.write_image(np.ascontiguousarray((codes << 4)[..., None]))  # OIIO keeps the top 12
+    out.close()
+    dark = rng.integers(55, 66, (30, 30)).astype(np.uint16)
+    write_image(tmp_path / "dark.png", dark << 4)
+    capture = read_capture(tmp_path / "cap.tif", tmp_path / "dark.png")
+    assert read_raw_image(tmp_path / "cap.tif").encoding == "uint12"
+    np.testing.assert_allclose(capture.image, codes.astype(float) - dark, atol=1e-3)
 
 
 def test_dark_frame_stored_otherwise_than_the_capture_is_refused(tmp_path):
