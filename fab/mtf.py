@@ -29,8 +29,9 @@ MIN_EDGE_SNR = 5.0
 REACH_PER_RISE = 4.7
 
 
-# This share of a float image at its extreme value, as its most common value, marks
-# a clipped side (noise spreads an unclipped side over many values).
+# This share of a float image at its extreme value, held by more pixels than any value
+# between the extremes, marks a clipped side (noise spreads an unclipped side over many
+# values).
 PLATEAU_SHARE = 0.01
 
 
@@ -40,15 +41,17 @@ def clipped_pixels(data, full_scale=None):
     Clipping flattens a side of the edge spread and overstates the MTF (an edge of
     1 px blur clipped on either side read MTF50 45 % high). Integer files clip at
     code 0 and at ``full_scale``; float files (``full_scale`` None) where their
-    minimum or maximum is their most common value, held by ``PLATEAU_SHARE`` of them.
+    minimum or maximum is held by ``PLATEAU_SHARE`` of them and by more than any value
+    between the two (each side on its own: one clipped on both loses neither).
     """
     data = np.asarray(data)
     lo, hi = data.min(), data.max()
     dark, bright = np.count_nonzero(data == lo), np.count_nonzero(data == hi)
     if full_scale is not None:
         return int(dark if lo <= 0 else 0), int(bright if hi >= full_scale else 0)
-    _, counts = np.unique(data, return_counts=True)
-    common = max(counts.max(), PLATEAU_SHARE * data.size)
+    values, counts = np.unique(data, return_counts=True)
+    between = counts[(values > lo) & (values < hi)]
+    common = max(between.max(initial=0), PLATEAU_SHARE * data.size)
     return int(dark if dark >= common else 0), int(bright if bright >= common else 0)
 
 

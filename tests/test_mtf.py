@@ -216,6 +216,7 @@ def test_edge_without_sub_pixel_phases_is_refused_with_its_angle(angle):
         ("black.png", 1.0, -100.0, True, False),  # offset subtracted: dark side cut at 0
         ("white.tif", 1 / 200, 0.0, False, True),  # float, clipped at 1.0
         ("noisy.tif", 1 / 300, 0.0, False, False),  # float, unclipped
+        ("both.tif", 1 / 200, -0.35, True, True),  # float, clipped at 0.15 and 1.0
         ("noisy.png", 1.0, 0.0, False, False),
     ],
 )
@@ -223,14 +224,16 @@ def test_an_edge_clipped_on_either_side_is_flagged(
     tmp_path, capsys, name, scale, offset, dark, bright
 ):
     # A dark side cut at code 0, or a float file clipped at 1.0, read MTF50 45 % high
-    # and silently: only the full-scale code counted.
+    # and silently: only the full-scale code counted. A float file clipped on both
+    # sides named only the side with more pixels at its extreme.
     edge = (gaussian_edge(1.0, 5, noise=2.0, seed=3) + offset) * scale
     if name.endswith(".png"):
         edge = np.clip(np.round(edge), 0, 255).astype(np.uint8)
         at_dark, at_bright = edge == 0, edge == 255
     else:
-        edge = np.minimum(edge, 1.0).astype(np.float32)
-        at_dark, at_bright = np.zeros(edge.shape, bool), edge == 1.0
+        floor = 0.15 if dark else -np.inf
+        edge = np.clip(edge, floor, 1.0).astype(np.float32)
+        at_dark, at_bright = edge == np.float32(floor), edge == 1.0
     write_image(tmp_path / name, edge)
     assert main(["mtf", str(tmp_path / name), "--out", str(tmp_path / "out")]) == 0
     result = json.loads((tmp_path / "out" / "mtf.json").read_text())
