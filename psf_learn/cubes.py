@@ -18,7 +18,7 @@ from doe.files import load_npy
 FRAME_SUFFIXES = (".png", ".tif", ".tiff")
 
 
-def check_cube(cube, source, min_samples=4):
+def check_cube(cube, source, min_samples=4, what="cube"):
     """Validate a gated cube; return it as float64 (H, W, T).
 
     Refuses a wrong rank, non-numeric data, NaN/inf, negative counts and
@@ -38,12 +38,13 @@ def check_cube(cube, source, min_samples=4):
         )
     if cube.dtype.kind == "f" and not np.all(np.isfinite(cube)):
         raise InputError(
-            source, f"cube contains {np.count_nonzero(~np.isfinite(cube))} NaN or infinite values"
+            source,
+            f"{what} contains {np.count_nonzero(~np.isfinite(cube))} NaN or infinite values",
         )
     if cube.dtype.kind in "if" and np.any(cube < 0):
         raise InputError(
             source,
-            f"cube has negative counts (min {cube.min():.6g}); counts "
+            f"{what} has negative counts (min {cube.min():.6g}); counts "
             "must be >= 0 (subtract no dark level that makes them negative)",
         )
     return cube.astype(np.float64)
@@ -64,25 +65,43 @@ def read_cube(path, min_samples=4):
     return check_cube(load_npy(path), path, min_samples)
 
 
-def frame_order(path):
-    """Sort key of a frame file: its name with every run of digits compared as a number.
+_NUMBER = r"\d+(?:\.\d+)?"
+
+
+def frame_order(path, signed=False):
+    """Sort key of a frame file: its name with every number compared as a number.
 
     Cameras write ``frame_2`` as often as ``frame_002``; compared as text,
     ``frame_10`` would come before ``frame_2`` and scramble the scan. A decimal
     is one number: digit runs alone put ``gate_0.1ns`` (1) before ``gate_0.02ns`` (2).
+    With ``signed``, a ``-`` before a number is its sign.
     """
-    parts = re.split(r"(\d+(?:\.\d+)?)", path.name)
-    return [(1, float(p), p) if p[:1].isdigit() else (0, 0, p) for p in parts]
+    parts = re.split(f"({'-?' if signed else ''}{_NUMBER})", path.name)
+    return [(1, float(p), p) if i % 2 else (0, 0, p) for i, p in enumerate(parts)]
+
+
+def sorted_frames(paths):
+    """Return the frame files in scan order (:func:`frame_order`).
+
+    A ``-`` before a number is read as its sign only where the names differ by it
+    (``t_-20ps`` beside ``t_0ps``, once sorted as -0, 20, -20 and scrambled), not where
+    every name has it (``frame-10`` is frame 10).
+    """
+
+    def shapes(signed):
+        return {re.sub(f"{'-?' if signed else ''}{_NUMBER}", "#", p.name) for p in paths}
+
+    signed = len(shapes(signed=False)) > 1 and len(shapes(signed=True)) == 1
+    return sorted(paths, key=lambda p: frame_order(p, signed))
 
 
 def _read_frame_folder(folder):
-    files = sorted(
-        (
+    files = sorted_frames(
+        [
             p
             for p in folder.iterdir()
             if p.is_file() and p.suffix.lower() in FRAME_SUFFIXES and not p.name.startswith(".")
-        ),  # hidden files aside: macOS's "._frame_001.png" metadata
-        key=frame_order,
+        ]  # hidden files aside: macOS's "._frame_001.png" metadata
     )
     if not files:
         raise InputError(folder, f"no frames ({', '.join(FRAME_SUFFIXES)}) in this folder")
@@ -99,6 +118,7 @@ def _read_frame_folder(folder):
             raise InputError(
                 p, f"frame is stored as {f.dtype}, the first frame {files[0].name} as {dtype}"
             )
+        check_cube(f[..., None], p, min_samples=1, what="frame")  # name the frame at fault
     return np.stack(frames, axis=-1)
 
 

@@ -616,16 +616,23 @@ def test_a_gate_model_the_response_cannot_be_built_from_is_refused(params, why):
         GateModel(**params)
 
 
-@pytest.mark.parametrize("name", ["shift_{k:03d}.png", "shift_{k}.png", "gate_{t:g}ns.png"])
+@pytest.mark.parametrize(
+    "name",
+    ["shift_{k:03d}.png", "shift_{k}.png", "gate_{t:g}ns.png", "t_{s}ps.png", "frame-{k}.png"],
+)
 def test_frame_folder_is_read_as_uint16_in_name_order(tmp_path, name):
     # Unpadded numbers count as numbers: shift_2 comes before shift_10, and a gate delay
     # written as a decimal is one number: gate_0.02ns before gate_0.1ns before gate_0.12ns.
+    # A delay's sign counts where the names differ by it (t_-20ps before t_0ps; they were
+    # sorted 0, 20, ..., -20, -40), and a dash every name has is no sign (frame-10).
     rng = np.random.default_rng(13)
     cube = rng.integers(0, 4000, size=(5, 7, 12)).astype(np.uint16)
     folder = tmp_path / "frames"
     folder.mkdir()
     for k in range(cube.shape[-1]):
-        write_frame_png16(folder / name.format(k=k, t=0.02 * k), cube[..., k] / 65535.0)
+        write_frame_png16(
+            folder / name.format(k=k, t=0.02 * k, s=20 * (k - 5)), cube[..., k] / 65535.0
+        )
     (folder / "._shift_000.png").write_bytes(b"\x00\x05\x16\x07 macOS metadata")
     np.testing.assert_array_equal(read_cube(folder), cube.astype(np.float64))
 
@@ -697,9 +704,24 @@ def test_frame_folder_8bit_tiff_and_bad_folders(tmp_path):
     for k in range(4):
         frame = np.full((3, 4, 1), 0.5 if k == 3 else 2000, np.float32 if k == 3 else np.uint16)
         write_frame(mixed / f"{k}.tif", frame, oiio.FLOAT if k == 3 else oiio.UINT16)
+    # A float frame with NaN or negative counts (the folder was named, not the frame).
+    bad = {}
+    for name, value in (("nan", np.nan), ("negative", -90.0)):
+        bad[name] = tmp_path / name
+        bad[name].mkdir()
+        for k in range(4):
+            frame = np.full((3, 4, 1), value if k == 1 else 5.0, np.float32)
+            write_frame(bad[name] / f"s_{k}.tif", frame, oiio.FLOAT)
     empty = tmp_path / "empty"
     empty.mkdir()
-    for folder, culprit in ((rgb, "0.png"), (sizes, "2.png"), (mixed, "3.tif"), (empty, "empty")):
+    for folder, culprit in (
+        (rgb, "0.png"),
+        (sizes, "2.png"),
+        (mixed, "3.tif"),
+        (bad["nan"], "s_1.tif: frame contains 12 NaN"),
+        (bad["negative"], "s_1.tif: frame has negative counts"),
+        (empty, "empty"),
+    ):
         proc = subprocess.run(
             [sys.executable, "-m", "doe.cli", "depth", str(folder), "--out", str(tmp_path / "o")],
             capture_output=True,
