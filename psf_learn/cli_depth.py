@@ -124,7 +124,10 @@ def _response(args):
         if not np.isfinite(t0):
             raise InputError("--irf-t0-ps", "must be a finite number")
         summary = {"irf": str(args.irf), "irf_t0_ps": t0, "warnings": _irf_warnings(irf)}
-        return response_from_irf(irf, shift, t0 * 1e-12), summary
+        try:
+            return response_from_irf(irf, shift, t0 * 1e-12), summary
+        except ValueError as e:
+            raise InputError(args.irf, str(e)) from None
     if args.irf_t0_ps is not None:
         raise InputError("--irf-t0-ps", "only applies with --irf")
     params = {}

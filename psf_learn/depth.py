@@ -282,6 +282,13 @@ def response_from_irf(irf, shift, t_ref=0.0, step=1e-12):
     irf = np.clip(irf, 0.0, None)
     if not irf.max() > 0:
         raise ValueError("the IRF is all zero")
+    peak = int(np.argmax(irf))
+    if peak in (0, irf.size - 1):  # h's scale and timing would come from an extrapolation
+        raise ValueError(
+            f"the IRF peaks at its {'first' if peak == 0 else 'last'} sample: the reference's "
+            "peak lies outside the scan, so neither h's scale nor the timing origin is "
+            "known; place the reference so that its whole profile lies in the scan"
+        )
     from scipy.interpolate import CubicSpline  # slow to import; only the IRF path
 
     y = irf / irf.max()

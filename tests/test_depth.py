@@ -368,6 +368,9 @@ def test_an_irf_is_refused_unless_a_finite_profile_with_light(response):
         (np.ones(3), "1-D with at least 4 samples"),
         (np.array([0.0, 1.0, np.inf, 1.0]), "NaN or infinite"),
         (-np.ones(6), "all zero"),  # background-subtracted noise alone
+        # The peak outside the scan: h's scale and timing origin unknown (110-300 ps off)
+        (np.array([1.0, 0.8, 0.5, 0.2, 0.1]), "peaks at its first sample"),
+        (np.array([0.1, 0.5, 0.9, 1.0]), "peaks at its last sample"),
     ):
         with pytest.raises(ValueError, match=why):
             response_from_irf(irf, SHIFT)
@@ -377,11 +380,12 @@ def test_an_irf_tail_of_two_decays_is_extended_along_its_last_slope():
     # Two decay constants make log h convex where the scan cuts it: a parabola through
     # the edge's samples would turn upwards, so h goes on along the straight line (in
     # log h) through the last two samples, h(t_end + d) = h(t_end) exp(-s d) with
-    # s = ln(y[-2] / y[-1]) / shift. The early edge rises into the scan: no extension.
+    # s = ln(y[-2] / y[-1]) / shift. The early edge rises from 0 into the scan (its peak
+    # inside it): no extension.
     n = np.arange(30)
-    irf = 0.5 * np.exp(-n / 3) + 0.5 * np.exp(-n / 12)
+    irf = np.concatenate([[0.0, 0.5], 0.5 * np.exp(-n / 3) + 0.5 * np.exp(-n / 12)])
     h = response_from_irf(irf, SHIFT)
-    t_end, slope = 29 * SHIFT, np.log(irf[-2] / irf[-1]) / SHIFT
+    t_end, slope = 31 * SHIFT, np.log(irf[-2] / irf[-1]) / SHIFT
     d = np.array([20.0, 100.0, 500.0]) * PS
     np.testing.assert_allclose(h(t_end + d) / h(t_end), np.exp(-slope * d), rtol=1e-3)
     assert h.start == 0.0
@@ -516,6 +520,13 @@ def test_cli_depth_warns_when_the_irf_is_cut_high_up(tmp_path, response, capsys)
     assert "IRF is cut at 0.8" in err and "end of the scan" in err
     warnings = json.loads((tmp_path / "out" / "depth.json").read_text())["warnings"]
     assert len(warnings) == 1 and "IRF" in warnings[0]
+    # Cut past its peak: refused, naming the file (it passed with the same warning).
+    t_ref = (T - 1) * SHIFT - response.times[np.argmax(response.values)] + 3 * SHIFT
+    np.save(tmp_path / "past.npy", response(scan_times(T, SHIFT) - t_ref))
+    args = ["--irf", str(tmp_path / "past.npy"), "--irf-t0-ps", str(t_ref / PS)]
+    assert main(["depth", str(path), *args, "--out", str(tmp_path / "o2")]) == 2
+    assert "past.npy: the IRF peaks at its last sample" in capsys.readouterr().err
+    assert not (tmp_path / "o2").exists()
 
 
 def bad_cubes():
