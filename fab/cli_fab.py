@@ -221,7 +221,10 @@ def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=Tru
         for note in notes:
             print(f"doefab fab: {note}", file=sys.stderr)
         bar.set_postfix_str("gds")
-        lib, layout = build_library(masks, pitch_nm, tiles, design.name, aperture_nm)
+        lib, layout = build_library(
+            masks, pitch_nm, tiles, design.name, aperture_nm,
+            grid_nm=round(design.fabrication.grid * 1e9),
+        )  # fmt: skip
         write_gds(lib, stage / fm.GDS_NAME)
         try:  # KLayout reads the file back: gdstk truncates it on a full disk without a word
             if oasis:

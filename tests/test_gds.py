@@ -103,6 +103,23 @@ def test_golden_xor_against_independent_reference(tmp_path):
 def test_array_origin_of_an_odd_sized_array_rounds_towards_zero():
     # -(tiles * N * p // 2): 3 * 5 * 4991 nm = 74865 nm -> -37432, the spare nm at +x/+y
     assert array_origin_nm((3, 1), 5, 4991) == (-37432, -12477)
+    # on a 5 nm grid: 3 * 5 * 4995 = 74925 -> 37462 -> 37460 (it was -37462, off the grid)
+    assert array_origin_nm((3, 1), 5, 4995, grid_nm=5) == (-37460, -12485)
+
+
+def test_a_coarse_grid_puts_every_vertex_of_the_plate_on_it():
+    # 19 tiles of 35 pixels of 20265 nm (532 nm on a 5 nm grid): the array's origin was
+    # half a pitch off the grid, and so was every placed vertex; marks and labels too.
+    grid, pitch = 5, 4995
+    masks = masks_from_levels(random_levels(7, seed=5), L, STEP)
+    lib, info = build_library(masks, pitch, (3, 3), "grid test", aperture_nm=400_000, grid_nm=grid)
+    assert all(v % grid == 0 for v in info.array_origin_nm)
+    top = next(c for c in lib.cells if c.name == info.top_cell).copy("flat").flatten()
+    points = np.concatenate([p.points for p in top.polygons]) * 1000  # nm
+    assert points.shape[0] > 1000  # tiles, marks and labels
+    np.testing.assert_array_equal(np.round(points) % grid, 0)
+    with pytest.raises(ValueError, match="not on the 5 nm grid"):
+        build_library(masks, 4991, (1, 1), "t", grid_nm=grid)
 
 
 def test_flat_library_draws_the_tiles_polygons_in_the_top_cell(tmp_path):
