@@ -188,7 +188,7 @@ def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=Tru
     problem = lattice_problem(der, k, design.fabrication.grid)
     if problem:
         raise InputError(Path(design_dir) / "levels.npy", f"N = {n} pixels per tile: {problem}")
-    notes = []  # printed once the output folder is accepted: a refusal is one line
+    notes = []  # printed once the package is written: a refusal is one line
     nominal = derive(design).tile_pixels
     if n > nominal:  # finer pixels than the process was chosen for
         notes.append(
@@ -205,6 +205,7 @@ def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=Tru
             "no target_psf.npy in the design folder; using the simulated PSF of "
             "levels.npy as the target"
         )
+    notes += _goal_warnings(levels, n_levels, target, simulated)
     tiles = (der.tiles, der.tiles)
     aperture_nm = round(design.fabrication.aperture * 1e9)
     masks = masks_from_levels(levels, n_levels, der.level_step)
@@ -218,8 +219,6 @@ def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=Tru
     known += [fm.OASIS_NAME] if oasis else []
     stale = previous_files(Path(out) / fm.MANIFEST_NAME, _package_files)
     with staged_output(out, force, names=known, stale=stale) as stage:
-        for note in notes:
-            print(f"doefab fab: {note}", file=sys.stderr)
         bar.set_postfix_str("gds")
         lib, layout = build_library(
             masks, pitch_nm, tiles, design.name, aperture_nm,
@@ -282,7 +281,30 @@ def run_fab(design_dir, out, config=None, force=False, oasis=False, progress=Tru
         bar.update()
         bar.close()
         all_files = sorted(str(p.relative_to(stage)) for p in stage.rglob("*") if p.is_file())
+    for note in notes:  # once the package is in place: a refusal stays one line
+        print(f"doefab fab: {note}", file=sys.stderr)
     return {"manifest": manifest, "files": all_files, "report_files": report_files}
+
+
+def _goal_warnings(levels, n_levels, target, simulated):
+    """Say when the nominal plate misses the design goals, as the report's Summary does:
+    in the contract's model, or only as a plate of square pixels (whose sinc^2 envelope
+    dims the outer orders; a report said "met" above a tolerance table that missed)."""
+    from doe.fraunhofer import correlation, level_phase, plate_quality, rmse
+    from doe.retrieval import missed_goals
+
+    missed = missed_goals(
+        {"correlation": correlation(simulated, target), "rmse": rmse(simulated, target)}
+    )
+    if missed:
+        return [f"warning: the nominal plate misses the design goals ({'; '.join(missed)})"]
+    plate_missed = missed_goals(plate_quality(level_phase(levels, n_levels), target))
+    if plate_missed:
+        return [
+            "warning: the design meets the goals, but a plate of square pixels misses them "
+            f"({'; '.join(plate_missed)}); see the report's Summary"
+        ]
+    return []
 
 
 def _package_files(manifest):

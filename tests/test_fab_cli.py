@@ -415,6 +415,23 @@ def test_report_summary_describes_the_fabricated_tile():
     assert abs(summary["tile_size_um"] - 35 * summary["mask_pixel_pitch_nm"] / 1000) < 1e-6
 
 
+def test_a_plate_missing_the_goals_is_made_with_a_warning(tmp_path, capsys):
+    # The report's Summary judged only the contract's model: a 21-pixel tile against
+    # its own PSF read "met" while, etched in square pixels, it missed the goals.
+    d = tmp_path / "design"
+    levels = make_design_dir(d, n=21)
+    assert main(["fab", str(d), "--out", str(tmp_path / "own")]) == 0
+    err = capsys.readouterr().err
+    assert "warning: the design meets the goals, but a plate of square pixels misses" in err
+    # against another PSF the nominal plate misses them in the contract's model too
+    other = simulate_levels(np.roll(levels, 3, axis=1)[::-1], 8, 11)[0]
+    np.save(d / "target_psf.npy", other)
+    assert main(["fab", str(d), "--out", str(tmp_path / "other")]) == 0
+    err = capsys.readouterr().err
+    assert "warning: the nominal plate misses the design goals (correlation" in err
+    assert "square pixels" not in err
+
+
 def test_a_gds_cut_short_by_a_full_disk_is_exit_2(tmp_path, capsys, monkeypatch):
     # gdstk truncates on a full disk without a word; KLayout's read-back then raised a
     # RuntimeError traceback (exit 1).

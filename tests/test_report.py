@@ -203,6 +203,24 @@ def test_summary_states_whether_the_design_meets_the_goals(written, tmp_path):
     assert "1.000000 / 0.00000" in text
 
 
+def test_summary_judges_the_plate_of_square_pixels_too(tmp_path):
+    # The plate against its own simulated PSF meets the goals in the contract's model;
+    # etched, its square pixels dim order m by sinc^2(m / N), and on this small tile it
+    # misses them, which the Summary hid under "met" (the tolerance section said so).
+    context = make_context(tmp_path, with_tolerance=False)
+    target = context["target_psf"] = context["simulated_psf"]
+    env = np.sinc((np.arange(K) - K // 2) / N) ** 2
+    plate = target * np.outer(env, env)
+    corr = np.corrcoef(plate.ravel(), target.ravel())[0, 1]
+    assert corr < 0.9999
+    write_fab_report(tmp_path / "own", context)
+    text = (tmp_path / "own" / REPORT_MD).read_text()
+    assert "design goals (correlation >= 0.9999, rmse <= 0.005) | met |" in text
+    row = re.search(r"as a plate of square pixels \(sinc\^2 envelope\) \| MISSED: correlation "
+                    r"(0\.\d+) < 0\.9999", text)  # fmt: skip
+    assert row and float(row[1]) == pytest.approx(corr, abs=1e-6)
+
+
 def test_an_undefined_correlation_reads_undefined_not_nan(tmp_path):
     # A 1 x 1 or uniform PSF has no correlation: the tolerance section printed "nan".
     context = make_context(tmp_path)
