@@ -185,7 +185,7 @@ def _super_resolve_cube(model_dir, cube):
 
 def _depth(args):
     from doe.files import previous_files, save_npy, staged_output, write_json
-    from psf_learn.cubes import read_cube
+    from psf_learn.cubes import read_cube, scan_gaps
     from psf_learn.depth import check_scan
 
     response, gate_summary = _response(args)
@@ -221,7 +221,9 @@ def _depth(args):
             folder.mkdir(exist_ok=True)
             stats = _fit_and_write(folder, data, shift, response, args.min_significance, save_npy)
             summary["sr" if prefix else "native"] = stats
-        summary["warnings"] = gate_summary.pop("warnings", []) + _model_warnings(summary)
+        summary["warnings"] = (
+            gate_summary.pop("warnings", []) + scan_gaps(args.cube) + _model_warnings(summary)
+        )
         write_json(stage / "depth.json", summary)
     for warning in summary["warnings"]:
         print(f"depth: warning: {warning}", file=sys.stderr)
@@ -337,7 +339,7 @@ def _example_pixels(fit):
 
 def _transient(args):
     from doe.files import previous_files, save_npy, staged_output, write_json
-    from psf_learn.cubes import read_cube, write_frame_png16
+    from psf_learn.cubes import read_cube, scan_gaps, write_frame_png16
     from psf_learn.depth_plots import gif_frame_centiseconds, gif_zoom, save_gif
 
     flags.positive("--shift-ps", args.shift_ps)
@@ -346,6 +348,7 @@ def _transient(args):
     except ValueError as e:
         raise InputError("--fps", str(e)) from None
     cube = read_cube(args.cube, min_samples=1)
+    gaps = scan_gaps(args.cube)
     if args.sr:
         cube = _super_resolve_cube(args.sr, cube)
     frames = np.moveaxis(cube, -1, 0)
@@ -379,8 +382,11 @@ def _transient(args):
                 "png_full_scale_counts": scale,
                 "png_note": "frame PNGs are 16-bit, counts = value / 65535 * png_full_scale_counts",
                 "gif_fps": gif_fps,
+                "warnings": gaps,
             },
         )
+    for warning in gaps:
+        print(f"transient: warning: {warning}", file=sys.stderr)
     if abs(gif_fps - args.fps) > 0.005 * args.fps:
         print(
             f"transient: preview.gif plays at {gif_fps:.4g} fps, the nearest to --fps "

@@ -87,22 +87,65 @@ def sorted_frames(paths):
     (``t_-20ps`` beside ``t_0ps``, once sorted as -0, 20, -20 and scrambled), not where
     every name has it (``frame-10`` is frame 10).
     """
-
-    def shapes(signed):
-        return {re.sub(f"{'-?' if signed else ''}{_NUMBER}", "#", p.name) for p in paths}
-
-    signed = len(shapes(signed=False)) > 1 and len(shapes(signed=True)) == 1
+    signed = _minus_is_sign(paths)
     return sorted(paths, key=lambda p: frame_order(p, signed))
 
 
-def _read_frame_folder(folder):
-    files = sorted_frames(
+def _minus_is_sign(paths):
+    def shapes(signed):
+        return {re.sub(f"{'-?' if signed else ''}{_NUMBER}", "#", p.name) for p in paths}
+
+    return len(shapes(signed=False)) > 1 and len(shapes(signed=True)) == 1
+
+
+def _frame_files(folder):
+    """The frame files of a folder, in scan order; hidden files aside (macOS's
+    "._frame_001.png" metadata)."""
+    return sorted_frames(
         [
             p
-            for p in folder.iterdir()
+            for p in Path(folder).iterdir()
             if p.is_file() and p.suffix.lower() in FRAME_SUFFIXES and not p.name.startswith(".")
-        ]  # hidden files aside: macOS's "._frame_001.png" metadata
+        ]
     )
+
+
+def scan_gaps(path):
+    """Return notes on frames missing from a folder's scan (none for an .npy cube).
+
+    Every frame is taken as one scan step, so a lost frame moves every later
+    return by a step. Where one number alone varies across the names, and its
+    steps are whole multiples of the smallest with some larger, a frame is missing.
+    """
+    path = Path(path)
+    if not path.is_dir():
+        return []
+    files = _frame_files(path)
+    signed = _minus_is_sign(files)
+    keys = [[k[1] for k in frame_order(p, signed) if k[0]] for p in files]
+    if len(files) < 3 or len({len(k) for k in keys}) != 1:
+        return []
+    numbers = np.array(keys, dtype=np.float64)
+    varying = np.flatnonzero(np.ptp(numbers, axis=0) > 0)
+    if varying.size != 1:
+        return []
+    steps = np.diff(numbers[:, varying[0]])
+    if not steps.min() > 0:
+        return []
+    ratio = steps / steps.min()
+    if not (np.allclose(ratio, np.round(ratio), rtol=0, atol=1e-6) and ratio.max() > 1.5):
+        return []
+    k = int(np.argmax(ratio > 1.5))  # the first gap
+    missing = int(np.round(ratio).sum()) - steps.size
+    return [
+        f"the frame names step by {steps.min():g} but jump from {files[k].name} to "
+        f"{files[k + 1].name} ({missing} frame(s) missing in all?); every frame is taken as "
+        "one --shift-ps step, so returns after a gap come out late"
+    ]
+
+
+def _read_frame_folder(folder):
+    files = _frame_files(folder)
     if not files:
         raise InputError(folder, f"no frames ({', '.join(FRAME_SUFFIXES)}) in this folder")
     frames = [read_frame(p) for p in files]

@@ -12,7 +12,7 @@ import pytest
 
 from doe.cli import main
 from doe.errors import InputError
-from psf_learn.cubes import read_cube, write_frame_png16
+from psf_learn.cubes import read_cube, scan_gaps, write_frame_png16
 from psf_learn.depth import (
     FWHM_PER_SIGMA,
     SPEED_OF_LIGHT,
@@ -422,6 +422,54 @@ def write_scene_cube(tmp_path, response, shape=(6, 10), amplitude=80.0, backgrou
     path = tmp_path / "cube.npy"
     np.save(path, cube.astype(np.uint16))
     return path, mu
+
+
+def write_frame_folder(folder, cube, names):
+    folder.mkdir()
+    for k, name in enumerate(names):
+        write_frame_png16(folder / name, cube[..., k] / 65535.0)
+    return folder
+
+
+@pytest.mark.parametrize(
+    "names, note",
+    [
+        ([f"shift_{k}.png" for k in range(12) if k != 5], "from shift_4.png to shift_6.png (1"),
+        ([f"gate_{0.02 * k:g}ns.png" for k in (0, 1, 2, 5, 6, 8)],
+         "by 0.02 but jump from gate_0.04ns.png to gate_0.1ns.png (3"),
+        ([f"t_{k}ps.png" for k in range(-60, 60, 20)], None),  # signed, complete
+        ([f"gate_{0.02 * k:g}ns.png" for k in range(9)], None),  # decimals, complete
+        ([f"img_{k}.png" for k in (1003, 1017, 1052, 1060)], None),  # no common step
+        ([f"cam{k % 2}_{k}.png" for k in (0, 1, 3, 4)], None),  # two numbers vary
+    ],
+)  # fmt: skip
+def test_a_frame_missing_from_a_numbered_scan_is_noted(tmp_path, names, note):
+    # Every frame is one scan step: a lost frame moved every later return by a step, and
+    # a folder with one missing was accepted without a word.
+    cube = np.zeros((2, 3, len(names)), np.uint16)
+    folder = write_frame_folder(tmp_path / "frames", cube, names)
+    gaps = scan_gaps(folder)
+    if note is None:
+        assert gaps == []
+    else:
+        assert len(gaps) == 1 and note in gaps[0]
+    np.save(tmp_path / "cube.npy", cube)
+    assert scan_gaps(tmp_path / "cube.npy") == []
+
+
+def test_cli_depth_warns_of_a_frame_missing_from_the_scan(tmp_path, response, capsys):
+    path, _ = write_scene_cube(tmp_path, response, shape=(2, 3))
+    cube = np.load(path)
+    names = [f"shift_{k:03d}.png" for k in range(T + 1) if k != 40]  # frame 40 lost
+    folder = write_frame_folder(tmp_path / "frames", cube, names)
+    assert main(["depth", str(folder), "--out", str(tmp_path / "out")]) == 0
+    err = capsys.readouterr().err
+    assert "depth: warning: the frame names step by 1 but jump from shift_039.png" in err
+    warnings = json.loads((tmp_path / "out" / "depth.json").read_text())["warnings"]
+    assert any("shift_041.png (1 frame(s) missing" in w for w in warnings)
+    assert main(["transient", str(folder), "--out", str(tmp_path / "tr")]) == 0
+    assert "transient: warning: the frame names step by 1" in capsys.readouterr().err
+    assert json.loads((tmp_path / "tr" / "transient.json").read_text())["warnings"]
 
 
 def test_cli_depth_round_trip(tmp_path, response, capsys):
