@@ -163,11 +163,13 @@ def fit_overlay_error(window, sigma, levels, n_levels):
         the edge of the search), "chi2" (the fit's), "chi2_drop" (how much
         better than no shift, in chi-square units when ``sigma`` is given, over
         the fit's reduced chi-square where that passes 1), "reduced_chi2" and
-        "psf" (the fitted window, sum 1); None when no mask has both etched and
-        unetched pixels (a shift leaves no trace).
+        "psf" (the fitted window, sum 1); None when fewer than two masks have both
+        etched and unetched pixels: the shift of the one mask then moves the whole
+        pattern, which the order powers do not see (a 2-level plate's failing capture
+        crashed the overlay-and-etch fit).
     """
     model = OverlayModel(levels, n_levels, window.shape[0])
-    if not any(model.used):
+    if np.count_nonzero(model.used) < 2:
         return None
     wts = np.ones(window.shape) if sigma is None else 1 / np.maximum(np.asarray(sigma), 1e-30)
     meas = np.asarray(window, float) * wts

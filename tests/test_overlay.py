@@ -117,6 +117,9 @@ def test_the_fit_of_an_aligned_plate_is_no_shift(levels):
 def test_a_design_no_mask_structures_has_no_overlay_fit():
     # Every mask etches all pixels or none: a shift leaves no trace.
     assert fit_overlay_error(np.ones((K, K)), None, np.full((N, N), 5, np.uint8), L) is None
+    # Levels 0 and 4 differ in M1 alone: its shift moves the whole pattern, no trace either
+    binary = 4 * np.random.default_rng(2).integers(0, 2, (N, N)).astype(np.uint8)
+    assert fit_overlay_error(np.ones((K, K)), None, binary, L) is None
 
 
 @pytest.mark.parametrize("mask", [0, 1, 2])

@@ -2254,3 +2254,33 @@ def test_hot_pixels_are_the_same_in_capture_and_dark_at_a_fifth_to_nine_tenths_o
     assert np.all(np.abs(cap[away].astype(float) - dark[away]) < 6 * np.sqrt(2) * 41)
     level = dark[hot] - 50.0
     assert np.all(level > 0.2 * 4095 - 150) and np.all(level < 0.9 * 4095 + 150)
+
+
+def test_a_two_level_plate_that_fails_is_diagnosed_not_a_crash(tmp_path):
+    # One mask: the overlay-and-etch fit built its classes from no other mask and raised
+    # (exit 3) on every failing capture of a 2-level design; a shift of its one mask moves
+    # the whole pattern, which the order powers do not see, so no overlay is fitted.
+    levels = np.random.default_rng(21).integers(0, 2, (N, N)).astype(np.uint8)
+    design = tmp_path / "design"
+    design.mkdir()
+    save_npy(design / "levels.npy", levels)
+    save_npy(design / "target_psf.npy", simulate_levels(levels, 2, K)[0])
+    write_json(design / "fab_manifest.json", {
+        "levels": 2, "kernel_size": K, "lattice_pitch_um": PITCH_UM,
+        "levels_file": "levels.npy", "target_psf_file": "target_psf.npy",
+        "masks": [{"name": "M1", "etch_depth_nm": 717.6, "exposure_order": 1}],
+    })  # fmt: skip
+    mirrored = PlateFaults(other_levels=np.ascontiguousarray(levels[:, ::-1]))
+    for name, faults, named in (
+        ("deep", PlateFaults(etch_errors=(0.25,)), "deep_etch_error"),
+        ("mirrored", mirrored, "mirrored"),
+    ):
+        sim = simulate_capture(levels, 2, pitch_px=PITCH_PX, seed=3, faults=faults)
+        write_image(tmp_path / f"{name}.png", sim["capture"], exposure=0.01)
+        write_image(tmp_path / f"{name}_dark.png", sim["dark"], exposure=0.01)
+        out = tmp_path / f"out_{name}"
+        args = [str(tmp_path / f"{name}.png"), "--dark", str(tmp_path / f"{name}_dark.png")]
+        assert main(["verify", str(design), *args, "--out", str(out)]) == 1
+        report = json.loads((out / "verify.json").read_text())
+        assert named in report["diagnosis"]
+        assert report["overlay_error_fit"] is None
