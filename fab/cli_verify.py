@@ -523,7 +523,7 @@ def _more_signal(capture):
             "the brightest dot is near full scale already: use the camera's 12- or 16-bit "
             "mode, or average several frames"
         )
-    return "lengthen the exposure"
+    return "lengthen the exposure (or average frames) until the brightest dot nears full scale"
 
 
 def _notes(result, capture, design):
@@ -561,10 +561,7 @@ def _notes(result, capture, design):
             f"; runner-up offset {z['runner_up_margin']:.3g}); " + _more_signal(capture)
         )
     if "low_signal" in result.get("diagnosis", []):
-        notes.append(
-            f"window SNR {result['window_snr']:.3g} is under 30: lengthen the exposure "
-            "(or average frames) until the brightest dot nears full scale"
-        )
+        notes.append(f"window SNR {result['window_snr']:.3g} is under 30: " + _more_signal(capture))
     if design.acceptance is None:
         notes.append("no acceptance in the design folder: default thresholds used")
     return notes

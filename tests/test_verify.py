@@ -457,6 +457,16 @@ def test_low_signal_fails(tmp_path, levels, capsys):
     out = capsys.readouterr()  # "FAIL: low_signal" and nothing more was printed
     assert out.out.startswith("FAIL (capture not judged): low_signal")
     assert re.search(r"window SNR [\d.]+ is under 30: lengthen the exposure", out.err)
+    # an 8-bit capture near full scale is told of the camera's deeper modes (it was told
+    # to lengthen the exposure, which saturates it)
+    code, report, _ = run_verify(
+        tmp_path / "full", levels, dict(seed=13, bits=8, peak_fraction=0.94, read_noise_dn=6.0)
+    )
+    assert code == 1 and "low_signal" in report["diagnosis"]
+    assert re.search(
+        r"under 30: the brightest dot is near full scale already: use the camera's 12- or 16-bit",
+        capsys.readouterr().err,
+    )
 
 
 def test_hot_pixels_that_may_lie_on_dots_ask_for_a_dark_frame(tmp_path, levels, capsys):
@@ -923,6 +933,19 @@ def test_the_joint_etch_fit_inverts_a_plate_with_every_etch_off(levels, errors):
     for err, chi2 in zip(errors, fit["mask_chi2"], strict=True):
         assert (chi2 > 100) if err else (chi2 < 1e-3)
     assert fit["psf"] == pytest.approx(window / window.sum(), abs=1e-6)
+
+
+def test_the_joint_etch_fit_finds_a_big_error_past_the_local_minimum_near_0():
+    # Started from no error alone, the fit stopped at M1 -9 % on this 4-level design's
+    # window of M1 +40 % (a helper's 4-level plate: +25 % read +8 %, and the plate passed).
+    from doe.retrieval import retrieve_phase
+    from doe.targets import make_target
+
+    levels = retrieve_phase(make_target("asymmetric", K), N, 4, seed=0).levels
+    orders = np.meshgrid(np.arange(K) - K // 2, np.arange(K) - K // 2, indexing="ij")
+    for errors in ((0.4, 0.0), (-0.4, 0.0), (0.1, 0.0)):
+        window = plate_far_field(plate_phase(levels, 4, PlateFaults(etch_errors=errors)))(*orders)
+        assert fit_etch_errors(window, None, levels, 4)["eps"] == pytest.approx(errors, abs=1e-3)
 
 
 def test_the_joint_etch_fit_s_sigmas_are_the_spread_of_its_errors_over_noise(
