@@ -403,14 +403,18 @@ def _in_um_and_nm(fit, design):
 
 def _beyond_reach_hint(report):
     """Return a note when the window is a mask printed off the others by more than the
-    reach verify names an overlay in (none is named then)."""
+    reach verify names an overlay in (none is named then), and no etch fit explains it
+    better (a 16-level plate's deepest etch 25 % off, named, came with an instruction to
+    check an alignment that was right: the overlay fit had stopped at its search's edge)."""
     from fab.diagnosis import SIGNIFICANCE, within_reach
     from fab.overlay import REACH_PX
 
-    fit = report["overlay_error_fit"]
+    fit, etch = report["overlay_error_fit"], report.get("etch_error_fit")
     if (
         fit is None
         or "overlay_error" in report["diagnosis"]
+        or {"deep_etch_error", "etch_depth_error"} & set(report["diagnosis"])
+        or (etch is not None and etch["chi2"] <= fit["chi2"])
         or within_reach(fit)
         or fit["significance"] <= (SIGNIFICANCE + 1) ** 2
         or fit["correlation"] < report["thresholds"]["correlation_min"]

@@ -2307,3 +2307,18 @@ def test_a_two_level_plate_that_fails_is_diagnosed_not_a_crash(tmp_path):
         report = json.loads((out / "verify.json").read_text())
         assert named in report["diagnosis"]
         assert report["overlay_error_fit"] is None
+
+
+def test_no_alignment_is_blamed_where_an_etch_fit_explains_the_window_better():
+    # A 16-level plate's deepest etch 25 % too deep was named, and came with "mask
+    # M4_1step printed 62 um off ... check that exposure's alignment": an overlay fit
+    # stopped at the edge of its search (correlation 0.974, the etch fit's 0.9999).
+    from fab.cli_verify import _beyond_reach_hint
+
+    overlay = {"mask": "M4_1step", "shift_px": [-2.5, -2.5], "significance": 11.8,
+               "correlation": 0.974, "chi2": 300.0}  # fmt: skip
+    report = {"overlay_error_fit": overlay, "etch_error_fit": {"chi2": 900.0},
+              "diagnosis": ["psf_mismatch"], "thresholds": {"correlation_min": 0.95}}  # fmt: skip
+    assert "printed off the other masks by -2.50 mask pixels" in _beyond_reach_hint(report)
+    assert _beyond_reach_hint({**report, "etch_error_fit": {"chi2": 120.0}}) is None
+    assert _beyond_reach_hint({**report, "diagnosis": ["deep_etch_error", "psf_mismatch"]}) is None
