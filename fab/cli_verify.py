@@ -15,6 +15,11 @@ MTF_FILES = ("mtf.json", "mtf.png")
 # a dark frame); 0.13-0.83 at 0.59, 0.75, 1.33, 1.7 and 2 times it, except where the
 # fitted lattice is finer than the plate's and holds it (0.5 or 0.7 times): 1.0.
 ON_LATTICE_MIN = 0.9
+# Below this share of the design's light outside the window in orders above the noise,
+# the efficiency is the design's share, not a measurement (see _notes): 0-0.035 on
+# 8-bit captures of 4, 8 and 16-level designs, whose faulty plates read the design's
+# efficiency (0.713 for a true 0.551); 0.26-0.72 on 16-bit ones, which measured it.
+OUTSIDE_LIGHT_MEASURED_MIN = 0.1
 
 
 def register(sub):
@@ -566,6 +571,15 @@ def _notes(result, capture, design):
         )
     if "low_signal" in result.get("diagnosis", []):
         notes.append(f"window SNR {result['window_snr']:.3g} is under 30: " + _more_signal(capture))
+    measured = result.get("outside_light_measured", 1.0)
+    if measured < OUTSIDE_LIGHT_MEASURED_MIN:
+        notes.append(
+            f"only {measured:.0%} of the light the design sends outside the window lies in "
+            "orders above the noise; the rest is taken at the design's share, so the "
+            f"efficiency ({result['efficiency']:.4f}) is largely the design's own and a "
+            "low efficiency goes unseen: a capture of more dynamic range (the camera's 12- "
+            "or 16-bit mode, or averaged frames) measures it"
+        )
     if design.acceptance is None:
         notes.append("no acceptance in the design folder: default thresholds used")
     return notes

@@ -527,6 +527,12 @@ def _analyse_as(plate, grid, levels, n_levels, kernel_size, orientation, thresho
             "rmse": rmse(measured_psf, design_psf),
             "efficiency": efficiency,
             "efficiency_sigma": float(eff_sigma),
+            # how much of the design's light outside the window lies in orders measured:
+            # the rest is taken at the design's share, so near 0 (an 8-bit capture whose
+            # outer orders drown in noise) the efficiency is the design's, whatever the plate
+            "outside_light_measured": float(
+                (beam["model_share"] - model[sl].sum()) / max(1 - model[sl].sum(), 1e-12)
+            ),
             "zero_order": zero,
             "zero_order_sigma": float(zero_sigma),
             "zero_order_excess": zero - float(period[0, 0]),

@@ -2322,3 +2322,16 @@ def test_no_alignment_is_blamed_where_an_etch_fit_explains_the_window_better():
     assert "printed off the other masks by -2.50 mask pixels" in _beyond_reach_hint(report)
     assert _beyond_reach_hint({**report, "etch_error_fit": {"chi2": 120.0}}) is None
     assert _beyond_reach_hint({**report, "diagnosis": ["deep_etch_error", "psf_mismatch"]}) is None
+
+
+def test_an_efficiency_the_capture_cannot_measure_is_said_to_be_the_design_s(tmp_path, designed):
+    # On an 8-bit capture the orders outside the window drown in noise and the beam is
+    # taken at the design's share of the window: a faulty plate read its design's
+    # efficiency (0.713 for a true 0.551) with nothing said. A 16-bit capture measures it.
+    quiet = dict(seed=4, bits=8, read_noise_dn=0.4, peak_fraction=0.75)
+    _, report, _ = run_verify(tmp_path / "8", designed, quiet)
+    assert report["outside_light_measured"] < 0.1
+    assert any("is largely the design's own" in n for n in report["notes"])
+    _, report, _ = run_verify(tmp_path / "16", designed, dict(seed=4, bits=16))
+    assert report["outside_light_measured"] > 0.2
+    assert not any("largely the design's own" in n for n in report["notes"])
