@@ -290,15 +290,11 @@ def _goal_warnings(levels, n_levels, target, simulated):
     """Say when the nominal plate misses the design goals, as the report's Summary does:
     in the contract's model, or only as a plate of square pixels (whose sinc^2 envelope
     dims the outer orders; a report said "met" above a tolerance table that missed)."""
-    from doe.fraunhofer import correlation, level_phase, plate_quality, rmse
-    from doe.retrieval import missed_goals
+    from fab.report import goals_missed
 
-    missed = missed_goals(
-        {"correlation": correlation(simulated, target), "rmse": rmse(simulated, target)}
-    )
+    missed, plate_missed = goals_missed(levels, n_levels, target, simulated)
     if missed:
         return [f"warning: the nominal plate misses the design goals ({'; '.join(missed)})"]
-    plate_missed = missed_goals(plate_quality(level_phase(levels, n_levels), target))
     if plate_missed:
         return [
             "warning: the design meets the goals, but a plate of square pixels misses them "

@@ -126,6 +126,15 @@ def _mask_bitmaps(levels, n_levels, manifest):
 # ---------------------------------------------------------------- content
 
 
+def goals_missed(levels, n_levels, target, simulated_psf):
+    """Return the design goals the nominal plate misses, in the contract's model (its
+    ``simulated_psf``) and as a plate of square pixels, whose sinc^2 envelope the
+    contract leaves out: two lists of phrases, empty where met."""
+    fit = {"correlation": correlation(simulated_psf, target), "rmse": rmse(simulated_psf, target)}
+    plate = plate_quality(level_phase(levels, n_levels), target)
+    return missed_goals(fit), missed_goals(plate)
+
+
 def report_blocks(context, figures=()):
     """Return the report as a list of blocks: (kind, ...) tuples rendered by both writers.
 
@@ -138,10 +147,7 @@ def report_blocks(context, figures=()):
     target = np.asarray(context["target_psf"], float)
     sim = np.asarray(context["simulated_psf"], float)
     fit = {"correlation": correlation(sim, target), "rmse": rmse(sim, target)}
-    missed = missed_goals(fit)
-    # the plate as etched: square pixels, whose sinc^2 envelope the contract leaves out
-    plate = plate_quality(level_phase(context["levels"], man["levels"]), target)
-    plate_missed = missed_goals(plate)
+    missed, plate_missed = goals_missed(context["levels"], man["levels"], target, sim)
     step = man["level_step_nm"]
     n_levels = man["levels"]
     b = []
