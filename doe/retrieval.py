@@ -201,6 +201,18 @@ class _Goal:
         )
 
 
+def goals_missed(levels, n_levels, target, simulated_psf):
+    """Return the goals a plate of ``levels`` misses, in the contract's model (its
+    ``simulated_psf``) and as a plate of square pixels, whose sinc^2 envelope the
+    contract leaves out: two lists of :func:`missed_goals` phrases, empty where met."""
+    contract = {
+        "correlation": fraunhofer.correlation(simulated_psf, target),
+        "rmse": fraunhofer.rmse(simulated_psf, target),
+    }
+    plate = fraunhofer.plate_quality(fraunhofer.level_phase(levels, n_levels), target)
+    return missed_goals(contract), missed_goals(plate)
+
+
 def _values(power, goal, weight, cap=0.0, mode="exact"):
     """Return J for window powers ``power`` (..., K, K), broadcasting over leading axes.
 

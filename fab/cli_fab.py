@@ -290,7 +290,7 @@ def _goal_warnings(levels, n_levels, target, simulated):
     """Say when the nominal plate misses the design goals, as the report's Summary does:
     in the contract's model, or only as a plate of square pixels (whose sinc^2 envelope
     dims the outer orders; a report said "met" above a tolerance table that missed)."""
-    from fab.report import goals_missed
+    from doe.retrieval import goals_missed
 
     missed, plate_missed = goals_missed(levels, n_levels, target, simulated)
     if missed:

@@ -16,8 +16,8 @@ import numpy as np
 
 from doe.figures import correlation_text
 from doe.files import atomic_write_bytes, write_json
-from doe.fraunhofer import correlation, level_phase, plate_quality, rmse
-from doe.retrieval import CORRELATION_GOAL, RMSE_GOAL, missed_goals
+from doe.fraunhofer import correlation, level_phase, rmse
+from doe.retrieval import CORRELATION_GOAL, RMSE_GOAL, goals_missed
 from fab.manifest import file_records
 
 REPORT_MD = "fab_report.md"
@@ -124,15 +124,6 @@ def _mask_bitmaps(levels, n_levels, manifest):
 
 
 # ---------------------------------------------------------------- content
-
-
-def goals_missed(levels, n_levels, target, simulated_psf):
-    """Return the design goals the nominal plate misses, in the contract's model (its
-    ``simulated_psf``) and as a plate of square pixels, whose sinc^2 envelope the
-    contract leaves out: two lists of phrases, empty where met."""
-    fit = {"correlation": correlation(simulated_psf, target), "rmse": rmse(simulated_psf, target)}
-    plate = plate_quality(level_phase(levels, n_levels), target)
-    return missed_goals(fit), missed_goals(plate)
 
 
 def report_blocks(context, figures=()):
