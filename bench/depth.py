@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import least_squares
 
-from doe import flags
+from doe.infra import flags
 from psf_learn.depth import GateModel, fit_profiles, gate_response, scan_times
 from psf_learn.depth_sim import random_scene, simulate_cube
 
@@ -128,7 +128,7 @@ def speed(response, seed, repeats=5):
         np.save(path, cube.astype(np.uint16))
         walls, cpus = [], []
         for k in range(3):
-            cmd = [sys.executable, "-m", "doe.cli", "depth", str(path), "--shift-ps", "20",
+            cmd = [sys.executable, "-m", "doe", "depth", str(path), "--shift-ps", "20",
                    "--out", str(Path(tmp) / f"out{k}")]  # fmt: skip
             t0, c0 = time.perf_counter(), _children_cpu()
             subprocess.run(cmd, check=True, capture_output=True)

@@ -38,7 +38,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from doe import bounds, flags, retrieval, targets
+from doe import bounds, retrieval, targets
+from doe.infra import flags
 
 BACKGROUND_RMSE = retrieval.RMSE_GOAL * retrieval.CAP**0.5
 """rmse spent on the uniform background: all the design aims at (0.0045)."""

@@ -23,7 +23,7 @@ import numpy as np
 _HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 
-from doe import flags  # noqa: E402
+from doe.infra import flags  # noqa: E402
 
 
 def make_design(path, n=175, n_levels=8, k=11, seed=0):
@@ -40,7 +40,15 @@ def time_cli(design, out, repeat):
     times = []
     for i in range(repeat):
         t0 = time.perf_counter()
-        cmd = [sys.executable, "-m", "doe.cli", "fab", str(design), "--out", str(out / f"r{i}")]
+        cmd = [
+            sys.executable,
+            "-m",
+            "doe",
+            "fab",
+            str(design),
+            "--out",
+            str(out / f"r{i}"),
+        ]
         subprocess.run(cmd, check=True, capture_output=True)
         times.append(time.perf_counter() - t0)
     return times
@@ -48,7 +56,7 @@ def time_cli(design, out, repeat):
 
 def time_library(levels, flat, repeat, path):
     from doe.design import derive, load_design
-    from fab.masks import masks_from_levels
+    from fab.package.masks import masks_from_levels
     from layouts.gds import build_library, write_gds
 
     der = derive(load_design())

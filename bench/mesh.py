@@ -1,7 +1,7 @@
 """Benchmark of ``doefab mesh`` on the default design: prints times, triangle counts, sizes.
 
 A dense random 8-level tile of the default preset (N = 175) is meshed as the
-watertight height field of ``fab.mesh`` and, for comparison, naively as one
+watertight height field of ``fab.mesh.relief`` and, for comparison, naively as one
 closed box per pixel (12 triangles each, concatenated: not one solid, internal
 faces everywhere). Every mesh format is encoded for both; the STEP tile (B-rep
 solid + file) is timed too, and ``--verify-step`` re-imports it.
@@ -21,9 +21,10 @@ import numpy as np
 # bench/ holds scripts named like packages (bench/fab.py): keep them off the import path
 sys.path = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 
-from doe import flags  # noqa: E402
 from doe.design import derive, load_design  # noqa: E402
-from fab import mesh, mesh_io  # noqa: E402
+from doe.infra import flags  # noqa: E402
+from fab.mesh import formats as mesh_io  # noqa: E402
+from fab.mesh import relief as mesh  # noqa: E402
 
 ENCODERS = {
     "ply": mesh_io.ply_bytes,
@@ -95,7 +96,7 @@ def main():
         rows.append((f"aperture {der.tiles}x{der.tiles}", fmt, te, len(f), len(data), None))
 
     if not a.no_step:
-        from fab import step
+        from fab.mesh import step
 
         t_solid, solid = timed(lambda: step.tile_solid(relief), 1)
         t_write, data = timed(lambda: step.step_bytes(solid), 1)

@@ -42,7 +42,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from doe import flags, fraunhofer, retrieval, targets
+from doe import fraunhofer, retrieval, targets
+from doe.infra import flags
 
 
 def acceptance(name, q, seconds):

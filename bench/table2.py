@@ -93,7 +93,7 @@ def main(argv=None):
             f"{out} holds trained models ({', '.join(trained)}): --reuse evaluates them, "
             "--force retrains over them"
         )
-    from doe.errors import InputError
+    from doe.infra.errors import InputError
 
     try:  # every image folder is read before hours of training, not after
         data = _read_sets(args)
@@ -118,7 +118,7 @@ def _train_all(args, out):
             cmd = [
                 sys.executable,
                 "-m",
-                "doe.cli",
+                "doe",
                 "learn",
                 "--out",
                 str(out / key),
@@ -165,7 +165,7 @@ def _as_fabricated_psf(learned_psf):
 
 def _read_sets(args):
     """Return {set name: (names, images)} of Set5, Set14 and the extra folders."""
-    from doe.errors import InputError
+    from doe.infra.errors import InputError
     from psf_learn.images import read_folder
 
     sets = {"Set5": Path(args.data) / "set5", "Set14": Path(args.data) / "set14"}
@@ -179,7 +179,7 @@ def _read_sets(args):
 def _evaluate_all(args, out, data):
     import torch
 
-    from psf_learn.cli import idle_cores
+    from psf_learn.commands.learn import idle_cores
     from psf_learn.evaluate import evaluate
     from psf_learn.sr import load_model
 

@@ -24,7 +24,7 @@ import numpy as np
 _HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 
-from doe import flags  # noqa: E402
+from doe.infra import flags  # noqa: E402
 from doe.retrieval import gerchberg_saxton, round_levels  # noqa: E402
 
 
@@ -52,9 +52,9 @@ def main(argv=None):
 
     from doe.design import derive, design_summary, load_design
     from doe.fraunhofer import simulate_levels
-    from fab.masks import masks_from_levels
-    from fab.report import write_fab_report
-    from fab.tolerance import (
+    from fab.package.masks import masks_from_levels
+    from fab.package.report import write_fab_report
+    from fab.plate.tolerance import (
         PlateErrors,
         plate_model,
         tolerance_analysis,

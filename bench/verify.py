@@ -24,15 +24,15 @@ import numpy as np
 sys.path[0] = str(Path(__file__).resolve().parents[1])
 
 from doe.design import derive, load_design
-from doe.files import save_npy, write_json
 from doe.fraunhofer import simulate_levels
+from doe.infra.files import save_npy, write_json
 from doe.retrieval import retrieve_phase
 from doe.targets import make_target
-from fab.capture import read_capture, repair_pixels, write_image
-from fab.capture_sim import simulate_capture
-from fab.lattice import measure_orders, register_lattice, repair_hot_pixels
-from fab.plate import PlateFaults
-from fab.verify import analyse, design_order_power, resolve_thresholds
+from fab.plate.model import PlateFaults
+from fab.verify.analysis import analyse, design_order_power, resolve_thresholds
+from fab.verify.capture import read_capture, repair_pixels, write_image
+from fab.verify.lattice import measure_orders, register_lattice, repair_hot_pixels
+from fab.verify.simulate import simulate_capture
 
 RUNS = 5
 SHAPE = (1944, 2592)

@@ -6,7 +6,7 @@
 - ``retrieval``: Gerchberg-Saxton, nlopt refinement, L-level quantisation
 - ``targets``: named target PSFs for tests, benchmarks and demonstrations
 - ``figures``: the retrieval figure
-- ``files``: reading/writing the contract files safely (staged, atomic)
-- ``errors``: InputError (exit code 2)
-- ``cli``, ``cli_design``, ``cli_retrieve``: the ``doefab`` command line
+- ``bounds``, ``lbfgs``: efficiency bounds of a target, the L-BFGS driver
+- ``infra``: the shared infrastructure (files, errors, flags, images, interrupts, dispatcher)
+- ``commands``: the command modules (only the dispatcher imports them)
 """

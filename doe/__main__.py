@@ -1,5 +1,5 @@
 import sys
 
-from doe.cli import main
+from doe.infra.cli import main
 
 sys.exit(main())

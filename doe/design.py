@@ -13,9 +13,9 @@ from importlib import resources
 from pathlib import Path
 from typing import Literal
 
-from doe.errors import InputError
-from doe.files import LEVEL_COUNT_RULE, is_level_count, read_json
-from doe.flags import MINUTES_MAX, PHOTONS_MAX, SEED_MAX, STEPS_MAX
+from doe.infra.errors import InputError
+from doe.infra.files import LEVEL_COUNT_RULE, is_level_count, read_json
+from doe.infra.flags import MINUTES_MAX, PHOTONS_MAX, SEED_MAX, STEPS_MAX
 from doe.materials import MATERIALS, refractive_index
 
 

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from doe import interrupts
+from doe.infra import interrupts
 
 
 def minimise(fun, x0, max_eval, ftol_rel=1e-10):

@@ -4,7 +4,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from doe.errors import InputError
+from doe.infra.errors import InputError
 
 
 @dataclass(frozen=True)

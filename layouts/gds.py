@@ -60,7 +60,7 @@ def tile_polygons(masks, pitch_nm):
 
     Parameters
     ----------
-    masks : list of fab.masks.Mask
+    masks : list of fab.package.masks.Mask
         Bitmaps (N, N) bool, row 0 at the top.
     pitch_nm : int
         Mask pixel pitch.
@@ -90,7 +90,7 @@ def build_library(
 
     Parameters
     ----------
-    masks : list of fab.masks.Mask
+    masks : list of fab.package.masks.Mask
         All masks of the tile, each on its own GDS layer.
     pitch_nm : int
         Mask pixel pitch in nm (integer: the 1 nm grid).

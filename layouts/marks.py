@@ -220,7 +220,7 @@ def marks_and_labels(masks, aperture_half_nm, design_name):
 
     Parameters
     ----------
-    masks : list of fab.masks.Mask
+    masks : list of fab.package.masks.Mask
         In exposure order; the first is the alignment reference.
     aperture_half_nm : int
         Half the clear aperture (>= half the tiled area), nm; nothing is drawn inside.

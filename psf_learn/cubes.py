@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from doe.errors import InputError
-from doe.files import load_npy
+from doe.infra.errors import InputError
+from doe.infra.files import load_npy
 
 FRAME_SUFFIXES = (".png", ".tif", ".tiff")
 
@@ -169,7 +169,7 @@ def read_frame(path):
     """Read one single-channel frame keeping its integer type (uint8/uint16) or float32."""
     import OpenImageIO as oiio
 
-    from doe.image_pages import (
+    from doe.infra.image_pages import (
         check_file_kind,
         has_more_pages,
         native_stderr_quiet,

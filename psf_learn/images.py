@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from doe.errors import InputError
-from doe.image_pages import check_file_kind, png_bit_depth, stored_codes
+from doe.infra.errors import InputError
+from doe.infra.image_pages import check_file_kind, png_bit_depth, stored_codes
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 # natural photographs shipped inside scikit-image (no download on demand)
@@ -152,7 +152,7 @@ def _decode_oiio(path):
     """Decode an image with OpenImageIO at its stored precision, alpha left as stored."""
     import OpenImageIO as oiio
 
-    from doe.image_pages import native_stderr_quiet
+    from doe.infra.image_pages import native_stderr_quiet
 
     config = oiio.ImageSpec()
     config.attribute("oiio:UnassociatedAlpha", 1)  # colour not multiplied by alpha
@@ -295,7 +295,7 @@ def read_raw(path):
     """
     path = Path(path)
     if path.suffix.lower() == ".npy":
-        from doe.files import load_npy
+        from doe.infra.files import load_npy
 
         a = load_npy(path)
         if a.dtype.kind not in "fiu" or a.ndim not in (2, 3):

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from doe.flags import PHOTONS_MAX
+from doe.infra.flags import PHOTONS_MAX
 from psf_learn.network import FEATURES_MAX, STAGES_MAX, SRNet, check_arch
 from psf_learn.sensor import SensorModel
 
@@ -29,7 +29,7 @@ class SRModel:
 
 def load_model(model_dir):
     """Load a model folder written by ``doefab learn`` (raises InputError if unusable)."""
-    from doe.errors import InputError
+    from doe.infra.errors import InputError
     from psf_learn import store
 
     record, psf, learn = store.load_model_dir(model_dir)

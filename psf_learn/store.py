@@ -11,8 +11,8 @@ from pathlib import Path
 
 import torch
 
-from doe.errors import InputError, first_line
-from doe.files import read_json, read_psf, sha256_file
+from doe.infra.errors import InputError, first_line
+from doe.infra.files import read_json, read_psf, sha256_file
 
 MODEL_FORMAT = "doefab-sr-1"
 

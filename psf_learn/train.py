@@ -28,7 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from doe.errors import InputError
+from doe.infra.errors import InputError
 from psf_learn.network import SRNet
 from psf_learn.psf import LearnedPSF
 from psf_learn.sensor import simulate_capture

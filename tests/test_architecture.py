@@ -32,7 +32,7 @@ def test_no_torch_outside_psf_learn():
 
 def test_cli_help_does_not_load_torch():
     code = (
-        "import sys; from doe.cli import build_parser; build_parser(); "
+        "import sys; from doe.infra.cli import build_parser; build_parser(); "
         "print('torch' in sys.modules)"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
@@ -67,7 +67,7 @@ def test_learning_needs_no_layout_or_mesh_libraries(tmp_path):
     code = (
         "import sys\n"
         f"for m in {missing!r}: sys.modules[m] = None  # import m now raises ImportError\n"
-        "from doe.cli import main\n"
+        "from doe.infra.cli import main\n"
         f"sys.exit(main(['learn', '--out', {str(tmp_path / 'model')!r}, '--images', "
         f"{str(tmp_path / 'img')!r}, '--steps', '1', '--batch', '2']))\n"
     )

@@ -1,0 +1,6 @@
+"""3-D models of the plate (``doefab mesh``).
+
+- ``relief``: watertight height-field tile mesh, instancing, volume
+- ``formats``: PLY, GLB, 3MF, STL encoders (instanced aperture scenes)
+- ``step``: the tile as one closed STEP solid, the aperture as an assembly
+"""

@@ -1,0 +1,176 @@
+"""The run folder's front page (``index.html``) and ``manifest.json``."""
+
+import html
+import json
+import platform
+from importlib import metadata
+from pathlib import Path
+
+from doe.design import design_summary
+from doe.figures import value_and_limit
+from doe.infra.files import atomic_write_bytes, sha256_file, write_json
+from doe.retrieval import CORRELATION_GOAL, RMSE_GOAL
+
+PACKAGES = (
+    "doefab",
+    "numpy",
+    "scipy",
+    "nlopt",
+    "torch",
+    "gdstk",
+    "klayout",
+    "OpenImageIO",
+    "trimesh",
+    "manifold3d",
+    "build123d",
+    "matplotlib",
+    "scikit-image",
+)
+
+# Headline numbers shown on the front page: (stage, file, key path, label, goal). A
+# figure with a goal is shown with the digits that tell it from the goal.
+HEADLINES = (
+    ("learn", "learn.json", ("final_psnr_db",), "training PSNR (dB)", None),
+    (
+        "retrieve",
+        "retrieval.json",
+        ("quantised", "correlation"),
+        "correlation ({quantised})",
+        CORRELATION_GOAL,
+    ),
+    ("retrieve", "retrieval.json", ("quantised", "rmse"), "rmse ({quantised})", RMSE_GOAL),
+    ("retrieve", "retrieval.json", ("quantised", "efficiency"), "efficiency ({quantised})", None),
+    ("retrieve", "retrieval.json", ("goals", "met"), "correlation and rmse goals met", None),
+    (
+        "retrieve",
+        "retrieval.json",
+        ("square_pixels", "goals_met"),
+        "goals met as a plate of square pixels (their sinc^2 envelope)",
+        None,
+    ),
+    ("fab", "fab_manifest.json", ("level_step_nm",), "level step (nm)", None),
+    ("fab", "fab_manifest.json", ("pixel_pitch_nm",), "mask pixel pitch (nm)", None),
+    ("fab", "fab_manifest.json", ("tiles",), "tiles across the aperture", None),
+)
+
+
+def product_files(run_dir, stages):
+    """Every product file of the run's ``stages`` and its front page, sorted.
+
+    The stages' files are those ``run_state.json`` records as theirs: bookkeeping,
+    the lab's own files in or beside the stage folders, and the folders of
+    stages that this run did not plan (left there by an earlier run with other
+    flags) are left out.
+    """
+    from fab.run.pipeline import load_state
+
+    run_dir = Path(run_dir)
+    state = load_state(run_dir)
+    out = [run_dir / "index.html"] if (run_dir / "index.html").is_file() else []
+    for name in stages:
+        out += [run_dir / name / rel for rel in state.get(name, {}).get("files", {})]
+    return sorted(out)
+
+
+def package_versions():
+    out = {"python": platform.python_version()}
+    for name in PACKAGES:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            out[name] = None
+    return out
+
+
+def write_manifest(run_dir, design, args, stages, timings, stage_seconds):
+    """Write ``manifest.json`` (deterministic) and ``timings.json`` (the one varying file).
+
+    ``stages`` are the names of the stages this run planned: only their files are listed.
+
+    ``timings`` are the wall-clock seconds of the stages run now; ``stage_seconds``
+    the seconds each stage's own reports recorded (see ``pipeline.move_timings``).
+    """
+    run_dir = Path(run_dir)
+    files = [
+        {"path": str(p.relative_to(run_dir)), "sha256": sha256_file(p), "bytes": p.stat().st_size}
+        for p in product_files(run_dir, stages)
+    ]
+    seed = args.seed if args.seed is not None else design.learning.seed
+    manifest = {
+        "tool": "doefab run",
+        "config": args.config or "preset:sun2020",
+        "design": design_summary(design),
+        "psf_source": args.psf or "learn/psf.npy",
+        "seeds": {"learn": None if args.psf else seed, "retrieve": seed},
+        "versions": package_versions(),
+        "files": files,
+        "timings_file": "timings.json",
+    }
+    write_json(run_dir / "manifest.json", manifest)
+    write_json(
+        run_dir / "timings.json",
+        {"seconds_per_stage_this_run": timings, "seconds_reported_by_stages": stage_seconds},
+    )
+
+
+def _lookup(run_dir, stage, name, path):
+    try:
+        value = json.loads((Path(run_dir) / stage / name).read_text())
+        for key in path:
+            value = value[key]
+        return value
+    except (OSError, KeyError, TypeError, json.JSONDecodeError):
+        return None
+
+
+def write_index(run_dir, design, stages):
+    """Write ``index.html`` linking every result of the run, with its figures."""
+    run_dir = Path(run_dir)
+    e = html.escape
+    rows = []
+    levels = _lookup(run_dir, "retrieve", "retrieval.json", ("levels",))
+    quantised = f"{levels} levels" if levels else "quantised"
+    for stage, name, path, label, goal in HEADLINES:
+        value = _lookup(run_dir, stage, name, path) if stage in stages else None
+        label = label.format(quantised=quantised)
+        if value is not None:
+            if isinstance(value, bool):
+                shown = "yes" if value else "NO: see retrieve/retrieval.json"
+            elif isinstance(value, float):
+                shown = f"{value:.6g}" if goal is None else value_and_limit(value, goal, 6)[0]
+            else:
+                shown = str(value)
+            rows.append(f"<tr><td>{e(label)}</td><td>{e(shown)}</td></tr>")
+    parts = [
+        "<!DOCTYPE html><html><head><meta charset='utf-8'>",
+        f"<title>doefab run: {e(design.name)}</title>",
+        "<style>body{font-family:sans-serif;max-width:1100px;margin:2em auto}"
+        "img{max-width:48%;margin:4px;border:1px solid #ccc}td{padding:2px 10px}</style>",
+        "</head><body>",
+        f"<h1>doefab run: {e(design.name)}</h1><p>{e(design.description)}</p>",
+        "<p>Files and their SHA-256 are listed in <a href='manifest.json'>manifest.json</a>.</p>",
+        "<h2>Summary</h2><table>",
+        *rows,
+        "</table>",
+    ]
+    for stage in stages:
+        folder = run_dir / stage
+        if not folder.is_dir():
+            continue
+        files = [p for p in product_files(run_dir, stages) if p.parent.is_relative_to(folder)]
+        parts.append(f"<h2>{e(stage)}</h2>")
+        reports = [p for p in files if p.suffix == ".html"]
+        for p in reports:
+            rel = e(str(p.relative_to(run_dir)))
+            parts.append(f"<p><b>Report:</b> <a href='{rel}'>{rel}</a></p>")
+        for p in files:
+            if p.suffix == ".png":
+                rel = e(str(p.relative_to(run_dir)))
+                parts.append(f"<a href='{rel}'><img src='{rel}' alt='{rel}'></a>")
+        parts.append("<ul>")
+        for p in files:
+            rel = e(str(p.relative_to(run_dir)))
+            parts.append(f"<li><a href='{rel}'>{rel}</a> ({p.stat().st_size:,} bytes)</li>")
+        parts.append("</ul>")
+    parts.append("</body></html>\n")
+    atomic_write_bytes(run_dir / "index.html", "\n".join(parts).encode())

@@ -1,0 +1,401 @@
+"""``doefab depth`` and ``doefab transient``: gated-SPAD cubes to depth, intensity and frames."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from doe.infra import flags
+from doe.infra.errors import InputError
+
+DEPTH_ARRAYS = (
+    "timing_ps",
+    "depth_m",
+    "amplitude",
+    "background",
+    "fit_quality",
+    "significance",
+    "valid",
+)
+DEPTH_FIGURES = ("intensity.png", "depth.png", "pixel_fits.png")
+# Above this median Poisson deviance per degree of freedom (1 for profiles that
+# follow the model) the returns do not follow it: the cube's time axis in the wrong
+# place or scrambled gave 15-86 in the review, pile-up 9-11.
+FIT_QUALITY_WARN = 3.0
+# An IRF cut above this share of its peak is extended over much of its shape (the
+# extension is good to ~0.01 of the peak for a cut at half the peak, tested).
+IRF_CUT_WARN = 0.5
+GATE_FLAGS = {  # flag attribute -> (default, GateModel field, help)
+    "gate_width_ps": (200.0, "width", "length of the undistorted gate rectangle [0, width]"),
+    "rise_ps": (40.0, "rise", "RC rise constant inside the gate, 1 - exp(-t / rise)"),
+    "fall_ps": (60.0, "fall", "RC decay constant after the gate"),
+    "band_sigma_ps": (100.0, "band_sigma", "std of the Gaussian band limit of the gate"),
+    "pulse_fwhm_ps": (80.0, "pulse_fwhm", "FWHM of the Gaussian laser pulse"),
+}
+
+
+def register(sub):
+    p = sub.add_parser(
+        "depth",
+        help="fit arrival time (depth), amplitude and background per pixel of a gated SPAD cube",
+    )
+    _common(p)
+    g = p.add_argument_group("gate model (in ps; not together with --irf)")
+    for attr, (default, _, text) in GATE_FLAGS.items():
+        g.add_argument(
+            "--" + attr.replace("_", "-"),
+            dest=attr,
+            type=float,
+            default=None,
+            help=f"{text} (default {default:g})",
+        )
+    g.add_argument(
+        "--pulse",
+        choices=("gaussian", "emg"),
+        default=None,
+        help="laser pulse shape (default gaussian)",
+    )
+    g.add_argument("--tau-ps", type=float, default=None, help="exponential tail of an 'emg' pulse")
+    p.add_argument(
+        "--irf",
+        help="measured instrument response (.npy, 1-D) on the scan axis, "
+        "from a reference target at --irf-t0-ps; replaces the gate model",
+    )
+    p.add_argument(
+        "--irf-t0-ps",
+        type=float,
+        help="arrival time of the IRF's reference target (default 0)",
+    )
+    p.add_argument(
+        "--min-significance",
+        type=float,
+        default=20.0,
+        help="likelihood-ratio threshold 2 dlogL for a return (default 20, about "
+        "1e-4 false returns per background pixel)",
+    )
+    p.set_defaults(func=_depth)
+
+    p = sub.add_parser(
+        "transient",
+        help="write the per-time-bin frames of a gated SPAD cube (npy, PNG, animated GIF)",
+    )
+    _common(p, "super-resolve the frames with a model from 'doefab learn' (they replace them)")
+    p.add_argument("--fps", type=float, default=10.0, help="GIF frame rate (default 10)")
+    p.set_defaults(func=_transient)
+
+
+def _common(p, sr_help="also super-resolve with a model from 'doefab learn' (into sr/)"):
+    p.add_argument(
+        "cube",
+        metavar="CUBE",
+        help="(H, W, T) counts: .npy, or a folder of per-shift PNG/TIFF frames sorted by name",
+    )
+    p.add_argument(
+        "--shift-ps",
+        type=float,
+        default=20.0,
+        help="gate shift between samples: sample k is at k * shift (default 20)",
+    )
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument(
+        "--sr",
+        metavar="MODEL_DIR",
+        help=sr_help,
+    )
+    p.add_argument("--force", action="store_true", help="overwrite existing outputs")
+
+
+def _response(args):
+    """The temporal response from the gate flags or from --irf."""
+    from psf_learn.cubes import read_irf
+    from psf_learn.depth import GateModel, gate_response, response_from_irf
+
+    shift = flags.positive("--shift-ps", args.shift_ps) * 1e-12
+    if args.irf:
+        given = [a for a in [*GATE_FLAGS, "pulse", "tau_ps"] if getattr(args, a) is not None]
+        if given:
+            raise InputError(
+                "--irf",
+                "replaces the gate model; drop "
+                + ", ".join("--" + a.replace("_", "-") for a in given),
+            )
+        irf = read_irf(args.irf)
+        t0 = 0.0 if args.irf_t0_ps is None else args.irf_t0_ps
+        if not np.isfinite(t0):
+            raise InputError("--irf-t0-ps", "must be a finite number")
+        summary = {"irf": str(args.irf), "irf_t0_ps": t0, "warnings": _irf_warnings(irf)}
+        try:
+            return response_from_irf(irf, shift, t0 * 1e-12), summary
+        except ValueError as e:
+            raise InputError(args.irf, str(e)) from None
+    if args.irf_t0_ps is not None:
+        raise InputError("--irf-t0-ps", "only applies with --irf")
+    params = {}
+    for attr, (default, name, _) in GATE_FLAGS.items():
+        value = default if getattr(args, attr) is None else getattr(args, attr)
+        flag = "--" + attr.replace("_", "-")
+        check = flags.positive if name in ("width", "pulse_fwhm") else flags.non_negative
+        check(flag, value)
+        params[name] = value * 1e-12
+    pulse = args.pulse or "gaussian"
+    tau = 0.0 if args.tau_ps is None else args.tau_ps
+    if pulse == "emg":
+        flags.positive("--tau-ps", tau)
+    elif args.tau_ps is not None:
+        raise InputError("--tau-ps", "only applies with --pulse emg")
+    model = GateModel(pulse=pulse, tau=tau * 1e-12, **params)
+    summary = {f"{k}_ps": v / 1e-12 for k, v in params.items()}
+    summary.update(pulse=pulse, tau_ps=tau)
+    try:
+        return gate_response(model), summary
+    except ValueError as e:
+        raise InputError("gate model", f"{e}; check the gate flags (ps)") from None
+
+
+def _irf_warnings(irf):
+    """Say when the reference's profile is cut high up at an end of the scan."""
+    y = np.clip(np.asarray(irf, dtype=np.float64), 0.0, None)
+    y = y / y.max()
+    return [
+        f"the IRF is cut at {value:.2f} of its peak at the {end} of the scan: beyond it "
+        "h is extrapolated (a few ps of timing bias); place the reference so that its "
+        "whole profile lies in the scan"
+        for end, value in (("start", y[0]), ("end", y[-1]))
+        if value > IRF_CUT_WARN
+    ]
+
+
+def _super_resolve_cube(model_dir, cube):
+    """Super-resolve every time bin of an (H, W, T) cube; return (fH, fW, T) counts >= 0."""
+    from psf_learn.sr import super_resolve
+
+    if not Path(model_dir).is_dir():
+        raise InputError(model_dir, "no such model folder (write one with 'doefab learn')")
+    frames = np.moveaxis(cube, -1, 0)
+    # One white level for the whole sequence keeps the frames on a common scale.
+    white = float(frames.max()) or 1.0
+    hr = np.asarray(super_resolve(model_dir, frames, photons=white), dtype=np.float64)
+    if hr.ndim != 3 or hr.shape[0] != frames.shape[0]:
+        raise InputError(
+            model_dir, f"super-resolution returned shape {hr.shape} for frames {frames.shape}"
+        )
+    # The network is not photon-exact: negative undershoot is not a count.
+    return np.clip(np.moveaxis(hr, 0, -1), 0.0, None)
+
+
+def _depth(args):
+    from doe.infra.files import previous_files, save_npy, staged_output, write_json
+    from psf_learn.cubes import read_cube, scan_gaps
+    from psf_learn.depth import check_scan
+
+    response, gate_summary = _response(args)
+    flags.non_negative("--min-significance", args.min_significance)
+    cube = read_cube(args.cube)
+    shift = args.shift_ps * 1e-12
+    try:
+        check_scan(cube.shape[-1], shift, response)
+    except ValueError as e:
+        raise InputError(args.cube, f"{e}; check --shift-ps and the gate flags") from None
+    cubes = {"": cube}
+    if args.sr:
+        cubes["sr/"] = _super_resolve_cube(args.sr, cube)
+    per_cube = [*(a + ".npy" for a in DEPTH_ARRAYS), *DEPTH_FIGURES]
+    names = [f"{prefix}{n}" for prefix in cubes for n in per_cube] + ["depth.json"]
+    # An earlier run's with --sr, as its depth.json says: a lab's own sr/ files stay.
+    stale = previous_files(
+        Path(args.out) / "depth.json", lambda old: [f"sr/{n}" for n in per_cube if "sr" in old]
+    )
+    with staged_output(args.out, args.force, names=names, stale=stale) as stage:
+        summary = {
+            "cube": str(args.cube),
+            "shape": list(cube.shape),
+            "shift_ps": args.shift_ps,
+            "gate": gate_summary,
+            "min_significance": args.min_significance,
+            "timing_convention": "counts(t_k) = A h(t_k - mu) + b, t_k = k * shift, the "
+            "gate's opening after the laser pulse; h(x) = integral G(t) Pi(t - x) dt; "
+            "depth_m = c * mu / 2",
+        }
+        for prefix, data in cubes.items():
+            folder = stage / prefix
+            folder.mkdir(exist_ok=True)
+            stats = _fit_and_write(folder, data, shift, response, args.min_significance, save_npy)
+            summary["sr" if prefix else "native"] = stats
+        summary["warnings"] = (
+            gate_summary.pop("warnings", []) + scan_gaps(args.cube) + _model_warnings(summary)
+        )
+        write_json(stage / "depth.json", summary)
+    for warning in summary["warnings"]:
+        print(f"depth: warning: {warning}", file=sys.stderr)
+    s = summary["native"]
+    timing = (
+        f"timing {s['timing_ps_min']:.1f} .. {s['timing_ps_max']:.1f} ps"
+        if s["valid_pixels"]
+        else "no timing"
+    )
+    print(
+        f"depth: {s['valid_pixels']}/{s['pixels']} pixels with a return, {timing}, "
+        f"median fit quality {s['median_fit_quality']:.3g}; wrote {args.out}"
+    )
+    return 0
+
+
+def _fit_and_write(folder, cube, shift, response, threshold, save_npy):
+    from psf_learn.depth import expected_counts, fit_profiles, scan_times
+    from psf_learn.depth_plots import save_map, save_pixel_fits
+
+    fit = fit_profiles(cube, shift, response, threshold=threshold, progress=True)
+    arrays = {
+        "timing_ps": fit.timing / 1e-12,
+        "depth_m": fit.depth,
+        "amplitude": fit.amplitude,
+        "background": fit.background,
+        "fit_quality": fit.fit_quality,
+        "significance": fit.significance,
+        "valid": fit.valid,
+    }
+    for name, value in arrays.items():
+        save_npy(folder / f"{name}.npy", value)
+    save_map(folder / "intensity.png", fit.amplitude, "fitted amplitude A", "peak counts")
+    save_map(
+        folder / "depth.png",
+        fit.depth,
+        "depth (c mu / 2); grey: no return",
+        "depth (m)",
+        cmap="viridis",
+        valid=fit.valid,
+    )
+    times = scan_times(cube.shape[-1], shift)
+    picks = _example_pixels(fit)
+    profiles = [cube[r, c] for r, c, _ in picks]
+    models = [
+        expected_counts(
+            response,
+            times,
+            fit.amplitude[r, c],
+            np.nan_to_num(fit.timing[r, c]),
+            fit.background[r, c],
+        )
+        for r, c, _ in picks
+    ]
+    labels = [
+        f"{why} ({r}, {c})"
+        + (
+            f": mu {fit.timing[r, c] / 1e-12:.1f} ps, A {fit.amplitude[r, c]:.3g}"
+            if fit.valid[r, c]
+            else ""
+        )
+        for r, c, why in picks
+    ]
+    save_pixel_fits(folder / "pixel_fits.png", times, profiles, models, labels)
+    valid_t = fit.timing[fit.valid] / 1e-12
+    return {
+        "pixels": int(fit.valid.size),
+        "valid_pixels": int(fit.valid.sum()),
+        "timing_ps_min": float(valid_t.min()) if valid_t.size else float("nan"),
+        "timing_ps_max": float(valid_t.max()) if valid_t.size else float("nan"),
+        "median_fit_quality": float(np.median(fit.fit_quality)),
+        "median_fit_quality_of_returns": float(np.median(fit.fit_quality[fit.valid]))
+        if fit.valid.any()
+        else None,
+    }
+
+
+def _model_warnings(summary):
+    """Say when the returns' profiles do not follow the response model at all."""
+    warnings = []
+    for key in ("native", "sr"):
+        quality = summary.get(key, {}).get("median_fit_quality_of_returns")
+        if quality is not None and quality > FIT_QUALITY_WARN:
+            warnings.append(
+                f"the {key} returns' profiles do not follow the response model (median "
+                f"fit quality {quality:.3g}; about 1 when they do): check that the cube "
+                "is (H, W, T) with time last and its frames in scan order, --shift-ps, "
+                "the gate parameters or --irf, and clipped or piled-up counts"
+            )
+    return warnings
+
+
+def _example_pixels(fit):
+    """Up to four (row, col, reason) pixels: brightest, median, dimmest return, a non-return."""
+    picks = []
+    flat_valid = np.flatnonzero(fit.valid.ravel())
+    if flat_valid.size:
+        amp = fit.amplitude.ravel()[flat_valid]
+        order = flat_valid[np.argsort(amp, kind="stable")]
+        for why, i in (
+            ("brightest", order[-1]),
+            ("median", order[order.size // 2]),
+            ("dimmest", order[0]),
+        ):
+            if all(i != p for p, _ in picks):
+                picks.append((i, why))
+    invalid = np.flatnonzero(~fit.valid.ravel())
+    if invalid.size:
+        picks.append((invalid[0], "no return"))
+    shape = fit.valid.shape
+    return [(*np.unravel_index(i, shape), why) for i, why in picks]
+
+
+def _transient(args):
+    from doe.infra.files import previous_files, save_npy, staged_output, write_json
+    from psf_learn.cubes import read_cube, scan_gaps, write_frame_png16
+    from psf_learn.depth_plots import gif_frame_centiseconds, gif_zoom, save_gif
+
+    flags.positive("--shift-ps", args.shift_ps)
+    try:
+        gif_fps = 100 / gif_frame_centiseconds(args.fps)
+    except ValueError as e:
+        raise InputError("--fps", str(e)) from None
+    cube = read_cube(args.cube, min_samples=1)
+    gaps = scan_gaps(args.cube)
+    if args.sr:
+        cube = _super_resolve_cube(args.sr, cube)
+    frames = np.moveaxis(cube, -1, 0)
+    try:
+        gif_zoom(*frames.shape[1:])
+    except ValueError as e:
+        raise InputError(args.cube, f"{e}; preview.gif cannot be written") from None
+    scale = float(frames.max()) or 1.0
+    pngs = [f"frames/frame_{k:04d}.png" for k in range(frames.shape[0])]
+    names = ["frames.npy", "transient.json", "preview.gif", *pngs]
+    stale = previous_files(
+        Path(args.out) / "transient.json",
+        lambda old: (f"frames/frame_{k:04d}.png" for k in range(old["frames"][0])),
+    )
+    with staged_output(args.out, args.force, names=names, stale=stale) as stage:
+        save_npy(stage / "frames.npy", frames)
+        (stage / "frames").mkdir()
+        from tqdm import tqdm
+
+        for k, name in enumerate(tqdm(pngs, desc="frames", disable=None)):
+            write_frame_png16(stage / name, frames[k] / scale)
+        save_gif(stage / "preview.gif", frames, fps=args.fps)
+        write_json(
+            stage / "transient.json",
+            {
+                "cube": str(args.cube),
+                "frames": list(frames.shape),
+                "shift_ps": args.shift_ps,
+                "times_ps": [k * args.shift_ps for k in range(frames.shape[0])],
+                "super_resolved": bool(args.sr),
+                "png_full_scale_counts": scale,
+                "png_note": "frame PNGs are 16-bit, counts = value / 65535 * png_full_scale_counts",
+                "gif_fps": gif_fps,
+                "warnings": gaps,
+            },
+        )
+    for warning in gaps:
+        print(f"transient: warning: {warning}", file=sys.stderr)
+    if abs(gif_fps - args.fps) > 0.005 * args.fps:
+        print(
+            f"transient: preview.gif plays at {gif_fps:.4g} fps, the nearest to --fps "
+            f"{args.fps:g} (a GIF frame lasts whole hundredths of a second)",
+            file=sys.stderr,
+        )
+    print(
+        f"transient: {frames.shape[0]} frames of {frames.shape[1]} x {frames.shape[2]} "
+        "(rows x columns); "
+        f"wrote {args.out}"
+    )
+    return 0
