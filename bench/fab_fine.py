@@ -21,9 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path[0] = str(Path(__file__).resolve().parents[1])  # bench/fab.py would shadow fab
-
-from doe.design import MAX_TILE_PIXELS  # noqa: E402
+from doe.design import MAX_TILE_PIXELS
 
 
 def run(argv):

@@ -11,20 +11,16 @@ Usage: python bench/mesh.py [--repeats 3] [--no-step] [--verify-step] [--seed 0]
 
 import argparse
 import statistics
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-# bench/ holds scripts named like packages (bench/fab.py): keep them off the import path
-sys.path = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
-
-from doe.design import derive, load_design  # noqa: E402
-from doe.infra import flags  # noqa: E402
-from fab.mesh import formats as mesh_io  # noqa: E402
-from fab.mesh import relief as mesh  # noqa: E402
+from doe.design import derive, load_design
+from doe.infra import flags
+from fab.mesh import formats as mesh_io
+from fab.mesh import relief as mesh
 
 ENCODERS = {
     "ply": mesh_io.ply_bytes,

@@ -13,19 +13,14 @@ Run: ``python bench/tolerance.py [--repeat 3]``
 import argparse
 import hashlib
 import statistics
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-# Keep the bench folder off the import path (a sibling script is named like a package).
-_HERE = Path(__file__).resolve().parent
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
-
-from doe.infra import flags  # noqa: E402
-from doe.retrieval import gerchberg_saxton, round_levels  # noqa: E402
+from doe.infra import flags
+from doe.retrieval import gerchberg_saxton, round_levels
 
 
 def gs_levels(n, target, n_levels, seed=0, iters=120):

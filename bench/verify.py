@@ -1,4 +1,3 @@
-# ruff: noqa: E402
 """Benchmark: verify a 5-megapixel capture (2592 x 1944) of an N = 175 plate.
 
 Prints the median wall time over a few runs of the whole ``doefab verify``
@@ -18,10 +17,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-# Run as a script, bench/ comes first on sys.path and bench/fab.py would shadow the
-# fab package: put the repository root there before importing it.
-sys.path[0] = str(Path(__file__).resolve().parents[1])
 
 from doe.design import derive, load_design
 from doe.fraunhofer import simulate_levels

@@ -92,7 +92,7 @@ def _run(args):
     from doe.design import check_psf_grid, check_psf_kernel, load_design
     from doe.infra import flags
     from doe.infra.files import check_out_folder, read_psf
-    from fab.commands.mesh import check_float32_heights, parse_formats
+    from fab.mesh.checks import check_float32_heights, parse_formats
     from fab.run.pipeline import run_lock
 
     # Checked here, not by the stages: a bad value must stop the run before any stage.

@@ -90,13 +90,16 @@ class Surface:
     loop_normals: np.ndarray
 
 
-def relief_surface(levels):
+def relief_surface(levels, progress=True):
     """Build the closed surface of a level map (grid units).
 
     Parameters
     ----------
     levels : array_like of int, shape (H, W)
         Level map, row 0 = largest y.
+    progress : bool
+        Show a progress bar over the grid corners on a terminal (it takes seconds
+        at N = 175).
 
     Returns
     -------
@@ -111,21 +114,70 @@ def relief_surface(levels):
     pad[1:-1, 1:-1] = hgt
     pad_list = pad.tolist()
 
-    grid = []  # vertex (i, j, k)
-    top_vid = np.full((rows, cols, 4), -1, np.int64)  # corner 0 SW, 1 SE, 2 NE, 3 NW
-    # walls: key (kind, j, i) with kind 'v' (x = i, y in [j, j+1]) or 'h' (y = j, x in [i, i+1]);
-    # value [chain at start corner, chain at end corner], each a list of (k, vid)
-    walls = {}
-    back_vid = {}
+    grid, top_vid, walls, back_vid = _corner_grid(pad_list, rows, cols, progress)
+    # pixel tops: SW, SE, NE, NW is counter-clockwise from above
+    tv = top_vid.reshape(-1, 4)
+    tris = [tv[:, [0, 1, 2]], tv[:, [0, 2, 3]]]
+    loops = list(tv)
+    normals = [(0, 0, 1)] * len(tv)
 
-    # quadrants around a corner, counter-clockwise: NE, NW, SW, SE. Edge d lies between
-    # quadrant d and d + 1: 0 north, 1 west, 2 south, 3 east.
-    # g is the SW corner of the NE cell, the SE corner of NW, NE of SW and NW of SE
-    cell_corner_of = (0, 1, 2, 3)
+    wall_tris, wall_loops, wall_normals = _wall_faces(walls, pad_list)
+    tris.append(wall_tris)
+    loops += wall_loops
+    normals += wall_normals
+
+    # back face: boundary corners clockwise seen from above = counter-clockwise from below
+    ring = [(0, j) for j in range(rows + 1)] + [(i, rows) for i in range(1, cols + 1)]
+    ring += [(cols, j) for j in range(rows - 1, -1, -1)] + [(i, 0) for i in range(cols - 1, 0, -1)]
+    back = np.array([back_vid[g] for g in ring], np.int64)
+    centre = len(grid)
+    grid.append((cols / 2, rows / 2, BACK))
+    tris.append(np.stack([np.full(len(back), centre), back, np.roll(back, -1)], axis=1))
+    loops.append(back)
+    normals.append((0, 0, -1))
+
+    return Surface(
+        grid=np.array(grid, np.float64),
+        triangles=np.concatenate(tris),
+        loops=loops,
+        loop_normals=np.array(normals, np.int8),
+    )
+
+
+# Quadrants around a corner, counter-clockwise: NE, NW, SW, SE. Edge d lies between
+# quadrant d and d + 1: 0 north, 1 west, 2 south, 3 east. The corner is the SW corner
+# of the NE cell, the SE corner of NW, NE of SW and NW of SE.
+_CELL_CORNER_OF = (0, 1, 2, 3)
+_EDGE_END = (0, 1, 1, 0)  # is the corner the start (0) or end (1) of edge d
+
+
+def _corner_grid(pad_list, rows, cols, progress):
+    """Create the vertices at every grid corner of a padded height map.
+
+    Returns
+    -------
+    grid : list of (i, j, k)
+        Vertices, x and y in pixel pitches, k the level index.
+    top_vid : ndarray of int64, shape (rows, cols, 4)
+        Vertex of each pixel top's corner 0 SW, 1 SE, 2 NE, 3 NW.
+    walls : dict
+        Key (kind, j, i) with kind 'v' (x = i, y in [j, j+1]) or 'h' (y = j,
+        x in [i, i+1]); value [chain at start corner, chain at end corner], each a
+        list of (k, vid).
+    back_vid : dict
+        Back-face vertex of each boundary corner (i, j).
+    """
     from tqdm import tqdm
 
-    # a progress bar on a terminal only (disable=None): the loop takes seconds at N = 175
-    for j in tqdm(range(rows + 1), desc="mesh corners", unit="row", leave=False, disable=None):
+    grid = []
+    top_vid = np.full((rows, cols, 4), -1, np.int64)
+    walls = {}
+    back_vid = {}
+    corner_rows = tqdm(
+        range(rows + 1), desc="mesh corners", unit="row", leave=False,
+        disable=None if progress else True,
+    )  # fmt: skip
+    for j in corner_rows:
         for i in range(cols + 1):
             q = (pad_list[j + 1][i + 1], pad_list[j + 1][i], pad_list[j][i], pad_list[j][i + 1])
             cells = ((j, i), (j, i - 1), (j - 1, i - 1), (j - 1, i))
@@ -133,38 +185,21 @@ def relief_surface(levels):
                 vid = len(grid)
                 grid.append((i, j, q[0]))
                 for d in range(4):
-                    top_vid[cells[d][0], cells[d][1], cell_corner_of[d]] = vid
+                    top_vid[cells[d][0], cells[d][1], _CELL_CORNER_OF[d]] = vid
                 continue
             edge_keys = (("v", j, i), ("h", j, i - 1), ("v", j - 1, i), ("h", j, i))
-            edge_end = (0, 1, 1, 0)  # is g the start (0) or end (1) of edge d
             ks = sorted(set(q))
             for n, k in enumerate(ks):
                 _corner_vertices(
-                    i,
-                    j,
-                    k,
-                    q,
-                    ks,
-                    n,
-                    cells,
-                    edge_keys,
-                    edge_end,
-                    grid,
-                    top_vid,
-                    walls,
-                    back_vid,
-                    cell_corner_of,
-                )
+                    i, j, k, q, ks, n, cells, edge_keys, _EDGE_END,
+                    grid, top_vid, walls, back_vid, _CELL_CORNER_OF,
+                )  # fmt: skip
+    return grid, top_vid, walls, back_vid
 
-    tris, loops, normals = [], [], []
-    # pixel tops: SW, SE, NE, NW is counter-clockwise from above
-    tv = top_vid.reshape(-1, 4)
-    tris.append(tv[:, [0, 1, 2]])
-    tris.append(tv[:, [0, 2, 3]])
-    loops.extend(tv)
-    normals.extend([(0, 0, 1)] * len(tv))
 
-    wall_tris = []
+def _wall_faces(walls, pad_list):
+    """Return the wall triangles (W, 3), loops and outward normals of every wall."""
+    loops, normals, wall_tris = [], [], []
     for (kind, j, i), (chain0, chain1) in sorted(walls.items()):
         if kind == "v":  # from (i, j) to (i, j + 1); left cell (i-1, j)
             low_on_plus_side = pad_list[j + 1][i + 1] < pad_list[j + 1][i]
@@ -188,24 +223,7 @@ def relief_surface(levels):
         loops.append(np.array(loop, np.int64))
         normals.append(normal)
         wall_tris.extend(ladder)
-    tris.append(np.array(wall_tris, np.int64).reshape(-1, 3))
-
-    # back face: boundary corners clockwise seen from above = counter-clockwise from below
-    ring = [(0, j) for j in range(rows + 1)] + [(i, rows) for i in range(1, cols + 1)]
-    ring += [(cols, j) for j in range(rows - 1, -1, -1)] + [(i, 0) for i in range(cols - 1, 0, -1)]
-    back = np.array([back_vid[g] for g in ring], np.int64)
-    centre = len(grid)
-    grid.append((cols / 2, rows / 2, BACK))
-    tris.append(np.stack([np.full(len(back), centre), back, np.roll(back, -1)], axis=1))
-    loops.append(back)
-    normals.append((0, 0, -1))
-
-    return Surface(
-        grid=np.array(grid, np.float64),
-        triangles=np.concatenate(tris),
-        loops=loops,
-        loop_normals=np.array(normals, np.int8),
-    )
+    return np.array(wall_tris, np.int64).reshape(-1, 3), loops, normals
 
 
 def _corner_vertices(

@@ -10,13 +10,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-# Data polarity and resist tone: stated once, as data the manifest and report use.
-DATA_POLARITY = "a polygon marks area to etch (etched = drawn)"
-RESIST_TONE = (
-    "positive resist: the drawn (etched) area is exposed, so the photomask is "
-    "dark-field (chrome everywhere except clear windows at the drawn polygons)"
-)
-
 _SIZE_NAMES = ("deep", "mid", "shallow")
 
 

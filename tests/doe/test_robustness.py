@@ -193,7 +193,7 @@ MESH_MANIFEST = {
 )
 @given(st.sampled_from(list(MESH_MANIFEST)), json_values)
 def test_mesh_reads_a_fab_folder_it_can_build_or_refuses_it(tmp_path_factory, key, value):
-    from fab.commands.mesh import read_fab_dir
+    from fab.mesh.build import read_fab_dir
 
     manifest = {**MESH_MANIFEST, key: value}
     folder = _fab_folder(tmp_path_factory.mktemp("fab"), manifest)

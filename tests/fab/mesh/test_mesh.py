@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from doe.infra.cli import main
-from fab.commands.mesh import (
+from fab.mesh.checks import (
     BYTES_PER_TRIANGLE,
     MERGED_MEMORY_LIMIT_BYTES,
     TILE_MEMORY_LIMIT_BYTES,

@@ -386,7 +386,7 @@ def test_a_tile_whose_pitch_rounds_to_no_grid_step_exit_2(tmp_path, capsys):
 
 
 def test_report_summary_describes_the_fabricated_tile():
-    from fab.commands.fab import tile_derived, tile_summary
+    from fab.package.build import tile_derived, tile_summary
 
     design = load_design()
     summary = tile_summary(design, tile_derived(design, 35))["derived"]

@@ -6,7 +6,7 @@ polygons copied into the top cell, no AREF): build + write time and file size.
 The flat file (~330 MB, ~1.3 GB of memory while building) is written to a
 temporary folder and deleted.
 
-Run: ``python bench/fab.py [--repeat 3] [--no-flat]``
+Run: ``python bench/package.py [--repeat 3] [--no-flat]``
 """
 
 import argparse
@@ -19,11 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-# This script is named like the fab package: drop its own folder from the import path.
-_HERE = Path(__file__).resolve().parent
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
-
-from doe.infra import flags  # noqa: E402
+from doe.infra import flags
 
 
 def make_design(path, n=175, n_levels=8, k=11, seed=0):
