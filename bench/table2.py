@@ -179,8 +179,9 @@ def _read_sets(args):
 def _evaluate_all(args, out, data):
     import torch
 
-    from psf_learn.commands.learn import idle_cores
+    from doe.records.learn import read_learn
     from psf_learn.evaluate import evaluate
+    from psf_learn.learn_plan import idle_cores
     from psf_learn.sr import load_model
 
     torch.set_num_threads(idle_cores())
@@ -189,11 +190,11 @@ def _evaluate_all(args, out, data):
         if key not in args.models:
             continue
         model = load_model(out / key)
-        learn = json.loads((out / key / "learn.json").read_text())
+        learn = read_learn(out / key / "learn.json")
         row = {
             "label": label,
-            "steps": learn["steps"],
-            "seconds": learn["seconds"],
+            "steps": learn.steps,
+            "seconds": learn.seconds,
             "psf": model.psf.tolist(),
         }
         for name, (names, images) in data.items():

@@ -126,3 +126,24 @@ def save_gif(path, frames, fps=10, min_width=256):
         duration=10 * centiseconds,  # ms; Pillow stores whole centiseconds
         loop=0,
     )
+
+
+def example_pixels(fit):
+    """Up to four (row, col, reason) pixels: brightest, median, dimmest return, a non-return."""
+    picks = []
+    flat_valid = np.flatnonzero(fit.valid.ravel())
+    if flat_valid.size:
+        amp = fit.amplitude.ravel()[flat_valid]
+        order = flat_valid[np.argsort(amp, kind="stable")]
+        for why, i in (
+            ("brightest", order[-1]),
+            ("median", order[order.size // 2]),
+            ("dimmest", order[0]),
+        ):
+            if all(i != p for p, _ in picks):
+                picks.append((i, why))
+    invalid = np.flatnonzero(~fit.valid.ravel())
+    if invalid.size:
+        picks.append((invalid[0], "no return"))
+    shape = fit.valid.shape
+    return [(*np.unravel_index(i, shape), why) for i, why in picks]

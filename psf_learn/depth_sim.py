@@ -7,7 +7,8 @@ the recorded count is Poisson distributed around it.
 
 import numpy as np
 
-from psf_learn.depth import GateModel, expected_counts, gate_response, scan_times
+from psf_learn.depth import expected_counts, scan_times
+from psf_learn.depth_response import GateModel, gate_response
 
 
 def simulate_cube(amplitude, timing, background, n_samples, shift, response=None, rng=None):

@@ -1,9 +1,11 @@
-"""Super-resolve SPAD frames with a learned model: the Python API.
+"""Super-resolve SPAD frames with a learned model: the Python API and ``doefab sr``'s library.
 
 Example
 -------
->>> from psf_learn.sr import super_resolve
+>>> from psf_learn.sr import super_resolve, super_resolve_files
 >>> hr = super_resolve("model_dir", counts)   # counts (..., h, w) -> (..., 4 h, 4 w)
+>>> done = super_resolve_files("model_dir", ["a.npy", "b.png"], "sr_out")
+>>> done.outputs   # a_sr.npy, a_sr.png, a_sr.json, b_sr.npy, ...
 """
 
 from dataclasses import dataclass
@@ -13,18 +15,23 @@ import numpy as np
 import torch
 
 from doe.infra.flags import PHOTONS_MAX
+from doe.records.learn import LearnRecord
 from psf_learn.network import FEATURES_MAX, STAGES_MAX, SRNet, check_arch
 from psf_learn.sensor import SensorModel
 
 
 @dataclass(frozen=True)
 class SRModel:
-    """A loaded model: the network, the PSF it was trained with, its sensor model."""
+    """A loaded model: the network, the PSF it was trained with, its sensor model.
+
+    ``learn`` is the :class:`doe.records.learn.LearnRecord` of the folder's
+    ``learn.json``, None for a model without one (saved from Python).
+    """
 
     net: SRNet
     psf: np.ndarray
     sensor: SensorModel
-    learn: dict | None
+    learn: LearnRecord | None
 
 
 def load_model(model_dir):
@@ -165,3 +172,199 @@ def super_resolve(model, frames, photons=None, chunk=16):
             y = model.net(torch.from_numpy(x).float())
             out[i : i + chunk] = y.double().numpy() * photons
     return out.reshape(*lead, f * h, f * w)
+
+
+def super_resolve_cube(model_dir, cube):
+    """Super-resolve every time bin of an (H, W, T) cube; return (fH, fW, T) counts >= 0.
+
+    All bins share one white level, the cube's maximum, which keeps the frames on
+    a common scale.
+    """
+    from doe.infra.errors import InputError
+
+    if not Path(model_dir).is_dir():
+        raise InputError(model_dir, "no such model folder (write one with 'doefab learn')")
+    frames = np.moveaxis(cube, -1, 0)
+    white = float(frames.max()) or 1.0
+    hr = np.asarray(super_resolve(model_dir, frames, photons=white), dtype=np.float64)
+    if hr.ndim != 3 or hr.shape[0] != frames.shape[0]:
+        raise InputError(
+            model_dir, f"super-resolution returned shape {hr.shape} for frames {frames.shape}"
+        )
+    # The network is not photon-exact: negative undershoot is not a count.
+    return np.clip(np.moveaxis(hr, 0, -1), 0.0, None)
+
+
+# A frame whose 99th-percentile counts pass this many times its white level is noted.
+OVER_WHITE = 2.0
+
+
+@dataclass(frozen=True)
+class SRFrame:
+    """One input of :func:`super_resolve_files` and what was written for it.
+
+    Attributes
+    ----------
+    input : path
+        The raw frame file.
+    stem : str
+        Its name without suffix: the outputs are ``<stem>_sr.npy``, ``.png``, ``.json``.
+    input_shape, output_shape : tuple of int
+        Shapes of the counts read and of the super-resolved array.
+    notes : tuple of str
+        Notes on the frame (far brighter than the white the network was trained at).
+    """
+
+    input: object
+    stem: str
+    input_shape: tuple
+    output_shape: tuple
+    notes: tuple
+
+
+@dataclass(frozen=True)
+class SRResult:
+    """What :func:`super_resolve_files` wrote.
+
+    Attributes
+    ----------
+    out : Path
+        The output folder.
+    outputs : tuple of str
+        The files written, three per input in the inputs' order.
+    frames : tuple of SRFrame
+        One per input.
+    """
+
+    out: Path
+    outputs: tuple
+    frames: tuple
+
+
+def super_resolve_files(
+    model_dir, raw, out, *, photons=None, force=False, progress=None, on_note=None, on_frame=None
+):
+    """Super-resolve raw frame files into a folder: ``<stem>_sr.npy``, ``.png`` and ``.json``.
+
+    Each output has its own JSON record (model, its hash, photon level, input and
+    its hash, shapes, the files' hashes, notes), so that one folder can gather
+    several batches. Nothing is written unless every input succeeds.
+
+    Parameters
+    ----------
+    model_dir : path
+        A folder written by ``doefab learn``.
+    raw : list of paths
+        Raw frames: ``.npy`` (H, W) or (T, H, W), or image files; their stems must differ.
+    out : path
+        Output folder.
+    photons : float, optional
+        Counts of a white scene (default: the model's).
+    force : bool
+        Overwrite existing outputs.
+    progress : bool, optional
+        Show a progress bar of inputs (default: when stderr is a terminal).
+    on_note : callable, optional
+        Called with each note on a frame, before that frame is super-resolved.
+    on_frame : callable, optional
+        Called with each :class:`SRFrame` once its files are staged.
+
+    Returns
+    -------
+    SRResult
+    """
+    import torch
+    from tqdm import tqdm
+
+    from doe.infra import flags
+    from doe.infra.errors import InputError
+    from doe.infra.files import save_npy, sha256_file, staged_output, write_json
+    from psf_learn import images as imgio
+    from psf_learn.store import doefab_version
+
+    flags.positive("--photons", photons)
+    flags.at_most("--photons", photons, flags.PHOTONS_MAX, "counts per pixel")
+    torch.set_num_threads(1)
+    model = load_model(model_dir)
+    model_file = Path(model_dir) / "model.pt"
+    stems = _distinct_stems(raw)
+    frames = [imgio.read_raw(r) for r in raw]
+    names = [f"{s}_sr{ext}" for s in stems for ext in (".npy", ".png", ".json")]
+    record = {
+        "model": str(model_dir),
+        "model_sha256": sha256_file(model_file),
+        "photons": white_counts(model, photons),
+        "dark_counts": model.sensor.dark_counts,
+        "doefab": doefab_version(),
+    }
+    done = []
+    disable = None if progress is None else not progress
+    with staged_output(out, force=force, names=names) as stage:
+        bar = tqdm(frames, desc="sr", unit="input", disable=disable)
+        for raw_path, stem, counts in zip(raw, stems, bar, strict=True):
+            notes = exposure_notes(counts, raw_path, record["photons"], model.sensor.dark_counts)
+            for note in notes:
+                if on_note is not None:
+                    on_note(note)
+            hr = super_resolve(model, counts, photons=photons)
+            if not np.isfinite(hr).all():  # weights (or counts) past float32's range
+                raise InputError(model_file, f"gives non-finite values on {raw_path}")
+            made = (f"{stem}_sr.npy", f"{stem}_sr.png")
+            save_npy(stage / made[0], hr)
+            _write_preview(stage / made[1], hr if hr.ndim == 2 else hr.mean(axis=0))
+            write_json(
+                stage / f"{stem}_sr.json",
+                {
+                    **record,
+                    "input": str(raw_path),
+                    "input_sha256": sha256_file(raw_path),
+                    "input_shape": list(counts.shape),
+                    "output_shape": list(hr.shape),
+                    "files": {n: sha256_file(stage / n) for n in made},
+                    "notes": notes,
+                },
+            )
+            frame = SRFrame(raw_path, stem, counts.shape, hr.shape, tuple(notes))
+            done.append(frame)
+            if on_frame is not None:
+                on_frame(frame)
+    return SRResult(Path(out), tuple(names), tuple(done))
+
+
+def _distinct_stems(raw):
+    """Return the inputs' stems; refuse two that share one (their outputs would collide)."""
+    from doe.infra.errors import InputError
+
+    stems = [Path(r).stem for r in raw]
+    for i, stem in enumerate(stems):
+        if stem in stems[:i]:
+            first = raw[stems.index(stem)]
+            raise InputError(raw[i], f"shares its name with {first}; their outputs would collide")
+    return stems
+
+
+def exposure_notes(raw, raw_path, white, dark_counts):
+    """Return a note when a frame is far brighter than the white the network was trained on.
+
+    A camera frame of 16-bit codes, or a SPAD exposed longer than the model's photon
+    level, is no scene the network has seen (none was brighter than white), and its
+    output then means little.
+    """
+    top = float(np.percentile(raw, 99)) - dark_counts
+    if not top > OVER_WHITE * white:
+        return []
+    return [
+        f"{raw_path}: 1 % of its counts exceed {top:.4g}, {top / white:.3g} times the white "
+        f"level {white:g} the network was trained at: give --photons as the counts a white "
+        "scene gives these frames"
+    ]
+
+
+def _write_preview(path, image):
+    """Write an 8-bit PNG scaled to the image's 99.9th percentile (a viewing aid)."""
+    from skimage import io
+
+    top = float(np.percentile(image, 99.9)) or 1.0
+    io.imsave(
+        path, (np.clip(image / top, 0, 1) * 255).round().astype(np.uint8), check_contrast=False
+    )

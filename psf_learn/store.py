@@ -12,7 +12,8 @@ from pathlib import Path
 import torch
 
 from doe.infra.errors import InputError, first_line
-from doe.infra.files import read_json, read_psf, sha256_file
+from doe.infra.files import read_psf, sha256_file
+from doe.records.learn import read_learn
 
 MODEL_FORMAT = "doefab-sr-1"
 
@@ -85,7 +86,8 @@ def save_model(path, record):
 def load_model_dir(model_dir):
     """Read a model folder; return (record, psf, learn) with the model.pt dict and psf.npy.
 
-    ``learn`` is the parsed ``learn.json`` or None when absent.
+    ``learn`` is the :class:`doe.records.learn.LearnRecord` of ``learn.json``, or None
+    when absent; the files' hashes it records must be those of model.pt and psf.npy.
     """
     model_dir = Path(model_dir)
     if not model_dir.is_dir():
@@ -103,9 +105,9 @@ def load_model_dir(model_dir):
         raise InputError(path, f"not a {MODEL_FORMAT} model file")
     psf = read_psf(model_dir / "psf.npy")
     learn_path = model_dir / "learn.json"
-    learn = read_json(learn_path) if learn_path.exists() else None
-    recorded = learn.get("files") if learn is not None else None
-    if isinstance(recorded, dict):  # learn.json of before 2026-11-24 records none
+    learn = read_learn(learn_path) if learn_path.exists() else None
+    recorded = learn.files if learn is not None else None
+    if recorded is not None:  # older records hold no hashes
         for name in ("model.pt", "psf.npy"):
             if name in recorded and sha256_file(model_dir / name) != recorded[name]:
                 raise InputError(
@@ -114,3 +116,13 @@ def load_model_dir(model_dir):
                     "training's?); keep psf.npy, model.pt and learn.json of one run together",
                 )
     return record, psf, learn
+
+
+def doefab_version():
+    """Return the installed doefab's version (recorded in the files), or ``unknown``."""
+    try:
+        from importlib.metadata import version
+
+        return version("doefab")
+    except Exception:
+        return "unknown"

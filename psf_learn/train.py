@@ -29,6 +29,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from doe.infra.errors import InputError
+from psf_learn import store
 from psf_learn.network import SRNet
 from psf_learn.psf import LearnedPSF
 from psf_learn.sensor import simulate_capture
@@ -214,10 +215,6 @@ def train(
         Where to train (default :func:`pick_device`: this process's GPU if there is one).
         Only CPU runs repeat bit for bit.
     """
-    from tqdm import tqdm
-
-    from psf_learn import store
-
     device = pick_device() if device is None else torch.device(device)
     rank, world = _dist_setup(device)
     if config.batch % world:
@@ -227,15 +224,117 @@ def train(
     if init_state is not None:
         camera.net.load_state_dict(init_state)
     camera.to(device)
+    opt = _optimizer(camera, config)
+    identity = _identity(config, images, sensor, psf_init, init_state)
+    run = _Run(*_start(checkpoint, identity, camera, opt, rank))
+    model = camera
+    if world > 1:
+        model = nn.parallel.DistributedDataParallel(
+            camera, device_ids=[device.index] if device.type == "cuda" else None
+        )
+
+    def save():
+        if checkpoint is not None and rank == 0:
+            store.save_checkpoint(checkpoint, run.checkpoint(identity, camera, opt))
+
+    by_steps = config.steps is not None
+    budget = None if by_steps else 60.0 * (config.minutes or 0)
+    bar = _progress_bar(config, run, budget, progress, rank)
+    k = np.asarray(psf_init).shape[0]
+    batch = _Batch(images, config.seed, config.patch + k - 1, rank, config.batch // world)
+    last_save = time.monotonic()
+    while True:
+        done, frac = _budget_spent(config, run, budget, world, device)
+        if done or (stop_at_step is not None and run.step >= stop_at_step):
+            break
+        t0 = time.monotonic()
+        for g in opt.param_groups:
+            g["lr"] = g["base"] * lr_factor(frac)
+        figures = _step(camera, model, opt, batch, run.step, device, init_state is not None)
+        if world > 1:  # the global batch's figures, as one process would have them
+            torch.distributed.all_reduce(figures)
+            figures = figures / world
+        run.history.append([float(figures[0]), psnr_from_mse(float(figures[1]))])
+        run.step += 1
+        dt = time.monotonic() - t0
+        run.elapsed += dt
+        if rank == 0 and bar.disable is False:
+            _show(bar, run, 1 if by_steps else min(dt, max(budget - bar.n, 0)))
+        if time.monotonic() - last_save > config.checkpoint_seconds:
+            save()
+            last_save = time.monotonic()
+    bar.close()
+    save()
+    recent = run.history[-50:] or [[float("nan"), float("nan")]]
+    return TrainResult(
+        camera.cpu(),
+        run.step,
+        run.elapsed,
+        float(np.mean([h[0] for h in recent])),
+        float(np.mean([h[1] for h in recent])),
+        run.history,
+    )
+
+
+def _optimizer(camera, config):
+    """Return the Adam optimiser of the network (and the PSF's logits, if learned).
+
+    Each group keeps its ``base`` learning rate, which :func:`lr_factor` scales.
+    """
     groups = [{"params": list(camera.net.parameters()), "lr": config.lr, "base": config.lr}]
     if config.learn_psf:
         groups.append({"params": [camera.psf.logits], "lr": config.psf_lr, "base": config.psf_lr})
-    opt = torch.optim.Adam(groups)
-    step, elapsed, history = 0, 0.0, []
-    # A checkpoint resumes only the same run: hyper-parameters, sensor, starting PSF,
-    # images and starting network (a new --photons or kernel size once resumed the old
-    # weights, or crashed on them; so did other --images or --init).
-    identity = {
+    return torch.optim.Adam(groups)
+
+
+@dataclass
+class _Run:
+    """Where a training stands: steps done, seconds spent, (loss, PSNR) of each step."""
+
+    step: int
+    elapsed: float
+    history: list
+
+    def checkpoint(self, identity, camera, opt):
+        """Return the checkpoint dict of the run at this point."""
+        return {
+            "identity": identity,
+            "camera": camera.state_dict(),
+            "optimizer": opt.state_dict(),
+            "step": self.step,
+            "elapsed": self.elapsed,
+            "history": self.history,
+            "threads": torch.get_num_threads(),
+        }
+
+
+@dataclass(frozen=True)
+class _Batch:
+    """The scenes of this process's share of each step's global batch.
+
+    Sample i of step s is keyed (seed, s, i, 0) for its patch and (seed, s, i, 1) for
+    its noise, whatever process draws it.
+    """
+
+    images: list
+    seed: int
+    size: int
+    rank: int
+    local: int
+
+    def keys(self, step, use):
+        """Return the keys of this process's samples of ``step`` (``use`` 0: patch, 1: noise)."""
+        ids = range(self.rank * self.local, (self.rank + 1) * self.local)
+        return [(self.seed, step, i, use) for i in ids]
+
+
+def _identity(config, images, sensor, psf_init, init_state):
+    """Return what a checkpoint must match to be resumed: the same run.
+
+    Hyper-parameters, sensor, starting PSF, images and starting network: a
+    checkpoint of another run is ignored, not resumed with the wrong weights.
+    """
+    return {
         "images": _digest(images),
         "init": _digest(v.detach().cpu().numpy() for v in init_state.values())
         if init_state is not None
@@ -248,119 +347,99 @@ def train(
         ],
         "psf_init": np.asarray(psf_init, dtype=np.float64).tolist(),
     }
-    if checkpoint is not None and os.path.exists(checkpoint):
-        state = store.load_checkpoint(checkpoint)
-        if state.get("identity") == identity:
-            step, elapsed, history = _resume(state, camera, opt, checkpoint)
-            if rank == 0:
-                print(f"resuming from {checkpoint} at step {step}", file=sys.stderr)
-                threads = state.get("threads")
-                if threads is not None and threads != torch.get_num_threads():
-                    print(
-                        f"note: the checkpoint was written with {threads} threads, this run "
-                        f"has {torch.get_num_threads()}; the result will differ in the last "
-                        "bits from an uninterrupted run",
-                        file=sys.stderr,
-                    )
-        elif rank == 0:
+
+
+def _start(checkpoint, identity, camera, opt, rank):
+    """Return (step, elapsed, history): a checkpoint of this run's, resumed, or a fresh start.
+
+    Rank 0 says on stderr what it did with a checkpoint it found.
+    """
+    if checkpoint is None or not os.path.exists(checkpoint):
+        return 0, 0.0, []
+    state = store.load_checkpoint(checkpoint)
+    if state.get("identity") != identity:
+        if rank == 0:
             print(f"ignoring {checkpoint}: it belongs to another configuration", file=sys.stderr)
-    model = camera
-    if world > 1:
-        model = nn.parallel.DistributedDataParallel(
-            camera, device_ids=[device.index] if device.type == "cuda" else None
-        )
-    k = np.asarray(psf_init).shape[0]
-    size, local = config.patch + k - 1, config.batch // world
-
-    def save():
-        if checkpoint is not None and rank == 0:
-            store.save_checkpoint(
-                checkpoint,
-                {
-                    "identity": identity,
-                    "camera": camera.state_dict(),
-                    "optimizer": opt.state_dict(),
-                    "step": step,
-                    "elapsed": elapsed,
-                    "history": history,
-                    "threads": torch.get_num_threads(),
-                },
+        return 0, 0.0, []
+    step, elapsed, history = _resume(state, camera, opt, checkpoint)
+    if rank == 0:
+        print(f"resuming from {checkpoint} at step {step}", file=sys.stderr)
+        threads = state.get("threads")
+        if threads is not None and threads != torch.get_num_threads():
+            print(
+                f"note: the checkpoint was written with {threads} threads, this run "
+                f"has {torch.get_num_threads()}; the result will differ in the last "
+                "bits from an uninterrupted run",
+                file=sys.stderr,
             )
+    return step, elapsed, history
 
-    by_steps = config.steps is not None
-    budget = None if by_steps else 60.0 * (config.minutes or 0)
+
+def _progress_bar(config, run, budget, progress, rank):
+    """Return the tqdm bar of a run: steps, or seconds of a time budget (rank 0 only)."""
+    from tqdm import tqdm
+
+    by_steps = budget is None
     show = sys.stderr.isatty() if progress is None else progress
-    bar = tqdm(
+    return tqdm(
         total=config.steps if by_steps else round(budget),
-        initial=step if by_steps else min(round(elapsed), round(budget)),
+        initial=run.step if by_steps else min(round(run.elapsed), round(budget)),
         disable=not show or rank != 0,
         unit="step" if by_steps else "s",
         file=sys.stderr,
         dynamic_ncols=True,
     )
-    last_save = time.monotonic()
-    while True:
-        done = step >= config.steps if by_steps else elapsed >= budget
-        frac = step / max(config.steps, 1) if by_steps else elapsed / max(budget, 1e-9)
-        if world > 1:
-            # Rank 0's clock decides for all: every rank runs the same number of steps at
-            # the same learning rate (each rank's own clock once gave each replica its own
-            # rate under --minutes, and the weights drifted apart).
-            shared = torch.tensor([float(done), frac], dtype=torch.float64, device=device)
-            torch.distributed.broadcast(shared, 0)
-            done, frac = bool(shared[0].item()), float(shared[1].item())
-        if done or (stop_at_step is not None and step >= stop_at_step):
-            break
-        t0 = time.monotonic()
-        for g in opt.param_groups:
-            g["lr"] = g["base"] * lr_factor(frac)
-        ids = range(rank * local, (rank + 1) * local)
-        scenes = make_batch(images, [(config.seed, step, i, 0) for i in ids], size).to(device)
-        target = camera.centres(scenes)
-        estimate = model(scenes, [(config.seed, step, i, 1) for i in ids])
-        loss = F.l1_loss(estimate, target)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        # long runs at a high learning rate spike without this (seen at 14 k steps)
-        norm = nn.utils.clip_grad_norm_(camera.parameters(), 1.0)
-        if not torch.isfinite(norm):  # the same on every rank: the gradients are shared
-            # One more step made the PSF NaN, and the next capture's Poisson draw raised.
-            raise InputError(
-                "--lr",
-                f"the training diverged at step {step + 1} (gradients no longer finite): "
-                "lower --lr or --psf-lr"
-                + (", or start from another --init model" if init_state is not None else ""),
-            )
-        opt.step()
-        figures = torch.stack([loss.detach(), F.mse_loss(estimate.detach().clamp(0, 1), target)])
-        if world > 1:  # the global batch's figures, as one process would have them
-            torch.distributed.all_reduce(figures)
-            figures = figures / world
-        history.append([float(figures[0]), psnr_from_mse(float(figures[1]))])
-        step += 1
-        dt = time.monotonic() - t0
-        elapsed += dt
-        if rank == 0 and bar.disable is False:
-            recent = history[-50:]
-            bar.set_postfix(
-                loss=f"{np.mean([h[0] for h in recent]):.4f}",
-                psnr=f"{np.mean([h[1] for h in recent]):.2f}",
-            )
-            bar.update(1 if by_steps else min(dt, max(budget - bar.n, 0)))
-        if time.monotonic() - last_save > config.checkpoint_seconds:
-            save()
-            last_save = time.monotonic()
-    bar.close()
-    save()
-    recent = history[-50:] or [[float("nan"), float("nan")]]
-    return TrainResult(
-        camera.cpu(),
-        step,
-        elapsed,
-        float(np.mean([h[0] for h in recent])),
-        float(np.mean([h[1] for h in recent])),
-        history,
+
+
+def _show(bar, run, advance):
+    """Advance the bar, showing the mean loss and PSNR of the last 50 steps."""
+    recent = run.history[-50:]
+    bar.set_postfix(
+        loss=f"{np.mean([h[0] for h in recent]):.4f}",
+        psnr=f"{np.mean([h[1] for h in recent]):.2f}",
     )
+    bar.update(advance)
+
+
+def _budget_spent(config, run, budget, world, device):
+    """Return (whether the budget is spent, the fraction of it spent) for this step.
+
+    Rank 0's clock decides for all: every rank runs the same number of steps at
+    the same learning rate.
+    """
+    by_steps = budget is None
+    done = run.step >= config.steps if by_steps else run.elapsed >= budget
+    frac = run.step / max(config.steps, 1) if by_steps else run.elapsed / max(budget, 1e-9)
+    if world > 1:
+        shared = torch.tensor([float(done), frac], dtype=torch.float64, device=device)
+        torch.distributed.broadcast(shared, 0)
+        done, frac = bool(shared[0].item()), float(shared[1].item())
+    return done, frac
+
+
+def _step(camera, model, opt, batch, step, device, fine_tuning):
+    """Take one optimiser step; return the batch's (L1 loss, MSE of the clipped estimate).
+
+    Raises InputError naming ``--lr`` when the gradients are no longer finite.
+    """
+    scenes = make_batch(batch.images, batch.keys(step, 0), batch.size).to(device)
+    target = camera.centres(scenes)
+    estimate = model(scenes, batch.keys(step, 1))
+    loss = F.l1_loss(estimate, target)
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    # long runs at a high learning rate spike without this (seen at 14 k steps)
+    norm = nn.utils.clip_grad_norm_(camera.parameters(), 1.0)
+    if not torch.isfinite(norm):  # the same on every rank: the gradients are shared
+        # One more step would make the PSF NaN, and the next capture's Poisson draw raise.
+        raise InputError(
+            "--lr",
+            f"the training diverged at step {step + 1} (gradients no longer finite): "
+            "lower --lr or --psf-lr"
+            + (", or start from another --init model" if fine_tuning else ""),
+        )
+    opt.step()
+    return torch.stack([loss.detach(), F.mse_loss(estimate.detach().clamp(0, 1), target)])
 
 
 def _resume(state, camera, opt, path):

@@ -108,7 +108,7 @@ def _common(p, sr_help="also super-resolve with a model from 'doefab learn' (int
 def _response(args):
     """The temporal response from the gate flags or from --irf."""
     from psf_learn.cubes import read_irf
-    from psf_learn.depth import GateModel, gate_response, response_from_irf
+    from psf_learn.depth_response import GateModel, gate_response, response_from_irf
 
     shift = flags.positive("--shift-ps", args.shift_ps) * 1e-12
     if args.irf:
@@ -165,24 +165,6 @@ def _irf_warnings(irf):
     ]
 
 
-def _super_resolve_cube(model_dir, cube):
-    """Super-resolve every time bin of an (H, W, T) cube; return (fH, fW, T) counts >= 0."""
-    from psf_learn.sr import super_resolve
-
-    if not Path(model_dir).is_dir():
-        raise InputError(model_dir, "no such model folder (write one with 'doefab learn')")
-    frames = np.moveaxis(cube, -1, 0)
-    # One white level for the whole sequence keeps the frames on a common scale.
-    white = float(frames.max()) or 1.0
-    hr = np.asarray(super_resolve(model_dir, frames, photons=white), dtype=np.float64)
-    if hr.ndim != 3 or hr.shape[0] != frames.shape[0]:
-        raise InputError(
-            model_dir, f"super-resolution returned shape {hr.shape} for frames {frames.shape}"
-        )
-    # The network is not photon-exact: negative undershoot is not a count.
-    return np.clip(np.moveaxis(hr, 0, -1), 0.0, None)
-
-
 def _depth(args):
     from doe.infra.files import previous_files, save_npy, staged_output, write_json
     from psf_learn.cubes import read_cube, scan_gaps
@@ -198,7 +180,9 @@ def _depth(args):
         raise InputError(args.cube, f"{e}; check --shift-ps and the gate flags") from None
     cubes = {"": cube}
     if args.sr:
-        cubes["sr/"] = _super_resolve_cube(args.sr, cube)
+        from psf_learn.sr import super_resolve_cube  # torch only for --sr
+
+        cubes["sr/"] = super_resolve_cube(args.sr, cube)
     per_cube = [*(a + ".npy" for a in DEPTH_ARRAYS), *DEPTH_FIGURES]
     names = [f"{prefix}{n}" for prefix in cubes for n in per_cube] + ["depth.json"]
     # An earlier run's with --sr, as its depth.json says: a lab's own sr/ files stay.
@@ -242,7 +226,7 @@ def _depth(args):
 
 def _fit_and_write(folder, cube, shift, response, threshold, save_npy):
     from psf_learn.depth import expected_counts, fit_profiles, scan_times
-    from psf_learn.depth_plots import save_map, save_pixel_fits
+    from psf_learn.depth_plots import example_pixels, save_map, save_pixel_fits
 
     fit = fit_profiles(cube, shift, response, threshold=threshold, progress=True)
     arrays = {
@@ -266,7 +250,7 @@ def _fit_and_write(folder, cube, shift, response, threshold, save_npy):
         valid=fit.valid,
     )
     times = scan_times(cube.shape[-1], shift)
-    picks = _example_pixels(fit)
+    picks = example_pixels(fit)
     profiles = [cube[r, c] for r, c, _ in picks]
     models = [
         expected_counts(
@@ -316,27 +300,6 @@ def _model_warnings(summary):
     return warnings
 
 
-def _example_pixels(fit):
-    """Up to four (row, col, reason) pixels: brightest, median, dimmest return, a non-return."""
-    picks = []
-    flat_valid = np.flatnonzero(fit.valid.ravel())
-    if flat_valid.size:
-        amp = fit.amplitude.ravel()[flat_valid]
-        order = flat_valid[np.argsort(amp, kind="stable")]
-        for why, i in (
-            ("brightest", order[-1]),
-            ("median", order[order.size // 2]),
-            ("dimmest", order[0]),
-        ):
-            if all(i != p for p, _ in picks):
-                picks.append((i, why))
-    invalid = np.flatnonzero(~fit.valid.ravel())
-    if invalid.size:
-        picks.append((invalid[0], "no return"))
-    shape = fit.valid.shape
-    return [(*np.unravel_index(i, shape), why) for i, why in picks]
-
-
 def _transient(args):
     from doe.infra.files import previous_files, save_npy, staged_output, write_json
     from psf_learn.cubes import read_cube, scan_gaps, write_frame_png16
@@ -350,7 +313,9 @@ def _transient(args):
     cube = read_cube(args.cube, min_samples=1)
     gaps = scan_gaps(args.cube)
     if args.sr:
-        cube = _super_resolve_cube(args.sr, cube)
+        from psf_learn.sr import super_resolve_cube  # torch only for --sr
+
+        cube = super_resolve_cube(args.sr, cube)
     frames = np.moveaxis(cube, -1, 0)
     try:
         gif_zoom(*frames.shape[1:])
