@@ -179,7 +179,7 @@ def _read_sets(args):
 def _evaluate_all(args, out, data):
     import torch
 
-    from doe.records.learn import read_learn
+    from doe.records.learn import LEARN_JSON, read_learn
     from psf_learn.evaluate import evaluate
     from psf_learn.learn_plan import idle_cores
     from psf_learn.sr import load_model
@@ -190,7 +190,7 @@ def _evaluate_all(args, out, data):
         if key not in args.models:
             continue
         model = load_model(out / key)
-        learn = read_learn(out / key / "learn.json")
+        learn = read_learn(out / key / LEARN_JSON)
         row = {
             "label": label,
             "steps": learn.steps,

@@ -21,7 +21,7 @@ import torch
 
 from doe.design import design_summary
 from doe.infra.files import save_npy, sha256_file, staged_output
-from doe.records.learn import LearnRecord, write_learn
+from doe.records.learn import LEARN_JSON, LearnRecord, write_learn
 from psf_learn import store
 from psf_learn.learn_plan import OUTPUTS, LearnOptions, plan_learning
 from psf_learn.store import doefab_version
@@ -206,5 +206,5 @@ def _write_outputs(plan, psf, result):
         # so that a model.pt or psf.npy from another run is not taken for this one's
         info["files"] = {n: sha256_file(stage / n) for n in ("model.pt", "psf.npy")}
         record = LearnRecord.from_dict(info)
-        write_learn(stage / "learn.json", record)
+        write_learn(stage / LEARN_JSON, record)
     return record

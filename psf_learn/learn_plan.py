@@ -18,6 +18,7 @@ from doe.design import check_psf_grid, check_psf_kernel, load_design
 from doe.infra import flags
 from doe.infra.errors import InputError
 from doe.infra.files import _refuse_overwrite, check_out_folder, read_psf
+from doe.records.learn import LEARN_JSON
 from psf_learn import images as imgio
 from psf_learn import store
 from psf_learn.network import FEATURES_MAX, STAGES_MAX, check_arch
@@ -33,7 +34,7 @@ from psf_learn.train import (
 )
 
 PSF_CHOICES = ("learned", "delta", "box", "gaussian")
-OUTPUTS = ("psf.npy", "model.pt", "learn.json")
+OUTPUTS = ("psf.npy", "model.pt", LEARN_JSON)
 # Sizes past these exhaust a workstation's memory (a traceback, not a message).
 SIZE_LIMITS = (("batch", 1024), ("patch", 512), ("features", FEATURES_MAX), ("stages", STAGES_MAX))
 

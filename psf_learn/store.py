@@ -13,7 +13,7 @@ import torch
 
 from doe.infra.errors import InputError, first_line
 from doe.infra.files import read_psf, sha256_file
-from doe.records.learn import read_learn
+from doe.records.learn import LEARN_JSON, read_learn
 
 MODEL_FORMAT = "doefab-sr-1"
 
@@ -104,7 +104,7 @@ def load_model_dir(model_dir):
     if not isinstance(record, dict) or record.get("format") != MODEL_FORMAT:
         raise InputError(path, f"not a {MODEL_FORMAT} model file")
     psf = read_psf(model_dir / "psf.npy")
-    learn_path = model_dir / "learn.json"
+    learn_path = model_dir / LEARN_JSON
     learn = read_learn(learn_path) if learn_path.exists() else None
     recorded = learn.files if learn is not None else None
     if recorded is not None:  # older records hold no hashes

@@ -22,7 +22,7 @@ readers then skip what they would compare):
     what the run repeats with.
 ``files``
     SHA-256 of ``model.pt`` and ``psf.npy``, so that files of another run beside
-    this record are told apart (records written before 2026-11-24 hold none).
+    this record are told apart (older records hold none).
 
 doe does not import torch: the record holds plain JSON values only.
 """
@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 
 from doe.infra.files import read_json, write_json
 
-LEARN_JSON = "learn.json"
+LEARN_JSON = "learn.json"  # its name in a model folder, beside psf.npy and model.pt
 
 
 def _number(value):
