@@ -6,11 +6,13 @@ PSF co-design (``doefab learn``, ``evaluate``, ``sr``)
 - ``network``: compact 4x super-resolution networks
 - ``images``: training and evaluation images (embedded default set included)
 - ``train``, ``evaluate``, ``sr``, ``store``: training with checkpoints, metrics, inference, files
-- ``cli``: the commands
+- ``learn_plan``, ``learn``: a training's settings checked, then run and written (``learn()``)
+- ``commands.learn``: the commands' flags and printing
 
 Depth and transients (``doefab depth``, ``transient``; numpy only)
-- ``depth``: gate response model and the vectorised per-pixel fit
+- ``depth_response``: the gate response model, or a measured IRF
+- ``depth``: the vectorised per-pixel fit
 - ``depth_sim``: simulated gate-scanned cubes
-- ``cubes``: reading cubes and frames
-- ``depth_plots``, ``cli_depth``: figures and commands
+- ``cubes``: reading cubes and frames (and super-resolving them, with torch)
+- ``depth_plots``, ``commands.depth``: figures and commands
 """

@@ -242,3 +242,24 @@ def write_frame_png16(path, frame):
             raise OSError(f"cannot write {path}: {out.geterror()}")
     finally:
         out.close()
+
+
+def super_resolve_cube(model_dir, cube):
+    """Super-resolve every time bin of an (H, W, T) cube; return (fH, fW, T) counts >= 0.
+
+    All bins share one white level, the cube's maximum, which keeps the frames on
+    a common scale. torch is imported here, by :mod:`psf_learn.sr`, and only here.
+    """
+    from psf_learn.sr import super_resolve
+
+    if not Path(model_dir).is_dir():
+        raise InputError(model_dir, "no such model folder (write one with 'doefab learn')")
+    frames = np.moveaxis(cube, -1, 0)
+    white = float(frames.max()) or 1.0
+    hr = np.asarray(super_resolve(model_dir, frames, photons=white), dtype=np.float64)
+    if hr.ndim != 3 or hr.shape[0] != frames.shape[0]:
+        raise InputError(
+            model_dir, f"super-resolution returned shape {hr.shape} for frames {frames.shape}"
+        )
+    # The network is not photon-exact: negative undershoot is not a count.
+    return np.clip(np.moveaxis(hr, 0, -1), 0.0, None)

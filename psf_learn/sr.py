@@ -174,27 +174,6 @@ def super_resolve(model, frames, photons=None, chunk=16):
     return out.reshape(*lead, f * h, f * w)
 
 
-def super_resolve_cube(model_dir, cube):
-    """Super-resolve every time bin of an (H, W, T) cube; return (fH, fW, T) counts >= 0.
-
-    All bins share one white level, the cube's maximum, which keeps the frames on
-    a common scale.
-    """
-    from doe.infra.errors import InputError
-
-    if not Path(model_dir).is_dir():
-        raise InputError(model_dir, "no such model folder (write one with 'doefab learn')")
-    frames = np.moveaxis(cube, -1, 0)
-    white = float(frames.max()) or 1.0
-    hr = np.asarray(super_resolve(model_dir, frames, photons=white), dtype=np.float64)
-    if hr.ndim != 3 or hr.shape[0] != frames.shape[0]:
-        raise InputError(
-            model_dir, f"super-resolution returned shape {hr.shape} for frames {frames.shape}"
-        )
-    # The network is not photon-exact: negative undershoot is not a count.
-    return np.clip(np.moveaxis(hr, 0, -1), 0.0, None)
-
-
 # A frame whose 99th-percentile counts pass this many times its white level is noted.
 OVER_WHITE = 2.0
 

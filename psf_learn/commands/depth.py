@@ -167,7 +167,7 @@ def _irf_warnings(irf):
 
 def _depth(args):
     from doe.infra.files import previous_files, save_npy, staged_output, write_json
-    from psf_learn.cubes import read_cube, scan_gaps
+    from psf_learn.cubes import read_cube, scan_gaps, super_resolve_cube
     from psf_learn.depth import check_scan
 
     response, gate_summary = _response(args)
@@ -180,8 +180,6 @@ def _depth(args):
         raise InputError(args.cube, f"{e}; check --shift-ps and the gate flags") from None
     cubes = {"": cube}
     if args.sr:
-        from psf_learn.sr import super_resolve_cube  # torch only for --sr
-
         cubes["sr/"] = super_resolve_cube(args.sr, cube)
     per_cube = [*(a + ".npy" for a in DEPTH_ARRAYS), *DEPTH_FIGURES]
     names = [f"{prefix}{n}" for prefix in cubes for n in per_cube] + ["depth.json"]
@@ -302,7 +300,7 @@ def _model_warnings(summary):
 
 def _transient(args):
     from doe.infra.files import previous_files, save_npy, staged_output, write_json
-    from psf_learn.cubes import read_cube, scan_gaps, write_frame_png16
+    from psf_learn.cubes import read_cube, scan_gaps, super_resolve_cube, write_frame_png16
     from psf_learn.depth_plots import gif_frame_centiseconds, gif_zoom, save_gif
 
     flags.positive("--shift-ps", args.shift_ps)
@@ -313,8 +311,6 @@ def _transient(args):
     cube = read_cube(args.cube, min_samples=1)
     gaps = scan_gaps(args.cube)
     if args.sr:
-        from psf_learn.sr import super_resolve_cube  # torch only for --sr
-
         cube = super_resolve_cube(args.sr, cube)
     frames = np.moveaxis(cube, -1, 0)
     try:
