@@ -111,8 +111,10 @@ def _learn(args):
 def _evaluate(args):
     from psf_learn.evaluate import evaluate_folder, results_path, write_evaluation
 
+    # The seed, then --out, are checked before the model is read; the scores are
+    # printed before the file is written.
     flags.seed("--seed", args.seed)
-    out = results_path(args.out, args.force)  # refused now, not after the evaluation
+    out = results_path(args.out, args.force)
     result = evaluate_folder(
         args.model_dir,
         args.images,
