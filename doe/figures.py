@@ -5,8 +5,7 @@ PNG metadata is pinned so that the same data give byte-identical files.
 
 import numpy as np
 
-PNG_METADATA = {"Software": None}
-"""savefig metadata for PNG: no software/version stamp, so the bytes are deterministic."""
+from doe.infra.png import save_png
 
 
 def correlation_text(value):
@@ -75,5 +74,5 @@ def save_retrieval_figure(path, target, psf, levels, n_levels, quality):
         f"rmse {quality['rmse']:.5f}   efficiency {quality['efficiency']:.4f}"
     )
     fig.tight_layout()
-    fig.savefig(path, dpi=80, metadata=PNG_METADATA)
+    save_png(fig, path, dpi=80)
     plt.close(fig)

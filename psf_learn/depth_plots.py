@@ -6,7 +6,8 @@ on the data.
 
 import numpy as np
 
-PNG_META = {"Software": None}
+from doe.infra.png import save_png
+
 # A GIF frame lasts a whole number of centiseconds, up to 65535 (a 16-bit field);
 # browsers play 0 or 1 centisecond as 10, so 2 (50 fps) is the shortest that plays.
 GIF_FPS_RANGE = (100 / 65535, 50.0)
@@ -39,7 +40,7 @@ def save_map(path, image, title, label, cmap="gray", valid=None):
     ax.set_xlabel("column")
     ax.set_ylabel("row")
     fig.colorbar(im, ax=ax, label=label, shrink=0.8)
-    fig.savefig(path, dpi=100, metadata=PNG_META)
+    save_png(fig, path, dpi=100)
 
 
 def save_pixel_fits(path, times, profiles, models, labels):
@@ -72,7 +73,7 @@ def save_pixel_fits(path, times, profiles, models, labels):
     axes.flat[0].legend(fontsize=8)
     # Fixed margins: tight_layout would cost more than drawing the figure.
     fig.subplots_adjust(left=0.08, right=0.98, bottom=0.1, top=0.93, wspace=0.25, hspace=0.5)
-    fig.savefig(path, dpi=100, metadata=PNG_META)
+    save_png(fig, path, dpi=100)
 
 
 def gif_frame_centiseconds(fps):

@@ -6,4 +6,5 @@
 - ``flags``: range checks of numeric command-line flags
 - ``image_pages``: pages of an image file, a quiet libpng
 - ``interrupts``: Ctrl-C and SIGTERM, remembered as well as raised
+- ``png``: PNG figures without a version stamp (the same bytes for the same figure)
 """

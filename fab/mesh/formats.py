@@ -14,6 +14,8 @@ import zipfile
 
 import numpy as np
 
+from doe.infra.png import save_png
+
 STL_HEADER = b"doefab relief mesh; units mm; z up; back face z=0"
 _ZIP_DATE = (1980, 1, 1, 0, 0, 0)
 
@@ -145,6 +147,6 @@ def preview_png_bytes(relief, title=""):
     ax.set_title(title or f"relief tile {rows} x {cols} px, {relief.n_levels} levels")
     fig.colorbar(im, ax=ax, label="top height relative to the unetched surface (um)")
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", metadata={"Software": None, "Creation Time": None})
+    save_png(fig, buf)
     plt.close(fig)
     return buf.getvalue()

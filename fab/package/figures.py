@@ -8,8 +8,9 @@ sensor sub-pixels.
 
 import numpy as np
 
+from doe.infra.png import save_png
+
 _DPI = 100
-_PNG_METADATA = {"Software": None}
 
 
 def _figure(width, height):
@@ -19,7 +20,7 @@ def _figure(width, height):
 
 
 def _save(fig, path):
-    fig.savefig(path, dpi=_DPI, metadata=_PNG_METADATA)
+    save_png(fig, path, dpi=_DPI)
 
 
 def _tile_extent(n, pitch):
