@@ -5,5 +5,6 @@
 - ``verify``: captures, lattice, fits, diagnosis, report, MTF (``doefab verify``, ``mtf``)
 - ``mesh``: relief meshes, file formats, STEP (``doefab mesh``)
 - ``run``: the pipeline and its summary (``doefab run``)
+- ``templates``: the HTML pages (jinja2) and their one stylesheet
 - ``commands``: the command modules (only the dispatcher imports them)
 """

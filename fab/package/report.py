@@ -3,11 +3,11 @@
 The report is what a process engineer works from: what to etch, how deep, in
 which order, which way up, how precisely, and which files carry it. One list
 of blocks (headings, paragraphs, tables, figures) is rendered twice, to
-Markdown and to self-contained HTML (inline style, figures as relative PNG
+Markdown and, through the template ``fab/templates/fab_report.html``, to
+self-contained HTML (the shared stylesheet inline, figures as relative PNG
 links), so the two never disagree. Output is deterministic for the same input.
 """
 
-import html
 import math
 import re
 from pathlib import Path
@@ -19,6 +19,7 @@ from doe.fraunhofer import correlation, level_phase, rmse
 from doe.infra.files import atomic_write_bytes, write_json
 from doe.retrieval import CORRELATION_GOAL, RMSE_GOAL, goals_missed
 from fab.package.manifest import file_records
+from fab.templates import render_page
 
 REPORT_MD = "fab_report.md"
 REPORT_HTML = "fab_report.html"
@@ -131,18 +132,17 @@ def report_blocks(context, figures=()):
 
     Kinds: ("h1"|"h2"|"h3", text), ("p", text), ("ul"|"ol", [text]),
     ("table", header, rows), ("fig", file, caption).
+
+    Parameters
+    ----------
+    context : dict
+        As for :func:`write_fab_report`.
+    figures : sequence of str
+        Names of the figures written; each known one gets its captioned block.
     """
-    d, man = context["design"], context["manifest"]
-    masks = sorted(context["masks"], key=lambda m: m["exposure_order"])
+    d = context["design"]
     tol = context.get("tolerance")
-    target = np.asarray(context["target_psf"], float)
-    sim = np.asarray(context["simulated_psf"], float)
-    fit = {"correlation": correlation(sim, target), "rmse": rmse(sim, target)}
-    missed, plate_missed = goals_missed(context["levels"], man["levels"], target, sim)
-    step = man["level_step_nm"]
-    n_levels = man["levels"]
-    b = []
-    b.append(("h1", f"Fabrication report: {d['name']}"))
+    b = [("h1", f"Fabrication report: {d['name']}")]
     if d.get("description"):
         b.append(("p", d["description"]))
     b.append(
@@ -152,66 +152,117 @@ def report_blocks(context, figures=()):
             "named here lies in this folder.",
         )
     )
-
-    b.append(("h2", "Summary"))
+    b += _summary_blocks(context)
+    b += _design_blocks(d)
+    b += _material_blocks(d, context["manifest"])
+    b += _process_blocks(context)
+    b.append(("h2", "Orientation"))
+    b.append(("p", context.get("orientation") or context["manifest"].get("orientation", "")))
+    b.append(("p", CHROME_DOWN))
+    b.append(("h2", "Figures"))
+    b += [("fig", name, FIGURE_CAPTIONS[name]) for name in figures if name in FIGURE_CAPTIONS]
+    b.append(("h2", "Tolerances"))
+    if tol is None:
+        b.append(("p", "No tolerance analysis in this build."))
+    else:
+        b.extend(_tolerance_blocks(tol))
+    b.append(("h2", "Files"))
+    b.append(("p", f"Every file of the package but {REPORT_MD} and {REPORT_HTML} themselves."))
     b.append(
         (
             "table",
-            ["quantity", "value"],
-            [
-                ["phase levels / masks", f"{n_levels} / {len(masks)}"],
-                ["step height", f"{step:.2f} nm"],
-                ["total depth (deepest floor to top)", f"{(n_levels - 1) * step:.2f} nm"],
-                [
-                    "etch depths, exposure order",
-                    ", ".join(f"{m['name']} {m['etch_depth_nm']:.2f} nm" for m in masks),
-                ],
-                ["mask pixel pitch", f"{man['pixel_pitch_nm']} nm"],
-                ["tile", f"{man['tile_pixels']} x {man['tile_pixels']} pixels"],
-                ["tiles", " x ".join(str(t) for t in man["tiles"])],
-                ["window efficiency (nominal)", f"{context['efficiency']:.4f}"],
-                [
-                    "correlation / rmse vs target (nominal)",
-                    f"{correlation_text(fit['correlation'])} / {fit['rmse']:.5f}",
-                ],
-                [
-                    f"design goals (correlation >= {CORRELATION_GOAL}, rmse <= {RMSE_GOAL})",
-                    "met" if not missed else "MISSED: " + "; ".join(missed),
-                ],
-                [
-                    "design goals as a plate of square pixels (sinc^2 envelope)",
-                    "met" if not plate_missed else "MISSED: " + "; ".join(plate_missed),
-                ],
-            ],
+            ["file", "bytes", "SHA-256"],
+            [[f["path"], str(f["bytes"]), f["sha256"]] for f in context.get("files", [])],
         )
     )
+    return b
 
-    b.append(("h2", "Design and derived optics"))
+
+FIGURE_CAPTIONS = {
+    FIGURES["levels"]: "Level map of one tile (level l = l steps of glass above the floor).",
+    FIGURES["masks"]: "Mask bitmaps: black pixels are polygons, i.e. etched.",
+    FIGURES["psf"]: "Target and simulated PSF (nominal levels) and their difference.",
+    FIGURES["lattice"]: "Simulated dot lattice on the sensor: SPAD pixels (white), "
+    "active areas (cyan), sub-pixel grid (faint); zero order on the "
+    "centre of the central pixel's active area; spots drawn 0.8 render "
+    "pixels wide for visibility.",
+    FIGURES["tolerance"]: "rmse against each fabrication error; dashed: rmse limit, "
+    "dotted: budget.",
+}
+
+
+def _sorted_masks(context):
+    return sorted(context["masks"], key=lambda m: m["exposure_order"])
+
+
+def _summary_blocks(context):
+    """The Summary: levels, depths, pitch, tiles, efficiency and the design goals."""
+    man = context["manifest"]
+    masks = _sorted_masks(context)
+    target = np.asarray(context["target_psf"], float)
+    sim = np.asarray(context["simulated_psf"], float)
+    fit = {"correlation": correlation(sim, target), "rmse": rmse(sim, target)}
+    missed, plate_missed = goals_missed(context["levels"], man["levels"], target, sim)
+    step = man["level_step_nm"]
+    n_levels = man["levels"]
+    rows = [
+        ["phase levels / masks", f"{n_levels} / {len(masks)}"],
+        ["step height", f"{step:.2f} nm"],
+        ["total depth (deepest floor to top)", f"{(n_levels - 1) * step:.2f} nm"],
+        [
+            "etch depths, exposure order",
+            ", ".join(f"{m['name']} {m['etch_depth_nm']:.2f} nm" for m in masks),
+        ],
+        ["mask pixel pitch", f"{man['pixel_pitch_nm']} nm"],
+        ["tile", f"{man['tile_pixels']} x {man['tile_pixels']} pixels"],
+        ["tiles", " x ".join(str(t) for t in man["tiles"])],
+        ["window efficiency (nominal)", f"{context['efficiency']:.4f}"],
+        [
+            "correlation / rmse vs target (nominal)",
+            f"{correlation_text(fit['correlation'])} / {fit['rmse']:.5f}",
+        ],
+        [
+            f"design goals (correlation >= {CORRELATION_GOAL}, rmse <= {RMSE_GOAL})",
+            "met" if not missed else "MISSED: " + "; ".join(missed),
+        ],
+        [
+            "design goals as a plate of square pixels (sinc^2 envelope)",
+            "met" if not plate_missed else "MISSED: " + "; ".join(plate_missed),
+        ],
+    ]
+    return [("h2", "Summary"), ("table", ["quantity", "value"], rows)]
+
+
+def _design_blocks(design):
+    """Every value of the design and of the optics derived from it."""
     rows = []
     for section in ("sensor", "optics", "psf", "fabrication", "derived"):
-        for key, value in d.get(section, {}).items():
+        for key, value in design.get(section, {}).items():
             rows.append([f"{section}.{key}", _fmt(value)])
-    b.append(("table", ["key", "value"], rows))
+    return [("h2", "Design and derived optics"), ("table", ["key", "value"], rows)]
 
-    b.append(("h2", "Material"))
-    b.append(
-        (
-            "table",
-            ["quantity", "value"],
-            [
-                ["substrate", str(d["material"]["name"])],
-                ["thickness", f"{d['material']['thickness_mm']:g} mm"],
-                ["design wavelength", f"{man['wavelength_nm']:g} nm"],
-                [
-                    "refractive index at the design wavelength (Sellmeier)",
-                    f"{man['refractive_index']:.5f}",
-                ],
-                ["step height lambda / ((n - 1) L)", f"{step:.2f} nm"],
-            ],
-        )
-    )
 
-    b.append(("h2", "Process"))
+def _material_blocks(design, man):
+    step = man["level_step_nm"]
+    rows = [
+        ["substrate", str(design["material"]["name"])],
+        ["thickness", f"{design['material']['thickness_mm']:g} mm"],
+        ["design wavelength", f"{man['wavelength_nm']:g} nm"],
+        [
+            "refractive index at the design wavelength (Sellmeier)",
+            f"{man['refractive_index']:.5f}",
+        ],
+        ["step height lambda / ((n - 1) L)", f"{step:.2f} nm"],
+    ]
+    return [("h2", "Material"), ("table", ["quantity", "value"], rows)]
+
+
+def _process_blocks(context):
+    """The Process: polarity, tone, GDS cells, the mask table and the exposure steps."""
+    man = context["manifest"]
+    masks = _sorted_masks(context)
+    tol = context.get("tolerance")
+    b = [("h2", "Process")]
     b.append(("p", f"Data polarity: {man.get('data_polarity', 'a polygon marks area to etch')}."))
     b.append(("p", f"Resist tone: {man.get('resist_tone', 'positive resist, dark-field mask')}."))
     b.append(
@@ -223,49 +274,7 @@ def report_blocks(context, figures=()):
         )
     )
     budget = {(x["kind"], x["mask"]): x for x in tol["budget"]} if tol else {}
-    mask_rows = []
-    for m in masks:
-        etch_b = budget.get(("etch", m["name"]))
-        at_least = "at least " if etch_b and not etch_b["limited_by_rmse"] else ""
-        etch_tol = (
-            at_least
-            + f"+-{etch_b['value']:.2f} % (+-{etch_b['value'] / 100 * m['etch_depth_nm']:.1f} nm)"
-            if etch_b
-            else "-"
-        )
-        ov = budget.get(("overlay", m["name"]))
-        ov_at_least = "at least " if ov and not ov["limited_by_rmse"] else ""
-        ov_tol = f"{ov_at_least}+-{ov['value']:.3f} um" if ov else ("reference" if tol else "-")
-        mask_rows.append(
-            [
-                str(m["exposure_order"]),
-                m["name"],
-                f"{m['gds_layer']}/{m.get('gds_datatype', 0)}",
-                f"{m['etch_depth_nm']:.2f}",
-                etch_tol,
-                ov_tol,
-                f"{m['fill_fraction']:.4f}",
-                str(m["polygon_count"]),
-                f"{m['min_feature_um']:.3f}",
-            ]
-        )
-    b.append(
-        (
-            "table",
-            [
-                "exposure",
-                "mask",
-                "GDS layer/datatype",
-                "etch depth (nm)",
-                "etch tolerance",
-                "overlay tolerance",
-                "fill fraction",
-                "polygons",
-                "min feature (um)",
-            ],
-            mask_rows,
-        )
-    )
+    b.append(("table", MASK_TABLE_HEADER, [_mask_row(m, budget, tol) for m in masks]))
     steps = [
         f"Expose {m['name']} (GDS layer {m['gds_layer']}), develop, etch "
         f"{m['etch_depth_nm']:.2f} nm, strip the resist"
@@ -290,43 +299,46 @@ def report_blocks(context, figures=()):
                 f"{ml.get('purpose', '')}",
             )
         )
-
-    b.append(("h2", "Orientation"))
-    b.append(("p", context.get("orientation") or man.get("orientation", "")))
-    b.append(("p", CHROME_DOWN))
-
-    b.append(("h2", "Figures"))
-    captions = {
-        FIGURES["levels"]: "Level map of one tile (level l = l steps of glass above the floor).",
-        FIGURES["masks"]: "Mask bitmaps: black pixels are polygons, i.e. etched.",
-        FIGURES["psf"]: "Target and simulated PSF (nominal levels) and their difference.",
-        FIGURES["lattice"]: "Simulated dot lattice on the sensor: SPAD pixels (white), "
-        "active areas (cyan), sub-pixel grid (faint); zero order on the "
-        "centre of the central pixel's active area; spots drawn 0.8 render "
-        "pixels wide for visibility.",
-        FIGURES["tolerance"]: "rmse against each fabrication error; dashed: rmse limit, "
-        "dotted: budget.",
-    }
-    for name in figures:
-        if name in captions:
-            b.append(("fig", name, captions[name]))
-
-    b.append(("h2", "Tolerances"))
-    if tol is None:
-        b.append(("p", "No tolerance analysis in this build."))
-    else:
-        b.extend(_tolerance_blocks(tol))
-
-    b.append(("h2", "Files"))
-    b.append(("p", f"Every file of the package but {REPORT_MD} and {REPORT_HTML} themselves."))
-    b.append(
-        (
-            "table",
-            ["file", "bytes", "SHA-256"],
-            [[f["path"], str(f["bytes"]), f["sha256"]] for f in context.get("files", [])],
-        )
-    )
     return b
+
+
+MASK_TABLE_HEADER = [
+    "exposure",
+    "mask",
+    "GDS layer/datatype",
+    "etch depth (nm)",
+    "etch tolerance",
+    "overlay tolerance",
+    "fill fraction",
+    "polygons",
+    "min feature (um)",
+]
+
+
+def _mask_row(m, budget, tol):
+    """One mask's row of the Process table, with its etch and overlay tolerance."""
+    etch_b = budget.get(("etch", m["name"]))
+    at_least = "at least " if etch_b and not etch_b["limited_by_rmse"] else ""
+    etch_tol = (
+        at_least
+        + f"+-{etch_b['value']:.2f} % (+-{etch_b['value'] / 100 * m['etch_depth_nm']:.1f} nm)"
+        if etch_b
+        else "-"
+    )
+    ov = budget.get(("overlay", m["name"]))
+    ov_at_least = "at least " if ov and not ov["limited_by_rmse"] else ""
+    ov_tol = f"{ov_at_least}+-{ov['value']:.3f} um" if ov else ("reference" if tol else "-")
+    return [
+        str(m["exposure_order"]),
+        m["name"],
+        f"{m['gds_layer']}/{m.get('gds_datatype', 0)}",
+        f"{m['etch_depth_nm']:.2f}",
+        etch_tol,
+        ov_tol,
+        f"{m['fill_fraction']:.4f}",
+        str(m["polygon_count"]),
+        f"{m['min_feature_um']:.3f}",
+    ]
 
 
 def _tolerance_blocks(tol):
@@ -468,48 +480,7 @@ def _md_cell(text):
     return _md_text(text).replace("|", "\\|").replace("\n", " ")
 
 
-_CSS = (
-    "body{font-family:sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;color:#222}"
-    "table{border-collapse:collapse;margin:0.5em 0 1em}"
-    "td,th{border:1px solid #bbb;padding:2px 8px;text-align:left;font-size:90%}"
-    "th{background:#eee}img{max-width:100%}figure{margin:1em 0}"
-    "figcaption{font-style:italic;font-size:90%}code{font-size:90%}"
-)
-
-
 def render_html(blocks):
     """Return the blocks as a self-contained HTML page (figures as relative links)."""
-    e = html.escape
     title = next((b[1] for b in blocks if b[0] == "h1"), "Fabrication report")
-    parts = [
-        "<!DOCTYPE html>",
-        '<html lang="en">',
-        "<head>",
-        '<meta charset="utf-8">',
-        f"<title>{e(title)}</title>",
-        f"<style>{_CSS}</style>",
-        "</head>",
-        "<body>",
-    ]
-    for block in blocks:
-        kind = block[0]
-        if kind in ("h1", "h2", "h3"):
-            parts.append(f"<{kind}>{e(block[1])}</{kind}>")
-        elif kind == "p":
-            parts.append(f"<p>{e(block[1])}</p>")
-        elif kind in ("ul", "ol"):
-            items = "".join(f"<li>{e(item)}</li>" for item in block[1])
-            parts.append(f"<{kind}>{items}</{kind}>")
-        elif kind == "table":
-            head = "".join(f"<th>{e(str(h))}</th>" for h in block[1])
-            body = "".join(
-                "<tr>" + "".join(f"<td>{e(str(c))}</td>" for c in row) + "</tr>" for row in block[2]
-            )
-            parts.append(f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>")
-        elif kind == "fig":
-            parts.append(
-                f'<figure><img src="{e(block[1])}" alt="{e(block[2])}">'
-                f"<figcaption>{e(block[2])}</figcaption></figure>"
-            )
-    parts += ["</body>", "</html>", ""]
-    return "\n".join(parts)
+    return render_page("fab_report.html", title=title, blocks=blocks)

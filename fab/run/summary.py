@@ -1,6 +1,5 @@
 """The run folder's front page (``index.html``) and ``manifest.json``."""
 
-import html
 import json
 import platform
 from importlib import metadata
@@ -10,6 +9,7 @@ from doe.design import design_summary
 from doe.figures import value_and_limit
 from doe.infra.files import atomic_write_bytes, sha256_file, write_json
 from doe.retrieval import CORRELATION_GOAL, RMSE_GOAL
+from fab.templates import render_page
 
 PACKAGES = (
     "doefab",
@@ -82,8 +82,10 @@ def package_versions():
     return out
 
 
-def write_manifest(run_dir, design, args, stages, timings, stage_seconds):
+def write_manifest(run_dir, design, options, stages, timings, stage_seconds):
     """Write ``manifest.json`` (deterministic) and ``timings.json`` (the one varying file).
+
+    ``options`` (``fab.run.stages.RunOptions``) give the config, PSF and seed recorded.
 
     ``stages`` are the names of the stages this run planned: only their files are listed.
 
@@ -95,13 +97,13 @@ def write_manifest(run_dir, design, args, stages, timings, stage_seconds):
         {"path": str(p.relative_to(run_dir)), "sha256": sha256_file(p), "bytes": p.stat().st_size}
         for p in product_files(run_dir, stages)
     ]
-    seed = args.seed if args.seed is not None else design.learning.seed
+    seed = options.seed if options.seed is not None else design.learning.seed
     manifest = {
         "tool": "doefab run",
-        "config": args.config or "preset:sun2020",
+        "config": options.config or "preset:sun2020",
         "design": design_summary(design),
-        "psf_source": args.psf or "learn/psf.npy",
-        "seeds": {"learn": None if args.psf else seed, "retrieve": seed},
+        "psf_source": options.psf or "learn/psf.npy",
+        "seeds": {"learn": None if options.psf else seed, "retrieve": seed},
         "versions": package_versions(),
         "files": files,
         "timings_file": "timings.json",
@@ -124,53 +126,62 @@ def _lookup(run_dir, stage, name, path):
 
 
 def write_index(run_dir, design, stages):
-    """Write ``index.html`` linking every result of the run, with its figures."""
+    """Write ``index.html`` linking every result of the run, with its figures.
+
+    Parameters
+    ----------
+    run_dir : path
+        The run folder.
+    design : doe.design.Design
+        The run's design (its name and description head the page).
+    stages : sequence of str
+        The stages this run planned, in order: only their files are shown.
+    """
     run_dir = Path(run_dir)
-    e = html.escape
-    rows = []
+    page = render_page(
+        "run_index.html",
+        name=design.name,
+        description=design.description,
+        headlines=_headline_rows(run_dir, stages),
+        stages=_stage_sections(run_dir, stages),
+    )
+    atomic_write_bytes(run_dir / "index.html", page.encode())
+
+
+def _headline_rows(run_dir, stages):
+    """Return the front page's Summary as (label, value shown) rows, from the stages' files."""
     levels = _lookup(run_dir, "retrieve", "retrieval.json", ("levels",))
     quantised = f"{levels} levels" if levels else "quantised"
+    rows = []
     for stage, name, path, label, goal in HEADLINES:
         value = _lookup(run_dir, stage, name, path) if stage in stages else None
-        label = label.format(quantised=quantised)
-        if value is not None:
-            if isinstance(value, bool):
-                shown = "yes" if value else "NO: see retrieve/retrieval.json"
-            elif isinstance(value, float):
-                shown = f"{value:.6g}" if goal is None else value_and_limit(value, goal, 6)[0]
-            else:
-                shown = str(value)
-            rows.append(f"<tr><td>{e(label)}</td><td>{e(shown)}</td></tr>")
-    parts = [
-        "<!DOCTYPE html><html><head><meta charset='utf-8'>",
-        f"<title>doefab run: {e(design.name)}</title>",
-        "<style>body{font-family:sans-serif;max-width:1100px;margin:2em auto}"
-        "img{max-width:48%;margin:4px;border:1px solid #ccc}td{padding:2px 10px}</style>",
-        "</head><body>",
-        f"<h1>doefab run: {e(design.name)}</h1><p>{e(design.description)}</p>",
-        "<p>Files and their SHA-256 are listed in <a href='manifest.json'>manifest.json</a>.</p>",
-        "<h2>Summary</h2><table>",
-        *rows,
-        "</table>",
-    ]
+        if value is None:
+            continue
+        if isinstance(value, bool):
+            shown = "yes" if value else "NO: see retrieve/retrieval.json"
+        elif isinstance(value, float):
+            shown = f"{value:.6g}" if goal is None else value_and_limit(value, goal, 6)[0]
+        else:
+            shown = str(value)
+        rows.append((label.format(quantised=quantised), shown))
+    return rows
+
+
+def _stage_sections(run_dir, stages):
+    """Return one section per stage folder: its report pages, figures and files."""
+    products = product_files(run_dir, stages)
+    sections = []
     for stage in stages:
         folder = run_dir / stage
         if not folder.is_dir():
             continue
-        files = [p for p in product_files(run_dir, stages) if p.parent.is_relative_to(folder)]
-        parts.append(f"<h2>{e(stage)}</h2>")
-        reports = [p for p in files if p.suffix == ".html"]
-        for p in reports:
-            rel = e(str(p.relative_to(run_dir)))
-            parts.append(f"<p><b>Report:</b> <a href='{rel}'>{rel}</a></p>")
-        for p in files:
-            if p.suffix == ".png":
-                rel = e(str(p.relative_to(run_dir)))
-                parts.append(f"<a href='{rel}'><img src='{rel}' alt='{rel}'></a>")
-        parts.append("<ul>")
-        for p in files:
-            rel = e(str(p.relative_to(run_dir)))
-            parts.append(f"<li><a href='{rel}'>{rel}</a> ({p.stat().st_size:,} bytes)</li>")
-        parts.append("</ul>")
-    parts.append("</body></html>\n")
-    atomic_write_bytes(run_dir / "index.html", "\n".join(parts).encode())
+        files = [p for p in products if p.parent.is_relative_to(folder)]
+        sections.append(
+            {
+                "name": stage,
+                "reports": [str(p.relative_to(run_dir)) for p in files if p.suffix == ".html"],
+                "figures": [str(p.relative_to(run_dir)) for p in files if p.suffix == ".png"],
+                "files": [(str(p.relative_to(run_dir)), f"{p.stat().st_size:,}") for p in files],
+            }
+        )
+    return sections

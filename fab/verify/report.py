@@ -1,17 +1,16 @@
 """Figures and the HTML report of ``doefab verify`` and the plot of ``doefab mtf``.
 
 matplotlib (Agg) is imported inside the functions; PNG metadata is pinned so
-the bytes depend only on the data.
+the bytes depend only on the data. The page is the template
+``fab/templates/verify_report.html``, filled with the rows built here.
 """
-
-import html
 
 import numpy as np
 
 from doe.figures import value_and_limit
+from doe.infra.png import save_png
+from fab.templates import render_page
 from fab.verify.diagnosis import fitted_fault, is_judged
-
-_PNG_META = {"Software": None}
 
 
 def _pyplot():
@@ -103,14 +102,31 @@ def write_verify_report(stage, report, image, grid, lattice, measured_psf, desig
     )
     # room for the two-line title (a long diagnosis list ran past the figure's width)
     fig.tight_layout(rect=(0, 0, 1, 1 - 0.5 / fig.get_figheight()))
-    fig.savefig(stage / "verify.png", dpi=90, metadata=_PNG_META)
+    save_png(fig, stage / "verify.png", dpi=90)
     plt.close(fig)
     (stage / "verify_report.html").write_text(_html(report), encoding="utf-8")
 
 
 def _html(report):
+    """Return the page ``verify_report.html`` of a verify.json ``report``."""
+    verdict = "PASS" if report["pass"] else "FAIL"
+    return render_page(
+        "verify_report.html",
+        verdict=verdict,
+        diagnosis=", ".join(report["diagnosis"]),
+        checks=_checks(report),
+        measurement=_measurement(report),
+        notes=report["notes"],
+        sigmas=f"{report['thresholds']['significance_sigmas']:g}",
+    )
+
+
+def _checks(report):
+    """Rows (figure, measured, threshold, verdict) of the acceptance table.
+
+    The verdict is True (ok), False (fail) or None (not judged).
+    """
     t = report["thresholds"]
-    lat = report["lattice"]
     sig = t["significance_sigmas"]
     # After a diagnosis that the plate is not this design as oriented (or clipped or
     # too faint), the PSF and process figures are shown but not judged.
@@ -145,14 +161,14 @@ def _html(report):
         ("saturated dots", report["saturated_dots"], "=", 0, report["saturated_dots"] == 0),
     ]
     checks[:5] = [(n, v, op, lim, ok if judged else None) for n, v, op, lim, ok in checks[:5]]
-    verdicts = {True: "ok", False: "<b>FAIL</b>", None: "not judged"}
-    rows = "\n".join(
-        "<tr>"
-        + "".join(f"<td>{html.escape(c)}</td>" for c in (n, *_figure_and_limit(v, op, lim)))
-        + f"<td>{verdicts[ok]}</td></tr>"
-        for n, v, op, lim, ok in checks
-    )
-    info = [
+    return [(n, *_figure_and_limit(v, op, lim), ok) for n, v, op, lim, ok in checks]
+
+
+def _measurement(report):
+    """Rows (what, value) of the measurement table."""
+    t = report["thresholds"]
+    lat = report["lattice"]
+    return [
         ("zero-order excess over the design", f"{report['zero_order_excess']:.4g}"),
         (
             "implied deep-etch depth error (from the zero order; sign from the window fit)",
@@ -217,34 +233,6 @@ def _html(report):
         ("thresholds from", t["source"]),
         ("capture / dark", f"{report['inputs']['capture']} / {report['inputs']['dark']}"),
     ]
-    info_rows = "\n".join(
-        f"<tr><td>{html.escape(a)}</td><td>{html.escape(str(b))}</td></tr>" for a, b in info
-    )
-    notes = "".join(f"<li>{html.escape(n)}</li>" for n in report["notes"])
-    verdict = "PASS" if report["pass"] else "FAIL"
-    return f"""<!DOCTYPE html>
-<html><head><meta charset="utf-8"><title>doefab verify: {verdict}</title>
-<style>body{{font-family:sans-serif;max-width:60em;margin:2em auto}}
-td,th{{border:1px solid #ccc;padding:2px 8px}}table{{border-collapse:collapse}}</style>
-</head><body>
-<h1>Plate verification: {verdict}</h1>
-<p>Diagnosis: <b>{html.escape(", ".join(report["diagnosis"]))}</b></p>
-<h2>Acceptance checks</h2>
-<table><tr><th>figure</th><th>measured</th><th>threshold</th><th></th></tr>
-{rows}</table>
-<h2>Measurement</h2>
-<table>{info_rows}</table>
-<h2>Notes</h2><ul>{notes or "<li>none</li>"}</ul>
-<p>Correlation and rmse follow CONVENTIONS.md against the design's simulated PSF
-(<code>doe.fraunhofer.simulate_levels</code>). Efficiency and zero order are shares of the
-whole beam, whose power is estimated from the orders that carry signal (measured above
-5 sigma or predicted by the design above 3 sigma) divided by the design's share of the beam
-in those orders. Checks on these noisy figures fail only when they miss the threshold by
-{t["significance_sigmas"]:g} sigma. The sign of the deep-etch error comes from fitting the
-whole window (the zero order alone cannot tell too deep from too shallow).</p>
-<img src="verify.png" alt="capture, measured and design PSF">
-</body></html>
-"""
 
 
 def _overlay_text(report):
@@ -300,7 +288,7 @@ def write_mtf_plot(path, result):
     ax.set_ylim(0, max(1.05, 1.05 * float(np.nanmax(np.asarray(result["mtf"], float)))))
     ax.set_title(f"slanted-edge MTF, MTF50 {mtf50_text(result)}")
     fig.tight_layout()
-    fig.savefig(path, dpi=90, metadata=_PNG_META)
+    save_png(fig, path, dpi=90)
     plt.close(fig)
 
 

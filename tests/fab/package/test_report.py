@@ -341,3 +341,22 @@ def test_a_design_without_a_description_gets_no_empty_paragraph(tmp_path, descri
     text = render_markdown(blocks)
     title = f"# Fabrication report: {context['design']['name']}\n\n"
     assert text.startswith(title + (f"{description}\n\n" if description else "") + "Written by")
+
+
+def test_html_report_escapes_the_design_and_carries_the_shared_stylesheet(tmp_path):
+    # The page is the template fab_report.html over the one base and stylesheet.
+    from importlib import resources
+
+    context = make_context(tmp_path, with_tolerance=False)
+    context["design"]["name"] = "plate <b>2</b> & <script>x</script>"
+    context["design"]["description"] = 'a "quoted" <i>plate</i>'
+    write_fab_report(tmp_path / "out", context)
+    page = (tmp_path / "out" / REPORT_HTML).read_text()
+    assert "<script>" not in page and "<b>" not in page and "<i>" not in page
+    heading = "Fabrication report: plate &lt;b&gt;2&lt;/b&gt; &amp; &lt;script&gt;x&lt;/script&gt;"
+    assert f"<title>{heading}</title>" in page and f"<h1>{heading}</h1>" in page
+    assert "<p>a &#34;quoted&#34; &lt;i&gt;plate&lt;/i&gt;</p>" in page
+    css = resources.files("fab.templates").joinpath("style.css").read_text()
+    assert f"<style>\n{css}</style>" in page
+    for name in (FIGURES["levels"], FIGURES["psf"]):
+        assert f'<img src="{name}" alt="' in page
