@@ -46,6 +46,9 @@ def main(argv=None):
     """Run the command line; return the exit code (0 ok, 1 check failed, 2 bad input, 3 bug)."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    # A command that runs other commands (run: one per stage) is handed the dispatcher
+    # rather than importing it back, which would make an import circle.
+    args.invoke = main
     # Ctrl-C and SIGTERM unwind (SIGTERM once killed the process and left the staging
     # folder behind), and are remembered when a library swallows their exception.
     with interrupts.handled():

@@ -448,13 +448,11 @@ def test_a_step_budget_learns_on_the_cpu(config, tmp_path):
     # Two CUDA trainings of the same steps differ (on an H100, PSFs 4e-4 apart), and so
     # would the plates of two runs: a step budget keeps the learn stage off the GPU.
     from doe.design import load_design
-    from doe.infra.cli import build_parser
-    from fab.commands.run import plan
+    from fab.run.stages import RunOptions, plan_stages
 
     design = load_design(str(config))
-    for extra, device in (([], "cpu"), (["--minutes", "1"], None)):
-        args = build_parser().parse_args(["run", "--out", str(tmp_path), *extra])
-        learn = plan(args, tmp_path, design)[0]
+    for minutes, device in ((None, "cpu"), (1.0, None)):
+        learn = plan_stages(tmp_path, design, RunOptions(minutes=minutes))[0]
         assert learn.name == "learn"
         argv = list(learn.argv)
         assert (argv[argv.index("--device") + 1] if "--device" in argv else None) == device
