@@ -176,6 +176,7 @@ def _no_mesh(formats):
 
 def plan_stages(run_dir, design, options):
     """Return the run's stages (``fab.run.pipeline.Stage``) for these options, in order."""
+    from doe.records.fab_manifest import LEVELS_FILE, MANIFEST_NAME
     from fab.run.pipeline import Stage
 
     # The stages that read the design are keyed on its values, not on the file's bytes.
@@ -213,7 +214,7 @@ def plan_stages(run_dir, design, options):
     ]
     if not _no_mesh(options.formats):
         mesh = ("mesh", str(fab), "--formats", options.formats)
-        stages.append(Stage("mesh", mesh, (fab / "fab_manifest.json", fab / "levels.npy")))
+        stages.append(Stage("mesh", mesh, (fab / MANIFEST_NAME, fab / LEVELS_FILE)))
     return stages
 
 

@@ -8,6 +8,7 @@ from pathlib import Path
 from doe.design import design_summary
 from doe.figures import value_and_limit
 from doe.infra.files import atomic_write_bytes, sha256_file, write_json
+from doe.records.fab_manifest import MANIFEST_NAME
 from doe.retrieval import CORRELATION_GOAL, RMSE_GOAL
 from fab.templates import render_page
 
@@ -48,9 +49,9 @@ HEADLINES = (
         "goals met as a plate of square pixels (their sinc^2 envelope)",
         None,
     ),
-    ("fab", "fab_manifest.json", ("level_step_nm",), "level step (nm)", None),
-    ("fab", "fab_manifest.json", ("pixel_pitch_nm",), "mask pixel pitch (nm)", None),
-    ("fab", "fab_manifest.json", ("tiles",), "tiles across the aperture", None),
+    ("fab", MANIFEST_NAME, ("level_step_nm",), "level step (nm)", None),
+    ("fab", MANIFEST_NAME, ("pixel_pitch_nm",), "mask pixel pitch (nm)", None),
+    ("fab", MANIFEST_NAME, ("tiles",), "tiles across the aperture", None),
 )
 
 
