@@ -9,6 +9,7 @@ from doe.design import design_summary
 from doe.figures import value_and_limit
 from doe.infra.files import atomic_write_bytes, sha256_file, write_json
 from doe.records.fab_manifest import MANIFEST_NAME
+from doe.records.learn import LEARN_JSON
 from doe.retrieval import CORRELATION_GOAL, RMSE_GOAL
 from fab.templates import render_page
 
@@ -31,7 +32,7 @@ PACKAGES = (
 # Headline numbers shown on the front page: (stage, file, key path, label, goal). A
 # figure with a goal is shown with the digits that tell it from the goal.
 HEADLINES = (
-    ("learn", "learn.json", ("final_psnr_db",), "training PSNR (dB)", None),
+    ("learn", LEARN_JSON, ("final_psnr_db",), "training PSNR (dB)", None),
     (
         "retrieve",
         "retrieval.json",
