@@ -49,12 +49,8 @@ def main(argv=None):
     from doe.fraunhofer import simulate_levels
     from fab.package.masks import masks_from_levels
     from fab.package.report import write_fab_report
-    from fab.plate.tolerance import (
-        PlateErrors,
-        plate_model,
-        tolerance_analysis,
-        window_amplitudes,
-    )
+    from fab.plate.model import PlateFaults, plate_model, window_amplitudes
+    from fab.plate.tolerance import tolerance_analysis
 
     design = load_design()
     der = derive(design)
@@ -79,9 +75,9 @@ def main(argv=None):
 
     model = plate_model(masks, der.mask_pixel_pitch, der.level_step, n_levels,
                         design.optics.wavelength, der.refractive_index, k)  # fmt: skip
-    worst = PlateErrors(
-        etch=(0.05, -0.05, 0.05),
-        shift=((0, 0), (0.3e-6, -0.4e-6), (-0.7e-6, 0.2e-6)),
+    worst = PlateFaults(
+        etch_errors=(0.05, -0.05, 0.05),
+        overlay=((0, 0), (0.3e-6, -0.4e-6), (-0.7e-6, 0.2e-6)),
         cd_bias=0.1e-6,
     )
     t_nom, _ = median_time(lambda: window_amplitudes(model), 20)
@@ -113,7 +109,7 @@ def main(argv=None):
     bmodel = plate_model(bmasks, der.mask_pixel_pitch, der.level_step, 8,
                          design.optics.wavelength, der.refractive_index, 3)  # fmt: skip
     eps = 0.01
-    p0 = abs(window_amplitudes(bmodel, PlateErrors(etch=(eps, 0, 0)))[1, 1]) ** 2
+    p0 = abs(window_amplitudes(bmodel, PlateFaults(etch_errors=(eps, 0, 0)))[1, 1]) ** 2
     print(
         f"balanced 8-level tile, deep etch eps={eps}: P0/eps^2 = {p0 / eps**2:.4f} "
         f"(analytic small-eps slope 1.0530)"

@@ -50,11 +50,11 @@ def main_bench():
     for label, levels in plates.items():
         print(f"== {label} (N={n}, K={k})")
         _bench_plate(levels, n_levels, k, der, pitch_px)
-    overlay = PlateFaults(overlay_mask=1, overlay_shift=(2e-6, 0.0))
+    overlay = PlateFaults(overlay=((0.0, 0.0), (0.0, 2e-6), (0.0, 0.0)))
     print(f"== dense random levels, M2_mid 2 um off (N={n}, K={k}; fails: overlay_error)")
     _bench_plate(plates["dense random levels"], n_levels, k, der, pitch_px, overlay)
     # Two faults at once: neither fit alone explains the PSF, so both are fitted together.
-    both = PlateFaults(etch_errors=(0.0, 0.3), overlay_mask=0, overlay_shift=(3e-6, 0.0))
+    both = PlateFaults(etch_errors=(0.0, 0.3, 0.0), overlay=((0.0, 3e-6), (0.0, 0.0), (0.0, 0.0)))
     print(
         f"== dense random levels, M1_deep 3 um off and M2_mid 30 % too deep (N={n}, K={k}; "
         "fails: overlay_error, etch_depth_error)"

@@ -1,58 +1,18 @@
 """Tolerance of a fabricated multi-level plate to etch-depth, overlay and CD-bias errors.
 
-The fabricated tile is modelled as what it physically is: a piecewise-constant
-phase in the plane, with each mask's etched region shifted by its overlay error,
-its edges moved by a CD bias and its depth scaled by an etch error. Every mask
-edge lies at a pixel boundary of its own (shifted) grid, so within each mask
-pixel the fabricated plate is constant on the sub-cells cut by the breakpoints
-{overlay shift, shift +- bias} of all masks (the same offsets in every pixel).
-Order (m, n) of the tile is then exactly
-
-    F[m, n] = sum_jk g_j(m) g_k(n) DFT_N(exp(i phase_jk))[m, n] / N**2
-
-where phase_jk is the (N, N) phase of sub-cell (j, k) of every pixel and g_j(m)
-the Fourier weight of sub-cell interval j of a pixel. Two samplings:
-
-* ``supersample=None`` (default): continuous plate, g_j(m) = integral over the
-  interval of exp(-2 pi i m t / N) dt (t in pixels). No rounding of any error
-  value; this is the limit S -> infinity of a supersampled grid and carries the
-  pixel's sinc envelope (sinc^2(m/N), 0.27 % at the edge of an 11-order window
-  for N = 175).
-* ``supersample=S``: the (N S)^2 grid of S x S sub-samples per pixel, shifts and
-  biases rounded to whole sub-samples, g_j(m) = sum over the sub-samples s of the
-  interval of exp(-2 pi i m s / (N S)) / S. Identical to the FFT of the
-  upsampled tile; S = 1 with no error is exactly ``doe.fraunhofer.simulate_levels``.
-
-Only the K x K window is evaluated (a K x N DFT matrix built once per tile, FFTs
-along rows), so a nominal plate costs ~1 ms and the whole analysis of an N = 175
-tile about 2 s on two shared cores (bench/tolerance.py).
-
-Error models (stated once, used everywhere):
-
-* etch: mask depth -> depth * (1 + eps); eps > 0 over-etches.
-* overlay: the etched region of a mask moves by (dx, dy) metres, +x right, +y up
-  (towards row 0); masks are periodic, so the shift wraps around the tile. The
-  first-exposed mask is the reference; the table shifts each later mask along +x
-  and along +y separately and reports the worse.
-* CD bias: every edge of every mask's etched region moves outwards by b (b > 0:
-  etched area grows, a feature of width w becomes w + 2 b). The etched region is
-  dilated (eroded for b < 0) with a square structuring element, i.e. corners stay
-  square; rounding them would change each corner's area by (1 - pi/4) b^2, below
-  0.1 % of a 5 um pixel for b = 0.25 um. Requires |b| < pitch / 2.
-
-The phase of a point with total etch depth d is 2 pi (n - 1) (H - d) / lambda,
-H = (L - 1) * level_step, which is the level model 2 pi l / L of CONVENTIONS.md
-when level_step = lambda / ((n - 1) L) and nothing is in error.
+Each plate of the table is one faulty plate of ``fab.plate.model`` (the error models
+and the axes are stated there), evaluated exactly in its K x K window: one error kind
+and value at a time, on each mask, with both signs (and, for the overlay, along x and
+along y). The budget is bisected with the same model; the acceptance thresholds come
+from random plates with every error within its budget at once.
 """
 
-import itertools
-import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
-import scipy.fft
 
 from doe.fraunhofer import correlation, rmse, simulate_levels
+from fab.plate.model import PlateFaults, cd_bias_in_reach, plate_model, window_amplitudes
 
 
 @dataclass(frozen=True)
@@ -98,200 +58,7 @@ class ToleranceSpec:
 TOLERANCES = ToleranceSpec()
 
 
-@dataclass(frozen=True)
-class PlateErrors:
-    """Fabrication errors of one plate; per-mask tuples follow the order of the masks.
-
-    Attributes
-    ----------
-    etch : tuple of float
-        Fractional depth error of each mask (0.05 = 5 % too deep).
-    shift : tuple of (float, float)
-        Overlay (dx, dy) of each mask in metres, +x right, +y up.
-    cd_bias : float
-        Edge displacement of every mask's etched region in metres (> 0 grows it).
-    """
-
-    etch: tuple[float, ...] = ()
-    shift: tuple[tuple[float, float], ...] = ()
-    cd_bias: float = 0.0
-
-
-@dataclass(frozen=True, eq=False)
-class PlateModel:
-    """A tile's masks and optics, ready to evaluate its window for any errors.
-
-    Build with :func:`plate_model`. ``bitmaps`` is (M, N, N) bool, ``depths`` (M,)
-    metres, ``dft`` the (K, N) matrix exp(-2 pi i m r / N) / N for orders
-    m = -K//2 .. K//2.
-    """
-
-    bitmaps: np.ndarray
-    depths: np.ndarray
-    pixel_pitch: float
-    phase_per_depth: float
-    top_height: float
-    k: int
-    supersample: int | None
-    dft: np.ndarray = field(repr=False)
-    orders: np.ndarray = field(repr=False)
-
-
-def plate_model(
-    masks, pixel_pitch, level_step, n_levels, wavelength, refractive_index, k, supersample=None
-):
-    """Return the :class:`PlateModel` of a tile's masks.
-
-    Parameters
-    ----------
-    masks : sequence of fab.package.masks.Mask
-        Anything with ``bitmap`` ((N, N) bool, True = etched) and ``etch_depth`` (m).
-    pixel_pitch : float
-        Mask pixel pitch (m).
-    level_step, wavelength : float
-        Step height and design wavelength (m).
-    n_levels : int
-        L; the unetched top sits (L - 1) steps above the deepest floor.
-    refractive_index : float
-        Substrate index at the wavelength.
-    k : int
-        Window size K (odd).
-    supersample : int or None
-        Sub-samples per pixel, or None for the continuous plate (module docstring).
-    """
-    bitmaps = np.stack([np.asarray(mk.bitmap, dtype=bool) for mk in masks])
-    n = bitmaps.shape[-1]
-    if bitmaps.shape[1:] != (n, n):
-        raise ValueError(f"mask bitmaps must be square (N, N), got {bitmaps.shape[1:]}")
-    if k % 2 != 1 or k > n:
-        raise ValueError(f"window K must be odd and <= N = {n}, got {k}")
-    if supersample is not None and (int(supersample) != supersample or supersample < 1):
-        raise ValueError(f"supersample must be a positive integer or None, got {supersample}")
-    orders = np.arange(k) - k // 2
-    dft = np.exp(-2j * np.pi * np.outer(orders, np.arange(n)) / n) / n
-    bitmaps.setflags(write=False)
-    return PlateModel(
-        bitmaps=bitmaps,
-        depths=np.array([float(mk.etch_depth) for mk in masks]),
-        pixel_pitch=float(pixel_pitch),
-        phase_per_depth=2 * np.pi * (refractive_index - 1) / wavelength,
-        top_height=(n_levels - 1) * level_step,
-        k=int(k),
-        supersample=None if supersample is None else int(supersample),
-        dft=dft,
-        orders=orders,
-    )
-
-
-def window_amplitudes(model, errors=PlateErrors()):
-    """Return the complex amplitudes (K, K) of the window orders of the fabricated plate.
-
-    Element [K//2, K//2] is the zero order; |amplitude|^2 is the fraction of the
-    incident power in that order.
-    """
-    n_masks, n = model.bitmaps.shape[0], model.bitmaps.shape[-1]
-    etch = np.asarray(errors.etch or (0.0,) * n_masks, dtype=float)
-    shift = np.asarray(errors.shift or ((0.0, 0.0),) * n_masks, dtype=float).reshape(n_masks, 2)
-    if errors.etch and len(errors.etch) != n_masks:  # once broadcast one value to every mask
-        raise ValueError(f"etch errors must be one per mask ({n_masks}), got {len(errors.etch)}")
-    bias = _bias_pixels(errors.cd_bias, model)
-    # Shifts in pixels along array axes: columns follow +x, rows grow towards -y.
-    col_shift, row_shift = shift[:, 0] / model.pixel_pitch, -shift[:, 1] / model.pixel_pitch
-    if model.supersample is not None:
-        s = model.supersample
-        col_shift, row_shift = np.round(col_shift * s) / s, np.round(row_shift * s) / s
-    if not _below_half_pixel(bias):
-        raise ValueError(f"CD bias {errors.cd_bias:.3g} m must be below half the pixel pitch")
-    rows = _axis_cells(row_shift, bias, model.supersample)
-    cols = _axis_cells(col_shift, bias, model.supersample)
-    depths = model.depths * (1 + etch)
-    # A pixel's phase depends only on which masks etch it: look it up by that bit code.
-    codes = np.arange(2**n_masks)
-    bits = (codes[:, None] >> np.arange(n_masks)) & 1
-    lut = np.exp(1j * model.phase_per_depth * (model.top_height - bits @ depths))
-    # Rows: (K, N) DFT matrices; columns: an FFT along each row, then the K orders, so
-    # no large BLAS call (OpenBLAS threads thrash on a busy 2-core machine).
-    left = [
-        _interval_weight(model.orders, a, b, n, model.supersample)[:, None] * model.dft
-        for a, b, _ in rows
-    ]
-    right = [_interval_weight(model.orders, a, b, n, model.supersample) / n for a, b, _ in cols]
-    col_idx = model.orders % n
-    out = np.zeros((model.k, model.k), dtype=complex)
-    for (_, _, r_off), wr in zip(rows, left, strict=True):
-        row_reduced = [_reduce_rolls(bm, r_off[i], 0, bias) for i, bm in enumerate(model.bitmaps)]
-        acc = np.zeros((n, model.k), dtype=complex)
-        for (_, _, c_off), wc in zip(cols, right, strict=True):
-            code = np.zeros((n, n), dtype=np.uint8)
-            for i, bm in enumerate(row_reduced):
-                code |= _reduce_rolls(bm, c_off[i], 1, bias).view(np.uint8) << i
-            acc += scipy.fft.fft(lut[code], axis=1)[:, col_idx] * wc
-        out += wr @ acc
-    return out
-
-
-def _axis_cells(shifts, bias, supersample):
-    """Cut a pixel [0, 1) at every mask's edges; return (start, end, offsets per mask).
-
-    ``offsets[i]`` lists the pixel offsets q whose bitmap value reaches this
-    interval for mask i: the mask value at pixel c is the OR (bias > 0) or AND
-    (bias < 0) of bitmap[c + q] over q.
-    """
-    cuts = {0.0}
-    for s in shifts:
-        for e in (s, s + bias, s - bias):
-            cuts.add(_frac(e, supersample))
-    cuts = [*sorted(cuts), 1.0]
-    cells = []
-    for a, b in itertools.pairwise(cuts):
-        if b - a <= 1e-12:
-            continue
-        mid = 0.5 * (a + b)
-        offsets = []
-        for s in shifts:
-            w = mid - s
-            q = math.floor(w)
-            f = w - q
-            near = [q]
-            if f < abs(bias):
-                near.append(q - 1)
-            if f > 1 - abs(bias):
-                near.append(q + 1)
-            offsets.append(tuple(near))
-        cells.append((a, b, offsets))
-    return cells
-
-
-def _frac(x, supersample):
-    f = x - math.floor(x)
-    if supersample is not None:
-        f = round(f * supersample) / supersample
-    return 0.0 if f >= 1.0 - 1e-12 or f < 1e-12 else f
-
-
-def _reduce_rolls(bitmap, offsets, axis, bias):
-    """Return OR (bias >= 0) / AND (bias < 0) over q of bitmap[c + q] along ``axis``."""
-    out = np.roll(bitmap, -offsets[0], axis=axis)
-    for q in offsets[1:]:
-        rolled = np.roll(bitmap, -q, axis=axis)
-        out = out | rolled if bias >= 0 else out & rolled
-    return out
-
-
-def _interval_weight(orders, a, b, n, supersample):
-    """Return g(m) of the pixel interval [a, b) (pixel units) for each order m."""
-    if supersample is None:
-        m = orders.astype(float)
-        safe = np.where(m == 0, 1.0, m)
-        w = (np.exp(-2j * np.pi * m * b / n) - np.exp(-2j * np.pi * m * a / n)) / (
-            -2j * np.pi * safe / n
-        )
-        return np.where(m == 0, b - a, w)
-    s = np.arange(round(a * supersample), round(b * supersample))
-    return np.exp(-2j * np.pi * np.outer(orders, s) / (n * supersample)).sum(axis=1) / supersample
-
-
-def plate_quality(model, target, errors=PlateErrors(), reference=None):
+def plate_quality(model, target, faults=PlateFaults(), reference=None):
     """Return correlation, rmse, efficiency and zero_order of a fabricated plate.
 
     ``efficiency`` and ``zero_order`` are fractions of the incident power;
@@ -299,7 +66,7 @@ def plate_quality(model, target, errors=PlateErrors(), reference=None):
     in CONVENTIONS.md. With a ``reference`` PSF (K, K), also
     "correlation_vs_reference" and "rmse_vs_reference".
     """
-    power = np.abs(window_amplitudes(model, errors)) ** 2
+    power = np.abs(window_amplitudes(model, faults)) ** 2
     eff = float(power.sum())
     psf = power / eff
     c = model.k // 2
@@ -432,6 +199,7 @@ def tolerance_analysis(
         efficiency_min, zero_order_max), "nominal", "rmse_limit", "monte_carlo",
         "model" (the stated assumptions).
     """
+
     masks = list(masks)
     target = np.asarray(target_psf, dtype=float)
     _check_masks_match_levels(levels, n_levels, masks, level_step)
@@ -448,27 +216,65 @@ def tolerance_analysis(
     names = [str(mk.name) for mk in masks]
     order = [getattr(mk, "exposure_order", i + 1) for i, mk in enumerate(masks)]
     ref = int(np.argmin(order))
-    n_masks = len(masks)
+    plates = _Plates(model, target, on_plate)
+    nominal = plates.quality()
+    limit = nominal["rmse"] + spec.rmse_allowance if rmse_limit is None else float(rmse_limit)
+    # An edge moved by half a pixel or more closes the one-pixel gaps: another plate, not an error.
+    cd_values = tuple(v for v in spec.cd_bias if cd_bias_in_reach(model, v))
+    rows, budget = _table(plates, names, ref, spec, cd_values, nominal, limit)
+    # fab.verify.analysis compares a captured PSF with the levels' contract PSF, not with the
+    # target, so the correlation and rmse thresholds are taken against that PSF.
+    design_psf = simulate_levels(levels, n_levels, target.shape[0])[0]
+    mc = _monte_carlo(design_psf, budget, names, ref, spec, seed, plates.simulate)
+    acceptance = {
+        "correlation_min": min(mc["correlation_vs_reference"]) - spec.correlation_margin,
+        "rmse_max": max(mc["rmse_vs_reference"]) + spec.rmse_margin,
+        "efficiency_min": min(mc["efficiency"]) * (1 - spec.efficiency_margin),
+        "zero_order_max": max(mc["zero_order"]) + spec.zero_order_margin,
+    }
+    return {
+        "model": _assumptions(
+            names[ref], pixel_pitch, supersample, cd_values, rmse_limit, spec, seed
+        ),
+        "reference_mask": names[ref],
+        "nominal": nominal,
+        "rmse_limit": limit,
+        "rows": rows,
+        "budget": budget,
+        "monte_carlo": {"plates": spec.monte_carlo_plates, "seed": seed, **mc},
+        "acceptance": acceptance,
+    }
 
-    def quality(etch=None, shift=None, cd=0.0):
-        errors = PlateErrors(
-            etch=tuple(etch) if etch is not None else (),
-            shift=tuple(shift) if shift is not None else (),
-            cd_bias=cd,
-        )
-        return simulate(errors)
 
-    def simulate(errors, reference=None):
-        q = plate_quality(model, target, errors, reference)
-        if on_plate is not None:
-            on_plate()
+class _Plates:
+    """The plates of one analysis, each evaluated by ``plate_quality`` and counted."""
+
+    def __init__(self, model, target, on_plate):
+        self.model, self.target, self.on_plate = model, target, on_plate
+        self.n_masks = len(model.bitmaps)
+
+    def simulate(self, faults, reference=None):
+        """Return the figures of one faulty plate (``plate_quality``)."""
+        q = plate_quality(self.model, self.target, faults, reference)
+        if self.on_plate is not None:
+            self.on_plate()
         return q
 
-    def variants(kind, i, v):
+    def quality(self, etch=None, shift=None, cd=0.0):
+        """Return the figures of a plate with per-mask etch errors, (dx, dy) shifts, CD bias."""
+        faults = PlateFaults(
+            etch_errors=tuple(etch) if etch is not None else (),
+            overlay=tuple(shift) if shift is not None else (),
+            cd_bias=cd,
+        )
+        return self.simulate(faults)
+
+    def variants(self, kind, i, v):
         """Return (axis, signed value, quality) of each plate of one table entry."""
+        n_masks = self.n_masks
         if kind == "etch":
             return [
-                ("", s * v, quality(etch=[s * v if j == i else 0.0 for j in range(n_masks)]))
+                ("", s * v, self.quality(etch=[s * v if j == i else 0.0 for j in range(n_masks)]))
                 for s in (1, -1)
             ]
         if kind == "overlay":
@@ -477,21 +283,21 @@ def tolerance_analysis(
             shifts = (("x", v, (v, 0.0)), ("x", -v, (-v, 0.0)))
             shifts += (("y", v, (0.0, v)), ("y", -v, (0.0, -v)))
             return [
-                (ax, sv, quality(shift=[d if j == i else (0.0, 0.0) for j in range(n_masks)]))
+                (ax, sv, self.quality(shift=[d if j == i else (0.0, 0.0) for j in range(n_masks)]))
                 for ax, sv, d in shifts
             ]
-        return [("", s * v, quality(cd=s * v)) for s in (1, -1)]
+        return [("", s * v, self.quality(cd=s * v)) for s in (1, -1)]
 
-    def worst_rmse(kind, i, v):
-        return max(q["rmse"] for _, _, q in variants(kind, i, v))
+    def worst_rmse(self, kind, i, v):
+        """Return the worse rmse of the signs (and axes) of one table entry."""
+        return max(q["rmse"] for _, _, q in self.variants(kind, i, v))
 
-    nominal = quality()
-    limit = nominal["rmse"] + spec.rmse_allowance if rmse_limit is None else float(rmse_limit)
+
+def _table(plates, names, ref, spec, cd_values, nominal, limit):
+    """Return the table's rows and the budget of each error kind (per mask; CD bias for all)."""
     rows = [_row("nominal", "all", "", 0.0, "", nominal, nominal)]
-    entries = [("etch", i, spec.etch_fractions) for i in range(n_masks)]
-    entries += [("overlay", i, spec.overlay) for i in range(n_masks) if i != ref]
-    # An edge moved by half a pixel or more closes the one-pixel gaps: another plate, not an error.
-    cd_values = tuple(v for v in spec.cd_bias if _below_half_pixel(_bias_pixels(v, model)))
+    entries = [("etch", i, spec.etch_fractions) for i in range(len(names))]
+    entries += [("overlay", i, spec.overlay) for i in range(len(names)) if i != ref]
     if cd_values:
         entries += [("cd_bias", None, cd_values)]
     budget = []
@@ -499,54 +305,41 @@ def tolerance_analysis(
         mask = "all" if i is None else names[i]
         worst = {}
         for v in sorted(values):
-            plates = variants(kind, i, v)
-            rows += [_row(kind, mask, ax, sv, _UNITS[kind], q, nominal) for ax, sv, q in plates]
-            worst[v] = max(q["rmse"] for _, _, q in plates)
+            table = plates.variants(kind, i, v)
+            rows += [_row(kind, mask, ax, sv, _UNITS[kind], q, nominal) for ax, sv, q in table]
+            worst[v] = max(q["rmse"] for _, _, q in table)
         budget.append(
-            _budget(kind, mask, worst, limit, lambda v, kind=kind, i=i: worst_rmse(kind, i, v))
+            _budget(
+                kind, mask, worst, limit, lambda v, kind=kind, i=i: plates.worst_rmse(kind, i, v)
+            )
         )
-    # fab.verify.analysis compares a captured PSF with the levels' contract PSF, not with the
-    # target, so the correlation and rmse thresholds are taken against that PSF.
-    design_psf = simulate_levels(levels, n_levels, target.shape[0])[0]
-    mc = _monte_carlo(design_psf, budget, names, ref, spec, seed, simulate)
-    acceptance = {
-        "correlation_min": min(mc["correlation_vs_reference"]) - spec.correlation_margin,
-        "rmse_max": max(mc["rmse_vs_reference"]) + spec.rmse_margin,
-        "efficiency_min": min(mc["efficiency"]) * (1 - spec.efficiency_margin),
-        "zero_order_max": max(mc["zero_order"]) + spec.zero_order_margin,
-    }
+    return rows, budget
+
+
+def _assumptions(reference, pixel_pitch, supersample, cd_values, rmse_limit, spec, seed):
+    """Return the stated assumptions of an analysis (its JSON "model")."""
     return {
-        "model": {
-            "sampling": "continuous plate (exact sub-cell Fourier sums)"
-            if supersample is None
-            else f"{supersample} x {supersample} sub-samples per pixel",
-            "supersample": supersample,
-            "etch": "mask depth x (1 + error); + is too deep; both signs tabulated",
-            "overlay": f"each mask after {names[ref]} (first exposed) shifted relative to it "
-            "along x and along y, both signs (separate rows), periodic",
-            "cd_bias": "every edge of every mask's etched region moved outwards by the value "
-            "(+ grows the etched area, width changes by twice it); square corners; "
-            "only values below half the mask pixel pitch "
-            f"({0.5 * pixel_pitch * 1e6:.4g} um) are tabulated"
-            + ("" if cd_values else ", so none is"),
-            "rmse_limit_rule": "given"
-            if rmse_limit is not None
-            else f"nominal rmse + {spec.rmse_allowance}",
-            "acceptance_rule": f"worst of {spec.monte_carlo_plates} random plates within the "
-            f"budget (seed {seed}); correlation and rmse against the levels' simulated PSF "
-            "(simulate_levels, what verification compares a capture with), efficiency and "
-            "zero order as fractions of the incident power; margins correlation -"
-            f"{spec.correlation_margin}, rmse +{spec.rmse_margin}, "
-            f"efficiency x(1-{spec.efficiency_margin}), zero order +"
-            f"{spec.zero_order_margin}",
-        },
-        "reference_mask": names[ref],
-        "nominal": nominal,
-        "rmse_limit": limit,
-        "rows": rows,
-        "budget": budget,
-        "monte_carlo": {"plates": spec.monte_carlo_plates, "seed": seed, **mc},
-        "acceptance": acceptance,
+        "sampling": "continuous plate (exact sub-cell Fourier sums)"
+        if supersample is None
+        else f"{supersample} x {supersample} sub-samples per pixel",
+        "supersample": supersample,
+        "etch": "mask depth x (1 + error); + is too deep; both signs tabulated",
+        "overlay": f"each mask after {reference} (first exposed) shifted relative to it "
+        "along x and along y, both signs (separate rows), periodic",
+        "cd_bias": "every edge of every mask's etched region moved outwards by the value "
+        "(+ grows the etched area, width changes by twice it); square corners; "
+        "only values below half the mask pixel pitch "
+        f"({0.5 * pixel_pitch * 1e6:.4g} um) are tabulated" + ("" if cd_values else ", so none is"),
+        "rmse_limit_rule": "given"
+        if rmse_limit is not None
+        else f"nominal rmse + {spec.rmse_allowance}",
+        "acceptance_rule": f"worst of {spec.monte_carlo_plates} random plates within the "
+        f"budget (seed {seed}); correlation and rmse against the levels' simulated PSF "
+        "(simulate_levels, what verification compares a capture with), efficiency and "
+        "zero order as fractions of the incident power; margins correlation -"
+        f"{spec.correlation_margin}, rmse +{spec.rmse_margin}, "
+        f"efficiency x(1-{spec.efficiency_margin}), zero order +"
+        f"{spec.zero_order_margin}",
     }
 
 
@@ -561,22 +354,6 @@ def _row(kind, mask, axis, value, unit, q, nominal):
         **q,
         "zero_order_excess": q["zero_order"] - nominal["zero_order"],
     }
-
-
-def _bias_pixels(cd_bias, model):
-    """Return a CD bias in pixels as the model samples it (rounded to its sub-samples)."""
-    bias = cd_bias / model.pixel_pitch
-    if model.supersample is not None:
-        bias = round(bias * model.supersample) / model.supersample
-    return bias
-
-
-def _below_half_pixel(bias):
-    """Whether a bias (pixels) is below half a pixel, and not half a pixel in rounding.
-
-    The pitch is grid steps x 1e-9 m, so 0.25 um over a 500 nm pitch is 0.4999999999999999.
-    """
-    return abs(bias) < 0.5 - 1e-9
 
 
 def _budget(kind, mask, worst, limit, worst_rmse, iterations=10):
@@ -608,7 +385,7 @@ def _budget(kind, mask, worst, limit, worst_rmse, iterations=10):
 def _monte_carlo(reference, budget, names, ref, spec, seed, simulate):
     """Return lists of the quality figures of random plates with all errors within budget.
 
-    ``simulate(errors, reference)`` returns a plate's figures (``plate_quality``).
+    ``simulate(faults, reference)`` returns a plate's figures (``plate_quality``).
     """
     rng = np.random.default_rng(seed)
     etch_b = np.zeros(len(names))
@@ -629,8 +406,8 @@ def _monte_carlo(reference, budget, names, ref, spec, seed, simulate):
         shift = rng.uniform(-1, 1, (len(names), 2)) * overlay_b[:, None]
         shift[ref] = 0.0
         cd = float(rng.uniform(-1, 1) * cd_b)
-        errors = PlateErrors(tuple(etch), tuple(map(tuple, shift)), cd)
-        q = simulate(errors, reference)
+        faults = PlateFaults(etch_errors=tuple(etch), overlay=tuple(map(tuple, shift)), cd_bias=cd)
+        q = simulate(faults, reference)
         for key in out:
             out[key].append(q[key])
     return out

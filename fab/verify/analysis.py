@@ -603,7 +603,7 @@ def _overlay_fit(measured_psf, window, frame_score, levels, n_levels):
     fit = fit_overlay_error(*window, levels, n_levels)
     if fit is None:
         return None
-    faults = PlateFaults(overlay_mask=fit["mask_index"], overlay_shift=tuple(fit["shift_px"]))
+    faults = fit["faults"]
     return {
         "mask": fit["mask"],
         "shift_px": fit["shift_px"],
@@ -649,9 +649,7 @@ def _overlay_and_etch_fit(result, measured_psf, window, frame_score, levels, n_l
         return None
     mask = etch["masks"].index(overlay["mask"])
     fit = fit_overlay_and_etch(*window, levels, n_levels, mask, overlay["shift_px"], etch["errors"])
-    faults = PlateFaults(
-        etch_errors=tuple(fit["eps"]), overlay_mask=mask, overlay_shift=tuple(fit["shift_px"])
-    )
+    faults = fit["faults"]
     return {
         "mask": fit["mask"],
         "shift_px": fit["shift_px"],
@@ -672,7 +670,7 @@ def _fitted_plate_figures(measured_psf, fitted_psf, faults, levels, n_levels, fr
     the window itself."""
     # A shifted mask's plate cut into 8 x 8 sub-pixels (the shift rounded to 1/8 px):
     # exact orders at any distance, aliases and envelope included.
-    supersample = 8 if any(faults.overlay_shift) else 1
+    supersample = 8 if np.any(faults.overlay) else 1
     plate = plate_phase(levels, n_levels, faults, mask_pixel_pitch=1.0, supersample=supersample)
     return {
         "correlation": correlation(measured_psf, fitted_psf),

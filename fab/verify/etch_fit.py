@@ -1,38 +1,27 @@
 """Fit the etch depths of a plate's masks to its measured K x K window.
 
-A depth error scales the phase step a mask adds. The window's far field is
-then a sum of the far fields of the pixels at each level, each turned by its
-level's new phase: exact, and milliseconds a fit. Fitted here: the deepest
-mask's error alone (``fit_etch_error``), every mask's together
+A depth error scales the phase step a mask adds. The window's far field is then a
+sum of the far fields of the pixels of each code (the masks that etch them), each
+turned by its code's new phase: ``fab.plate.basis.code_windows``, the plate model's
+window with its parts precomputed; exact, and milliseconds a fit. Fitted here: the
+deepest mask's error alone (``fit_etch_error``), every mask's together
 (``fit_etch_errors``), and the deepest's implied by the zero order alone
 (``implied_deep_etch_error``).
 """
 
 import numpy as np
 
-from doe.fraunhofer import level_phase, pixel_envelope, window_indices
-from fab.package.masks import masks_from_levels
+from fab.package.masks import mask_name
+from fab.plate.basis import code_windows
+from fab.plate.model import code_phases, level_plate_model
 from fab.verify.diagnosis import SIGNIFICANCE
 
 
-def _mask_fields(levels, n_levels, mask_index=0):
-    """Return the far-field amplitudes (N, N) of the pixels a mask (0 = deepest) leaves and
-    etches, and the mask: the two sum to the design's."""
-    mask = masks_from_levels(levels, n_levels, level_step=1.0)[mask_index]
-    field = np.exp(1j * level_phase(levels, n_levels))
-    etched = mask.bitmap
-    return (
-        np.fft.fft2(np.where(etched, 0, field)) / etched.size,
-        np.fft.fft2(np.where(etched, field, 0)) / etched.size,
-        mask,
-    )
-
-
-def _window_orders(n, k):
-    """Return the FFT indices of the K window orders of an N-pixel tile, and their (K, K)
-    square-pixel envelope."""
-    env = pixel_envelope(np.arange(k) - k // 2, n)
-    return window_indices(n, k), env[:, None] * env[None, :]
+def _code_windows(levels, n_levels, k):
+    """Return the plate model of a level map's masks (K-order window) and the window of
+    each code's pixels (``fab.plate.basis.code_windows``)."""
+    plate = level_plate_model(levels, n_levels, k)
+    return plate, code_windows(plate)
 
 
 def fit_etch_error(window, sigma, levels, n_levels, mask_index=0, search=0.5, step=1e-3):
@@ -64,18 +53,18 @@ def fit_etch_error(window, sigma, levels, n_levels, mask_index=0, search=0.5, st
         (its name);
         None when the mask etches all pixels or none (the error leaves no trace).
     """
-    u_full, c_full, mask = _mask_fields(levels, n_levels, mask_index)
-    if mask.bitmap.all() or not mask.bitmap.any():
-        return None
     k = window.shape[0]
-    idx, env = _window_orders(levels.shape[0], k)
-    u_amp, c_amp = (f[np.ix_(idx, idx)].ravel() for f in (u_full, c_full))
+    plate, windows = _code_windows(levels, n_levels, k)
+    bitmap = plate.bitmaps[mask_index]
+    if bitmap.all() or not bitmap.any():
+        return None
     # whole multiples of the step: np.arange's 0.10000000000000053 passed a 10 % tolerance
     # that -0.1 did not
     eps = step * np.arange(-round(search / step), round(search / step) + 1)
-    phi = 2 * np.pi * mask.steps / n_levels
-    model = np.abs(u_amp[None, :] + c_amp[None, :] * np.exp(-1j * phi * eps)[:, None]) ** 2
-    model *= env.ravel()[None, :]
+    errors = np.zeros((len(eps), len(plate.bitmaps)))
+    errors[:, mask_index] = eps
+    amplitudes = np.einsum("ec,cmn->emn", np.exp(1j * code_phases(plate, errors)), windows)
+    model = np.abs(amplitudes.reshape(len(eps), k * k)) ** 2
     wts = np.ones(k * k) if sigma is None else 1 / np.maximum(np.ravel(sigma), 1e-30)
     meas = np.asarray(window, float).ravel() * wts
     model = model * wts[None, :]
@@ -91,7 +80,7 @@ def fit_etch_error(window, sigma, levels, n_levels, mask_index=0, search=0.5, st
         "chi2_drop": float(chi2[zero] - chi2[best]) / max(reduced, 1.0),
         "reduced_chi2": reduced,
         "psf": fitted / fitted.sum(),
-        "mask": mask.name,
+        "mask": mask_name(mask_index, len(plate.bitmaps)),
     }
 
 
@@ -107,12 +96,12 @@ def fit_etch_errors(window, sigma, levels, n_levels, search=0.5):
     """Fit the depth errors of every mask's etch at once.
 
     A plate's etches are all off by a little; one mask's error fitted alone takes up
-    some of the others'. With errors eps_j, level l carries the phase
-    ``-sum_j b_jl phi_j (1 + eps_j)`` (b_jl: whether mask j etches level l; phi_j its
-    designed phase), so the window is ``|sum_l exp(i phase_l) F_l|^2`` with F_l the
-    window far field of level l's pixels: exact, and a few K^2 operations an
-    evaluation. Weighted least squares with a free scale, from no error and from the
-    best one-mask error on a grid, within ``search`` each way.
+    some of the others'. With errors eps_j, the pixels of code c (the masks j that etch
+    them) carry the phase ``-sum_j b_jc phi_j (1 + eps_j)`` (phi_j: mask j's designed
+    phase), so the window is ``|sum_c exp(i phase_c) F_c|^2`` with F_c the window far
+    field of code c's pixels: exact, and a few K^2 operations an evaluation. Weighted
+    least squares with a free scale, from no error and from the best one-mask error on
+    a grid, within ``search`` each way.
 
     Returns
     -------
@@ -126,88 +115,100 @@ def fit_etch_errors(window, sigma, levels, n_levels, search=0.5):
         "at_search_edge", "psf" (the fitted window, sum 1) and "masks" (names);
         None when no mask etches some pixels and not others.
     """
-    from scipy.optimize import least_squares
-
-    masks = masks_from_levels(levels, n_levels, level_step=1.0)
-    free = [j for j, mk in enumerate(masks) if 0 < mk.bitmap.mean() < 1]
+    k = window.shape[0]
+    plate, windows = _code_windows(levels, n_levels, k)
+    n_masks = len(plate.bitmaps)
+    free = [j for j, bm in enumerate(plate.bitmaps) if 0 < bm.mean() < 1]
     if not free:
         return None
-    k = window.shape[0]
-    idx, env = _window_orders(levels.shape[0], k)
-    per_level = np.array(
-        [np.fft.fft2(levels == lv)[np.ix_(idx, idx)] / levels.size for lv in range(n_levels)]
-    )
-    # Mask j etches level l when its steps are in the level's depth L - 1 - l (binary).
-    etched = np.array([[(n_levels - 1 - lv) & mk.steps != 0 for mk in masks]
-                       for lv in range(n_levels)])  # fmt: skip
-    phi = np.array([2 * np.pi * mk.steps / n_levels for mk in masks])
     wts = np.ones((k, k)) if sigma is None else 1 / np.maximum(np.asarray(sigma), 1e-30)
-    meas = np.asarray(window, float) * wts
-
-    def power(eps):
-        phase = -(etched * phi * (1 + eps)).sum(axis=1)
-        return np.abs(np.tensordot(np.exp(1j * phase), per_level, axes=1)) ** 2 * env
-
-    def errors(x, held=()):
-        eps = np.zeros(len(masks))
-        eps[[j for j in free if j not in held]] = x
-        return eps
-
-    def residuals(x, held=()):
-        p = power(errors(x, held)) * wts
-        return (p * ((p * meas).sum() / (p * p).sum()) - meas).ravel()
-
-    def best_fit(x0, held=()):
-        return least_squares(residuals, x0, bounds=(-search, search), args=(held,))
-
+    fits = _JointEtchFit(plate, windows, free, np.asarray(window, float) * wts, wts, search)
     # From no error it found the errors of 120 simulated plates (each etch within
     # +-45 %; a random, the retrieved asymmetric and the default run's design), but on
-    # a 4-level design it stopped in a local minimum past 20 %: M1 +25 % read +8 %, and
-    # the plate passed. A second start, the best one-mask error on a grid, finds it.
-    fit = best_fit(np.zeros(len(free)))
-    fit_from_grid = best_fit(_best_one_mask_start(residuals, len(free), search))
+    # a 4-level design it stopped in a local minimum past 20 %. A second start, the
+    # best one-mask error on a grid, finds it.
+    fit = fits.best_fit(np.zeros(len(free)))
+    fit_from_grid = fits.best_fit(_best_one_mask_start(fits.residuals, len(free), search))
     if fit_from_grid.cost < fit.cost * (1 - 1e-6):  # not on a tie: keep the same bits
         fit = fit_from_grid
     chi2 = 2 * fit.cost
     # The photometry's sigmas run 1.2-1.5 times short (reduced chi-square 1.5-2.3 for the
     # true plate): in those units, a random design's 0.6 % mid-etch "error" was worth 13.8.
     reduced = chi2 / max(k * k - len(free) - 1, 1)
-    mask_chi2 = [0.0] * len(masks)
+    mask_chi2 = [0.0] * n_masks
     for i, j in enumerate(free):
         if len(free) == 1:
-            rise = (residuals(np.zeros(0), (j,)) ** 2).sum() - chi2
+            rise = (fits.residuals(np.zeros(0), (j,)) ** 2).sum() - chi2
         else:
-            rise = 2 * best_fit(np.delete(fit.x, i), (j,)).cost - chi2
+            rise = 2 * fits.best_fit(np.delete(fit.x, i), (j,)).cost - chi2
         mask_chi2[j] = float(rise / max(reduced, 1.0))
-
-    # The errors the window does not need are held at 0 and the rest refitted: where two
-    # masks trade off (a near-delta design's M2 and M3), the full fit stopped anywhere
-    # along the valley (M2 45 % too shallow read as M2 -34 % with M3 +33 %, ± 1e8 %).
-    def sigmas(fit):  # 1-sigma errors from the fit's curvature, in the same units
-        cov = np.linalg.pinv(fit.jac.T @ fit.jac) * max(reduced, 1.0)
-        return np.sqrt(np.maximum(np.diag(cov), 0.0))
-
-    eps_sigma = errors(sigmas(fit))  # a held error's: how well the window could tell it
-    held = tuple(j for j in free if mask_chi2[j] <= (SIGNIFICANCE + 1) ** 2)
-    if held and len(held) < len(free):
-        kept = [i for i, j in enumerate(free) if j not in held]
-        fit = best_fit(fit.x[kept], held)
-        eps_sigma[[free[i] for i in kept]] = sigmas(fit)
-    else:
-        held = ()
+    fit, held, eps_sigma = fits.without_unneeded(fit, mask_chi2, reduced)
     chi2 = 2 * fit.cost  # of the errors returned
-    fitted = power(errors(fit.x, held))
+    eps = fits.errors(fit.x, held)
+    fitted = fits.power(eps)
     return {
-        "eps": errors(fit.x, held),
+        "eps": eps,
         "eps_sigma": eps_sigma,
         "chi2": float(chi2),
-        "chi2_drop": float((residuals(np.zeros(len(free))) ** 2).sum() - chi2) / max(reduced, 1.0),
+        "chi2_drop": float((fits.residuals(np.zeros(len(free))) ** 2).sum() - chi2)
+        / max(reduced, 1.0),
         "mask_chi2": mask_chi2,
         "reduced_chi2": float(reduced),
         "at_search_edge": bool(np.any(np.abs(fit.x) > search - 1e-3)),
         "psf": fitted / fitted.sum(),
-        "masks": [mk.name for mk in masks],
+        "masks": [mask_name(j, n_masks) for j in range(n_masks)],
     }
+
+
+class _JointEtchFit:
+    """The least squares of every free mask's etch error with a free scale."""
+
+    def __init__(self, plate, windows, free, meas, wts, search):
+        self.plate, self.windows, self.free = plate, windows, free
+        self.meas, self.wts, self.search = meas, wts, search
+
+    def power(self, eps):
+        """Return the window of the plate with etch errors ``eps`` (one a mask)."""
+        phases = code_phases(self.plate, eps)
+        return np.abs(np.einsum("c,cmn->mn", np.exp(1j * phases), self.windows)) ** 2
+
+    def errors(self, x, held=()):
+        """Return every mask's error: ``x`` for the free masks not ``held``, else 0."""
+        eps = np.zeros(len(self.plate.bitmaps))
+        eps[[j for j in self.free if j not in held]] = x
+        return eps
+
+    def residuals(self, x, held=()):
+        p = self.power(self.errors(x, held)) * self.wts
+        return (p * ((p * self.meas).sum() / (p * p).sum()) - self.meas).ravel()
+
+    def best_fit(self, x0, held=()):
+        from scipy.optimize import least_squares
+
+        bounds = (-self.search, self.search)
+        return least_squares(self.residuals, x0, bounds=bounds, args=(held,))
+
+    def without_unneeded(self, fit, mask_chi2, reduced):
+        """Return (fit, held, eps_sigma): the errors the window does not need held at 0
+        and the rest refitted, and every mask's 1-sigma error.
+
+        Where two masks trade off (a near-delta design's M2 and M3), the full fit
+        stopped anywhere along the valley; a held error's sigma is the full fit's:
+        how well the window could tell it.
+        """
+
+        def sigmas(fit):  # 1-sigma errors from the fit's curvature, in the same units
+            cov = np.linalg.pinv(fit.jac.T @ fit.jac) * max(reduced, 1.0)
+            return np.sqrt(np.maximum(np.diag(cov), 0.0))
+
+        eps_sigma = self.errors(sigmas(fit))
+        held = tuple(j for j in self.free if mask_chi2[j] <= (SIGNIFICANCE + 1) ** 2)
+        if not held or len(held) == len(self.free):
+            return fit, (), eps_sigma
+        kept = [i for i, j in enumerate(self.free) if j not in held]
+        fit = self.best_fit(fit.x[kept], held)
+        eps_sigma[[self.free[i] for i in kept]] = sigmas(fit)
+        return fit, held, eps_sigma
 
 
 def implied_deep_etch_error(levels, n_levels, zero_order_power, sign_hint=None):
@@ -221,7 +222,10 @@ def implied_deep_etch_error(levels, n_levels, zero_order_power, sign_hint=None):
     from ``fit_etch_error``) is returned, otherwise the smaller |eps|.
     Returns None when the design makes the zero order insensitive.
     """
-    u_amp, c_amp = (f[0, 0] for f in _mask_fields(levels, n_levels)[:2])
+    plate, windows = _code_windows(levels, n_levels, 1)  # the zero order alone
+    fields = np.exp(1j * code_phases(plate)) * windows[:, 0, 0]
+    deep = (np.arange(len(fields)) & 1) != 0  # the codes the deepest mask (bit 0) etches
+    u_amp, c_amp = fields[~deep].sum(), fields[deep].sum()
     a = abs(u_amp) ** 2 + abs(c_amp) ** 2
     b = 2 * abs(u_amp) * abs(c_amp)
     if b < 1e-12:

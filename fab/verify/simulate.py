@@ -2,10 +2,10 @@
 
 The physics, in order:
 
-1. The plate's tile (``fab.plate.model``), supersampled S times per mask pixel when
-   one mask is shifted (overlay error), with its phase 2 pi l / L, each mask's
-   etch depth error applied to the pixels it etches, or etch and glass swapped
-   (a conjugate plate).
+1. The plate's tile with its faults (``fab.plate.model.plate_phase``: the plate model's
+   tile), supersampled S times per mask pixel when a mask is shifted (overlay error),
+   with its phase 2 pi l / L, each mask's etch depth error applied to the pixels it
+   etches, or etch and glass swapped (a conjugate plate).
 2. Its far field: order (m, n) of the tiled plate carries
    ``|DFT[m mod NS, n mod NS]|^2 sinc^2(m / NS) sinc^2(n / NS)`` of the power
    (a piecewise-constant tile: the DFT times the sub-pixel's envelope; the
@@ -84,6 +84,7 @@ def simulate_capture(
     orientation : str
         One of ``ORIENTATION_MAPS``.
     faults : PlateFaults
+        The plate's faults (overlay in metres, x right and y up).
     mask_pixel_pitch : float
         Mask pixel pitch in metres (overlay shifts).
     supersample : int
@@ -114,22 +115,9 @@ def simulate_capture(
     centre = np.array(centre if centre is not None else ((h - 1) / 2, (w - 1) / 2), float)
     phase = plate_phase(levels, n_levels, faults, mask_pixel_pitch, supersample)
     order_power = plate_far_field(phase)
-    theta = np.radians(rotation_deg)
-    p = pitch_px * scale
-    b_u = p * np.array([np.cos(theta), np.sin(theta)])  # (row, col) per camera step down
-    b_v = p * np.array([-np.sin(theta), np.cos(theta)])  # per camera step right
-    # Orders out to the frame corner farthest from the zero order (it may lie outside).
-    corners = np.array([(r, c) for r in (0, h - 1) for c in (0, w - 1)], float)
-    reach = int(np.ceil(np.hypot(*(corners - centre).T).max() / p)) + 2
-    du, dv = np.meshgrid(np.arange(-reach, reach + 1), np.arange(-reach, reach + 1), indexing="ij")
-    rows = centre[0] + du * b_u[0] + dv * b_v[0]
-    cols = centre[1] + du * b_u[1] + dv * b_v[1]
     sigma = float(np.hypot(spot_sigma_px, blur_sigma_px))
-    rad = int(np.ceil(4 * sigma)) + 1
-    inside = (rows > -rad) & (rows < h - 1 + rad) & (cols > -rad) & (cols < w - 1 + rad)
-    m, n = _inverse_orientation(orientation, du[inside], dv[inside])
-    power = order_power(m, n)
-    image = _render_dots(rows[inside], cols[inside], power, (h, w), sigma, rad)
+    lattice = (pitch_px * scale, np.radians(rotation_deg), orientation)
+    image = _dot_image(order_power, shape, centre, lattice, sigma)
     full_scale = {8: 255, 12: 4095, 16: 65535}[bits]
     gain = full_well_e / full_scale  # electrons per DN
     if not image.max() > 0:
@@ -153,6 +141,28 @@ def simulate_capture(
         "order_power": order_power,
         "full_scale": full_scale,
     }
+
+
+def _dot_image(order_power, shape, centre, lattice, sigma):
+    """Return the noiseless image of the orders' dots (each of its order's power).
+
+    ``lattice`` is (pitch in pixels, rotation in radians, orientation name).
+    """
+    h, w = shape
+    p, theta, orientation = lattice
+    b_u = p * np.array([np.cos(theta), np.sin(theta)])  # (row, col) per camera step down
+    b_v = p * np.array([-np.sin(theta), np.cos(theta)])  # per camera step right
+    # Orders out to the frame corner farthest from the zero order (it may lie outside).
+    corners = np.array([(r, c) for r in (0, h - 1) for c in (0, w - 1)], float)
+    reach = int(np.ceil(np.hypot(*(corners - centre).T).max() / p)) + 2
+    du, dv = np.meshgrid(np.arange(-reach, reach + 1), np.arange(-reach, reach + 1), indexing="ij")
+    rows = centre[0] + du * b_u[0] + dv * b_v[0]
+    cols = centre[1] + du * b_u[1] + dv * b_v[1]
+    rad = int(np.ceil(4 * sigma)) + 1
+    inside = (rows > -rad) & (rows < h - 1 + rad) & (cols > -rad) & (cols < w - 1 + rad)
+    m, n = _inverse_orientation(orientation, du[inside], dv[inside])
+    power = order_power(m, n)
+    return _render_dots(rows[inside], cols[inside], power, (h, w), sigma, rad)
 
 
 def _inverse_orientation(orientation, du, dv):

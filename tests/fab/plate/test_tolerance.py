@@ -12,13 +12,11 @@ from scipy import ndimage
 
 from doe.fraunhofer import level_phase, simulate_levels, window_power
 from fab.package.masks import masks_from_levels
+from fab.plate.model import PlateFaults, plate_model, window_amplitudes
 from fab.plate.tolerance import (
-    PlateErrors,
     ToleranceSpec,
-    plate_model,
     plate_quality,
     tolerance_analysis,
-    window_amplitudes,
     zero_order_power_analytic,
     zero_order_power_balanced,
 )
@@ -65,13 +63,13 @@ def brute_force_window(masks, errors, supersample, k, continuous):
     bias = round(errors.cd_bias / PITCH * s)
     for i, mk in enumerate(masks):
         up = np.kron(mk.bitmap.astype(np.uint8), np.ones((s, s), np.uint8))
-        dx, dy = errors.shift[i]
+        dx, dy = errors.overlay[i]
         up = np.roll(up, (round(-dy / PITCH * s), round(dx / PITCH * s)), axis=(0, 1))
         if bias > 0:
             up = ndimage.maximum_filter(up, size=2 * bias + 1, mode="wrap")
         elif bias < 0:
             up = ndimage.minimum_filter(up, size=-2 * bias + 1, mode="wrap")
-        depth += up * mk.etch_depth * (1 + errors.etch[i])
+        depth += up * mk.etch_depth * (1 + errors.etch_errors[i])
     field = np.exp(2j * np.pi * (N_INDEX - 1) * ((L - 1) * STEP - depth) / WAVELENGTH)
     amp = np.fft.fft2(field) / field.size
     m = np.arange(k) - k // 2
@@ -110,9 +108,9 @@ def test_model_matches_brute_force_supersampled_tile(continuous, bias_sub):
     levels = random_levels(12, seed=bias_sub + 7)
     model, masks = model_of(levels, k, supersample=None if continuous else s)
     sub = PITCH / s
-    errors = PlateErrors(
-        etch=(0.03, -0.05, 0.1),
-        shift=((0.0, 0.0), (sub, -2 * sub), (-3 * sub, 6 * sub)),
+    errors = PlateFaults(
+        etch_errors=(0.03, -0.05, 0.1),
+        overlay=((0.0, 0.0), (sub, -2 * sub), (-3 * sub, 6 * sub)),
         cd_bias=bias_sub * sub,
     )
     np.testing.assert_allclose(
@@ -126,8 +124,8 @@ def test_model_matches_brute_force_supersampled_tile(continuous, bias_sub):
 def test_supersampled_model_rounds_errors_to_sub_samples():
     levels = random_levels(12, seed=1)
     model, _ = model_of(levels, 5, supersample=4)
-    exact = PlateErrors(shift=((0, 0), (PITCH / 4, 0), (0, 0)))
-    rounded = PlateErrors(shift=((0, 0), (PITCH / 4 * 1.2, 0), (0, 0)))
+    exact = PlateFaults(overlay=((0, 0), (PITCH / 4, 0), (0, 0)))
+    rounded = PlateFaults(overlay=((0, 0), (PITCH / 4 * 1.2, 0), (0, 0)))
     np.testing.assert_array_equal(
         window_amplitudes(model, exact), window_amplitudes(model, rounded)
     )
@@ -140,7 +138,7 @@ def test_whole_pixel_overlay_equals_rolled_bitmap(axis):
     # +x moves the pattern to larger columns; +y moves it up, to smaller rows.
     # roll = (shift, axis) of np.roll.
     shift, roll = ((PITCH, 0.0), (1, 1)) if axis == "x" else ((0.0, PITCH), (-1, 0))
-    shifted = window_amplitudes(model, PlateErrors(shift=((0, 0), shift, (0, 0))))
+    shifted = window_amplitudes(model, PlateFaults(overlay=((0, 0), shift, (0, 0))))
     rolled = [masks[0], replace(masks[1], bitmap=np.roll(masks[1].bitmap, *roll)), masks[2]]
     rolled_model = plate_model(rolled, PITCH, STEP, L, WAVELENGTH, N_INDEX, 7)
     np.testing.assert_array_equal(shifted, window_amplitudes(rolled_model))
@@ -150,12 +148,12 @@ def test_zero_cd_bias_is_a_no_op_and_the_model_is_continuous_in_it():
     levels = random_levels(16, seed=2)
     model, _ = model_of(levels, 7)
     shift = ((0, 0), (0.3e-6, -0.7e-6), (0, 0))
-    base = window_amplitudes(model, PlateErrors(shift=shift))
+    base = window_amplitudes(model, PlateFaults(overlay=shift))
     np.testing.assert_array_equal(
-        base, window_amplitudes(model, PlateErrors(shift=shift, cd_bias=0.0))
+        base, window_amplitudes(model, PlateFaults(overlay=shift, cd_bias=0.0))
     )
     for tiny in (1e-13, -1e-13):
-        near = window_amplitudes(model, PlateErrors(shift=shift, cd_bias=tiny))
+        near = window_amplitudes(model, PlateFaults(overlay=shift, cd_bias=tiny))
         assert np.abs(near - base).max() < 1e-7
 
 
@@ -166,7 +164,7 @@ def test_cd_bias_grows_an_isolated_pixel_by_twice_the_bias(bias):
     levels = np.full((n, n), L - 1, np.uint8)
     levels[3, 5] = L // 2 - 1  # etched by the deep mask only
     model, _ = model_of(levels, 3)
-    c0 = window_amplitudes(model, PlateErrors(cd_bias=bias))[1, 1]
+    c0 = window_amplitudes(model, PlateFaults(cd_bias=bias))[1, 1]
     top_phase = np.exp(2j * np.pi * (L - 1) / L)
     area = (PITCH + 2 * bias) ** 2 / (n * PITCH) ** 2
     assert c0 / top_phase == pytest.approx(1 - 2 * area, abs=1e-14)
@@ -180,7 +178,7 @@ def test_zero_order_matches_analytic_formula_for_each_mask():
         mask_phase = 2 * np.pi * (N_INDEX - 1) * mk.etch_depth / WAVELENGTH
         for eps in (-0.1, -0.02, 0.05, 0.2):
             etch = tuple(eps if j == i else 0.0 for j in range(len(masks)))
-            p0 = abs(window_amplitudes(model, PlateErrors(etch=etch))[2, 2]) ** 2
+            p0 = abs(window_amplitudes(model, PlateFaults(etch_errors=etch))[2, 2]) ** 2
             analytic = zero_order_power_analytic(eps, phase, mk.bitmap, mask_phase)
             assert p0 == pytest.approx(float(analytic), rel=1e-10, abs=1e-15)
 
@@ -194,7 +192,7 @@ def test_balanced_tile_deep_etch_zero_order_is_1p05_eps_squared():
     coeff = (1 + (1 + np.sqrt(2)) ** 2) / 64 * np.pi**2  # small-eps slope, 1.0530
     assert coeff == pytest.approx(1.053, abs=5e-4)
     for eps in (0.01, 0.02, 0.05, 0.1):
-        p0 = abs(window_amplitudes(model, PlateErrors(etch=(eps, 0, 0)))[1, 1]) ** 2
+        p0 = abs(window_amplitudes(model, PlateFaults(etch_errors=(eps, 0, 0)))[1, 1]) ** 2
         assert p0 == pytest.approx(float(zero_order_power_balanced(eps, L, L // 2)), rel=1e-9)
         assert p0 == pytest.approx(coeff * eps**2, rel=0.01 * (eps / 0.1) ** 2 + 1e-3)
 
@@ -277,16 +275,16 @@ def test_budget_is_the_largest_value_within_the_rmse_limit(designed):
             i = names.index(b["mask"]) if b["mask"] in names else None
             if b["kind"] == "etch":
                 plates = [
-                    PlateErrors(etch=tuple(s * v if j == i else 0 for j in range(3)))
+                    PlateFaults(etch_errors=tuple(s * v if j == i else 0 for j in range(3)))
                     for s in (1, -1)
                 ]
             elif b["kind"] == "overlay":
                 plates = [
-                    PlateErrors(shift=tuple(d if j == i else (0, 0) for j in range(3)))
+                    PlateFaults(overlay=tuple(d if j == i else (0, 0) for j in range(3)))
                     for d in ((v, 0), (-v, 0), (0, v), (0, -v))
                 ]
             else:
-                plates = [PlateErrors(cd_bias=s * v) for s in (1, -1)]
+                plates = [PlateFaults(cd_bias=s * v) for s in (1, -1)]
             return max(plate_quality(model, own, p)["rmse"] for p in plates)
 
         assert worst(v) <= limit
@@ -329,14 +327,14 @@ def test_masks_that_do_not_make_the_levels_are_refused():
 def test_cd_bias_of_half_a_pixel_is_refused():
     model, _ = model_of(random_levels(8), 3)
     with pytest.raises(ValueError, match="half the pixel pitch"):
-        window_amplitudes(model, PlateErrors(cd_bias=PITCH / 2))
+        window_amplitudes(model, PlateFaults(cd_bias=PITCH / 2))
 
 
 def test_etch_errors_are_one_per_mask():
     # one value was once applied to every mask without a word
     model, _ = model_of(random_levels(8), 3)
     with pytest.raises(ValueError, match="one per mask"):
-        window_amplitudes(model, PlateErrors(etch=(0.05,)))
+        window_amplitudes(model, PlateFaults(etch_errors=(0.05,)))
 
 
 @pytest.mark.parametrize(
@@ -449,8 +447,8 @@ def test_shifting_every_mask_alike_only_adds_a_phase_ramp(dx, dy, bias):
     # exp(-2 pi i (n dx - m dy) / T) (rows grow towards -y), for any sub-pixel shift.
     n, k = 12, 5
     model, _ = model_of(random_levels(n, seed=13), k)
-    base = window_amplitudes(model, PlateErrors(cd_bias=bias))
-    moved = window_amplitudes(model, PlateErrors(shift=((dx, dy),) * 3, cd_bias=bias))
+    base = window_amplitudes(model, PlateFaults(cd_bias=bias))
+    moved = window_amplitudes(model, PlateFaults(overlay=((dx, dy),) * 3, cd_bias=bias))
     m = np.arange(k) - k // 2
     tile = n * PITCH
     ramp = np.exp(-2j * np.pi * (m[None, :] * dx - m[:, None] * dy) / tile)
@@ -489,7 +487,7 @@ def test_a_table_value_exactly_at_the_rmse_limit_is_within_budget():
     # worse-sign rmse, is the budget, not the start of a bisection below it.
     levels, masks, own = _flat_design()
     model = plate_model(masks, PITCH, STEP, L, WAVELENGTH, N_INDEX, 3)
-    at = max(plate_quality(model, own, PlateErrors(etch=(s * 0.1, 0.0, 0.0)))["rmse"]
+    at = max(plate_quality(model, own, PlateFaults(etch_errors=(s * 0.1, 0.0, 0.0)))["rmse"]
              for s in (1, -1))  # fmt: skip
     spec = ToleranceSpec(monte_carlo_plates=1)
     result = tolerance_analysis(levels, L, own, masks, PITCH, STEP, WAVELENGTH, N_INDEX,
@@ -534,8 +532,8 @@ def test_monte_carlo_plates_draw_every_error_uniformly_within_its_budget(monkeyp
     result, plates = run(5)
     assert len(plates) == ToleranceSpec().monte_carlo_plates
     budget = {(b["kind"], b["mask"]): b["si_value"] for b in result["budget"]}
-    etch = np.array([p.etch for p in plates])  # (plates, masks)
-    shift = np.array([p.shift for p in plates])  # (plates, masks, (dx, dy))
+    etch = np.array([p.etch_errors for p in plates])  # (plates, masks)
+    shift = np.array([p.overlay for p in plates])  # (plates, masks, (dx, dy))
     cd = np.array([p.cd_bias for p in plates])
 
     def uniform_within(values, b):
@@ -580,12 +578,12 @@ def test_masks_one_step_off_on_a_single_pixel_are_refused():
 def test_supersampled_model_rounds_the_cd_bias_to_sub_samples():
     model, _ = model_of(random_levels(12, seed=1), 5, supersample=4)
     np.testing.assert_array_equal(
-        window_amplitudes(model, PlateErrors(cd_bias=PITCH / 4)),
-        window_amplitudes(model, PlateErrors(cd_bias=PITCH / 4 * 1.2)),
+        window_amplitudes(model, PlateFaults(cd_bias=PITCH / 4)),
+        window_amplitudes(model, PlateFaults(cd_bias=PITCH / 4 * 1.2)),
     )
     # 0.45 pixel is two of four sub-samples: half a pixel, which closes one-pixel gaps
     with pytest.raises(ValueError, match="half the pixel pitch"):
-        window_amplitudes(model, PlateErrors(cd_bias=0.45 * PITCH))
+        window_amplitudes(model, PlateFaults(cd_bias=0.45 * PITCH))
 
 
 def test_y_overlay_rows_shift_along_y():
@@ -616,7 +614,7 @@ def test_shifts_half_way_between_sub_samples_round_to_one_consistent_plate(bias_
 
     def plate(shifts):  # (dx, dy) of each mask in sub-samples
         shift = tuple((x * sub, y * sub) for x, y in shifts)
-        return PlateErrors(etch=(0.0, 0.0, 0.0), shift=shift, cd_bias=bias_sub * sub)
+        return PlateFaults(etch_errors=(0.0, 0.0, 0.0), overlay=shift, cd_bias=bias_sub * sub)
 
     halves = ((-2.5, 2.5), (-0.5, 0.5), (1.5, -3.5))
     got = window_amplitudes(model, plate(halves))

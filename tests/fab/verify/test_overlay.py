@@ -1,17 +1,13 @@
-"""Tests of the overlay-error model and fit (fab.verify.overlay) against a supersampled plate."""
+"""Tests of the overlay-error fits (fab.verify.overlay) against a supersampled plate.
+
+The plate model they search is tested in tests/fab/plate/test_basis.py.
+"""
 
 import numpy as np
 import pytest
 
-from doe.fraunhofer import order_amplitudes, pixel_envelope, window_indices
 from fab.plate.model import PlateFaults, plate_far_field, plate_phase
-from fab.verify.overlay import (
-    SEARCH_PX,
-    EtchedOverlayModel,
-    OverlayModel,
-    fit_overlay_and_etch,
-    fit_overlay_error,
-)
+from fab.verify.overlay import SEARCH_PX, fit_overlay_and_etch, fit_overlay_error
 
 N, K, L = 24, 7, 8
 
@@ -21,81 +17,16 @@ def levels():
     return np.random.default_rng(3).integers(0, L, (N, N)).astype(np.uint8)
 
 
-@pytest.fixture(scope="module")
-def model(levels):
-    return OverlayModel(levels, L, K)
-
-
-def supersampled_window(levels, mask, shift, supersample, etch_errors=()):
-    """The window orders of a plate with ``mask`` shifted (and its etches off by
-    ``etch_errors``), sampled ``supersample`` times finer."""
-    faults = PlateFaults(etch_errors=etch_errors, overlay_mask=mask, overlay_shift=shift)
+def supersampled_window(levels, mask, shift_px, supersample, etch_errors=()):
+    """The window orders of a plate with ``mask`` shifted by ``shift_px`` ([dy, dx] mask
+    pixels, as a fit reports it) and its etches off by ``etch_errors``, sampled
+    ``supersample`` times finer."""
+    dy, dx = shift_px
+    overlay = tuple((dx, dy) if j == mask else (0.0, 0.0) for j in range(3))
+    faults = PlateFaults(etch_errors=etch_errors, overlay=overlay)
     orders = plate_far_field(plate_phase(levels, L, faults, 1.0, supersample))
     m = np.arange(K) - K // 2
     return orders(m[:, None], m[None, :])
-
-
-@pytest.mark.parametrize("mask", [0, 1, 2])
-@pytest.mark.parametrize(
-    "shift", [(0.25, 0.0), (0.0, -0.5), (1.75, -1.25), (-2.0, 0.75), (1.0, 1.0), (-0.2, 0.6)]
-)
-def test_a_shifted_mask_gives_the_orders_of_the_supersampled_plate(levels, model, mask, shift):
-    # Exact for sub-pixel shifts: the same orders as the plate cut into 20 x 20
-    # sub-pixels per mask pixel, with the shift (+y up) applied to that mask's bitmap.
-    expected = supersampled_window(levels, mask, (shift[0] * 1.0, shift[1] * 1.0), 20)
-    assert np.allclose(model.power(mask, *shift), expected, rtol=1e-9, atol=1e-15)
-
-
-@pytest.mark.parametrize("mask", [0, 1, 2])
-def test_the_model_is_fab_tolerance_s_plate_with_one_mask_shifted(levels, model, mask):
-    # The tolerance budget's general model (continuous plate, any error), built
-    # independently; this one is it restricted to a single shifted mask, made fast.
-    from fab.package.masks import masks_from_levels
-    from fab.plate.tolerance import PlateErrors, plate_model, window_amplitudes
-
-    masks = masks_from_levels(levels, L, 1.0)
-    general = plate_model(masks, 1.0, 1.0, L, wavelength=1.0, refractive_index=1 + 1 / L, k=K)
-    for dy, dx in [(0.37, -1.91), (-1.3, 0.05), (2.0, 2.0)]:
-        shift = [(0.0, 0.0)] * len(masks)
-        shift[mask] = (dx, dy)  # (x, y) there
-        expected = np.abs(window_amplitudes(general, PlateErrors(shift=tuple(shift)))) ** 2
-        assert np.allclose(model.power(mask, dy, dx), expected, rtol=1e-9, atol=1e-15)
-
-
-def square_pixel_window(levels):
-    """The window orders of a level map made with square pixels (the sinc^2 envelope)."""
-    amp = order_amplitudes(2 * np.pi * levels / L)
-    idx = window_indices(N, K)
-    env = pixel_envelope(np.arange(K) - K // 2, N)
-    return np.abs(amp[np.ix_(idx, idx)]) ** 2 * np.outer(env, env)
-
-
-def test_no_shift_gives_the_design_with_its_pixel_envelope(levels, model):
-    design = square_pixel_window(levels)
-    for mask in range(3):
-        assert np.allclose(model.power(mask, 0.0, 0.0), design, rtol=1e-12)
-
-
-def test_whole_pixel_shift_rolls_the_mask_bitmap_towards_row_0_for_plus_y(levels, model):
-    # Independent of capture_sim: rebuild the level map with the deep mask moved one
-    # row up (+y) and one column right, and compare with the design frame's FFT.
-    from fab.package.masks import masks_from_levels
-
-    masks = masks_from_levels(levels, L, 1.0)
-    code = sum(
-        mk.steps * np.roll(mk.bitmap, (-1, 1), axis=(0, 1)) if j == 0 else mk.steps * mk.bitmap
-        for j, mk in enumerate(masks)
-    )
-    expected = square_pixel_window((L - 1) - code)
-    assert np.allclose(model.power(0, 1.0, 1.0), expected, rtol=1e-12)
-    assert not np.allclose(model.power(0, -1.0, 1.0), expected, rtol=1e-3)
-
-
-def test_shifts_beyond_the_reach_are_refused(model):
-    with pytest.raises(ValueError, match="reach"):
-        model.power(1, SEARCH_PX + 0.1, 0.0)
-    with pytest.raises(ValueError, match="reach"):
-        model.power(1, 0.0, -SEARCH_PX - 0.1)
 
 
 @pytest.mark.parametrize("mask, shift", [(0, (0.73, -0.41)), (1, (-1.62, 0.3)), (2, (0.0, 1.18))])
@@ -120,19 +51,6 @@ def test_a_design_no_mask_structures_has_no_overlay_fit():
     # Levels 0 and 4 differ in M1 alone: its shift moves the whole pattern, no trace either
     binary = 4 * np.random.default_rng(2).integers(0, 2, (N, N)).astype(np.uint8)
     assert fit_overlay_error(np.ones((K, K)), None, binary, L) is None
-
-
-@pytest.mark.parametrize("mask", [0, 1, 2])
-def test_a_shifted_mask_on_a_plate_etched_off_gives_the_supersampled_plate(levels, mask):
-    errors = (0.1, -0.2, 0.15)
-    expected = supersampled_window(levels, mask, (1.25, -0.5), 4, errors)
-    model = EtchedOverlayModel(levels, L, K, mask)
-    model.set_etch_errors(errors)
-    assert np.allclose(model.power(mask, 1.25, -0.5), expected, rtol=1e-9, atol=1e-15)
-    model.set_etch_errors((0, 0, 0))  # and the errors undone: the plain overlay's model
-    assert np.allclose(
-        model.power(mask, 1.25, -0.5), OverlayModel(levels, L, K).power(mask, 1.25, -0.5)
-    )
 
 
 @pytest.mark.parametrize(

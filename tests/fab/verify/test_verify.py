@@ -171,7 +171,7 @@ def test_12bit_msb_png_is_detected(tmp_path, levels):
 
 def test_deep_etch_error_fails_on_zero_order_with_implied_error(tmp_path, levels):
     code, report, sim = run_verify(
-        tmp_path, levels, dict(seed=5, faults=PlateFaults(etch_errors=(0.15,)))
+        tmp_path, levels, dict(seed=5, faults=PlateFaults(etch_errors=(0.15, 0.0, 0.0)))
     )
     assert code == 1 and report["pass"] is False
     assert "zero_order_excess" in report["diagnosis"]
@@ -197,7 +197,7 @@ def test_an_acceptance_threshold_that_is_no_number_is_refused(value):
 def test_zero_order_check_catches_what_correlation_misses(levels):
     """With a lenient correlation threshold the zero order alone must fail the plate."""
     sim = simulate_capture(
-        levels, L, pitch_px=PITCH_PX, seed=6, faults=PlateFaults(etch_errors=(0.15,))
+        levels, L, pitch_px=PITCH_PX, seed=6, faults=PlateFaults(etch_errors=(0.15, 0.0, 0.0))
     )
     grid = _grid(sim)
     _psf, eff = simulate_levels(levels, L, K)
@@ -429,7 +429,7 @@ def test_compact_design_seen_turned_is_not_left_as_a_mirrored_plate(tmp_path, co
 
 
 def test_overlay_error_within_budget_passes_and_reports_outside_power(tmp_path, levels):
-    faults = PlateFaults(overlay_mask=2, overlay_shift=(0.5e-6, -0.5e-6))
+    faults = PlateFaults(overlay=((0.0, 0.0), (0.0, 0.0), (-0.5e-6, 0.5e-6)))
     code, report, _ = run_verify(tmp_path, levels, dict(seed=11, faults=faults, supersample=10))
     assert code == 0, report["diagnosis"]
     # Power on the camera outside the window, and what the design puts there.
@@ -968,7 +968,9 @@ def test_the_etch_fits_gains_are_in_units_of_their_reduced_chi_square(levels, jo
     # Sigmas quoted 2x short inflate chi-square 4x; the gains must not grow with them
     # (the deepest etch's own fit and the joint fit's total were taken as they came).
     orders = np.meshgrid(np.arange(K) - K // 2, np.arange(K) - K // 2, indexing="ij")
-    window = plate_far_field(plate_phase(levels, L, PlateFaults(etch_errors=(0.1, 0.1))))(*orders)
+    window = plate_far_field(plate_phase(levels, L, PlateFaults(etch_errors=(0.1, 0.1, 0.0))))(
+        *orders
+    )
     sigma = 0.002 * window.max() + 0.03 * window
     noisy = window + np.random.default_rng(4).normal(0, 1, window.shape) * sigma
 
@@ -1001,12 +1003,12 @@ def test_the_joint_etch_fit_of_a_design_using_one_mask():
     # levels 3 and 7 only: the deepest mask alone etches some pixels and not others
     two = np.random.default_rng(5).choice(np.array([3, 7], np.uint8), (N, N))
     orders = np.meshgrid(np.arange(K) - K // 2, np.arange(K) - K // 2, indexing="ij")
-    window = plate_far_field(plate_phase(two, L, PlateFaults(etch_errors=(0.2,))))(*orders)
+    window = plate_far_field(plate_phase(two, L, PlateFaults(etch_errors=(0.2, 0.0, 0.0))))(*orders)
     fit = fit_etch_errors(window, 1e-4 * window.max() + 0.01 * window, two, L)
     assert fit["eps"] == pytest.approx([0.2, 0.0, 0.0], abs=2e-3)
     assert fit["mask_chi2"][0] == pytest.approx(fit["chi2_drop"]) and fit["chi2_drop"] > 100
     assert fit_etch_errors(window, None, np.full((N, N), 7, np.uint8), L) is None  # flat
-    far = plate_far_field(plate_phase(two, L, PlateFaults(etch_errors=(0.7,))))(*orders)
+    far = plate_far_field(plate_phase(two, L, PlateFaults(etch_errors=(0.7, 0.0, 0.0))))(*orders)
     assert fit_etch_errors(far, None, two, L)["at_search_edge"]  # beyond the +-50 % searched
 
 
@@ -1025,7 +1027,7 @@ def test_the_etch_fit_of_each_shallower_mask_inverts_the_simulated_plate(levels,
 
 def test_implied_deep_etch_error_inverts_the_simulated_plate(levels):
     for eps in (-0.2, -0.1, 0.05, 0.15):
-        far = plate_far_field(plate_phase(levels, L, PlateFaults(etch_errors=(eps,))))
+        far = plate_far_field(plate_phase(levels, L, PlateFaults(etch_errors=(eps, 0.0, 0.0))))
         window = far(*np.meshgrid(np.arange(K) - K // 2, np.arange(K) - K // 2, indexing="ij"))
         fit = fit_etch_error(window, None, levels, L)
         assert fit["eps"] == pytest.approx(eps, abs=2e-3)
@@ -1052,7 +1054,7 @@ def test_zero_order_follows_the_analytic_deep_etch_law():
     c = abs(np.exp(1j * np.pi * np.arange(4) / 4).sum()) / 8
     assert design_order_power(lv, L)[0, 0] == pytest.approx(0, abs=1e-20)
     for eps in (0.02, 0.05, 0.15):
-        far = plate_far_field(plate_phase(lv, L, PlateFaults(etch_errors=(eps,))))
+        far = plate_far_field(plate_phase(lv, L, PlateFaults(etch_errors=(eps, 0.0, 0.0))))
         z = float(far(0, 0))
         assert z == pytest.approx(4 * c**2 * np.sin(np.pi * eps / 2) ** 2, rel=1e-9)
         # The zero order alone cannot tell too deep from too shallow here.
@@ -1172,7 +1174,7 @@ def fitted_plate_panels(saved_figures):
 @pytest.mark.parametrize("eps", [0.15, -0.15])
 def test_designed_plate_with_deep_etch_error_fails(tmp_path, designed, eps, saved_figures):
     code, report, sim = run_verify(
-        tmp_path, designed, dict(seed=22, faults=PlateFaults(etch_errors=(eps,)))
+        tmp_path, designed, dict(seed=22, faults=PlateFaults(etch_errors=(eps, 0.0, 0.0)))
     )
     assert code == 1
     # Which way the zero order moves depends on the design; the window fit sees both.
@@ -1290,7 +1292,7 @@ def test_a_mask_12um_off_is_said_to_lie_beyond_the_overlay_reach(tmp_path, desig
     # 12 um = 2.4 mask pixels: past the 2 an overlay is named in, fitted at 2.49 (the
     # capture simulated on a 1/4 px grid: 2.5). It was other_design, the lab told that
     # another plate had arrived.
-    faults = PlateFaults(overlay_mask=0, overlay_shift=(12e-6, 0.0))
+    faults = PlateFaults(overlay=((0.0, 12e-6), (0.0, 0.0), (0.0, 0.0)))
     code, report, _ = run_verify(tmp_path, designed, dict(seed=11, faults=faults, supersample=4))
     assert code == 1 and "other_design" not in report["diagnosis"]
     assert "psf_mismatch" in report["diagnosis"] and "overlay_error" not in report["diagnosis"]
@@ -1323,7 +1325,9 @@ def test_a_mask_8um_off_is_diagnosed_as_an_overlay_error(
     tmp_path, designed, mask, name, capsys, saved_figures
 ):
     # It failed as other_design: the lab was told the wrong plate had arrived.
-    faults = PlateFaults(overlay_mask=mask, overlay_shift=(8e-6, -3e-6))
+    faults = PlateFaults(
+        overlay=tuple((-3e-6, 8e-6) if j == mask else (0.0, 0.0) for j in range(3))
+    )
     code, report, out = verify_faulty_plate(
         tmp_path, designed, faults, 11, STRICT_ACCEPTANCE, supersample=4, pixel_pitch_nm=4990
     )
@@ -1355,7 +1359,7 @@ def test_a_dense_design_with_a_mask_off_is_an_overlay_error_not_another_design(t
     # Every order of a dense design changes with the overlay: its frame correlation
     # with the design (0.44) called a 2 um overlay another design. The fitted plate's
     # frame correlation is taken too.
-    faults = PlateFaults(overlay_mask=1, overlay_shift=(2e-6, -1e-6))
+    faults = PlateFaults(overlay=((0.0, 0.0), (-1e-6, 2e-6), (0.0, 0.0)))
     code, report, _ = run_verify(tmp_path, levels, dict(seed=13, faults=faults, supersample=4))
     assert code == 1 and report["diagnosis"][:2] == ["overlay_error", "psf_mismatch"]
     fit = report["overlay_error_fit"]
@@ -1365,7 +1369,7 @@ def test_a_dense_design_with_a_mask_off_is_an_overlay_error_not_another_design(t
 
 def test_an_overlay_within_the_thresholds_is_not_fitted(tmp_path, designed):
     # 1 um of the mid mask: the PSF passes, so nothing needs explaining.
-    faults = PlateFaults(overlay_mask=1, overlay_shift=(1e-6, 0.0))
+    faults = PlateFaults(overlay=((0.0, 0.0), (0.0, 1e-6), (0.0, 0.0)))
     code, report, _ = run_verify(tmp_path, designed, dict(seed=12, faults=faults, supersample=4))
     assert code == 0 and report["overlay_error_fit"] is None
     html = (tmp_path / "out" / "verify_report.html").read_text()
@@ -1378,7 +1382,7 @@ def test_a_mid_etch_off_its_depth_is_diagnosed_and_named(
 ):
     # It failed as a bare psf_mismatch: only the deepest etch was fitted, so the lab
     # was not told which of the three etches to measure.
-    faults = PlateFaults(etch_errors=(0.0, eps))
+    faults = PlateFaults(etch_errors=(0.0, eps, 0.0))
     code, report, out = verify_faulty_plate(tmp_path, designed, faults, 22, STRICT_ACCEPTANCE)
     assert code == 1 and report["diagnosis"] == ["etch_depth_error", "psf_mismatch"]
     fit = report["etch_error_fit"]
@@ -1436,11 +1440,13 @@ def test_a_dense_design_with_etches_off_names_those_masks(
     "faults, codes, mask, shift_px, errors",
     [
         (  # M1 8 um off (1.5 px as simulated) with the mid etch 30 % too deep
-            PlateFaults(etch_errors=(0.0, 0.3), overlay_mask=0, overlay_shift=(8e-6, 0.0)),
+            PlateFaults(etch_errors=(0.0, 0.3, 0.0),
+                        overlay=((0.0, 8e-6), (0.0, 0.0), (0.0, 0.0))),
             ["overlay_error", "etch_depth_error"], "M1_deep", (1.5, 0.0), (0.0, 0.3),
         ),
         (  # M2 5 um up, 3 um left (1, -0.5 px) with the deep etch 20 % too deep
-            PlateFaults(etch_errors=(0.2,), overlay_mask=1, overlay_shift=(5e-6, -3e-6)),
+            PlateFaults(etch_errors=(0.2, 0.0, 0.0),
+                        overlay=((0.0, 0.0), (-3e-6, 5e-6), (0.0, 0.0))),
             ["overlay_error", "deep_etch_error"], "M2_mid", (1.0, -0.5), (0.2, 0.0),
         ),
     ],
@@ -1493,7 +1499,7 @@ def _overlay_and_etch_of(window, sigma, levels):
 def test_an_overlay_and_etch_fit_of_a_plate_with_an_overlay_alone_is_worth_nothing(designed):
     # Its significance is its gain over the better fit alone: a second fault the plate
     # does not have is worth a chi-square of noise, not the whole window's.
-    faults = PlateFaults(overlay_mask=1, overlay_shift=(1.25, -0.5))
+    faults = PlateFaults(overlay=((0.0, 0.0), (-0.5, 1.25), (0.0, 0.0)))
     orders = np.meshgrid(np.arange(K) - K // 2, np.arange(K) - K // 2, indexing="ij")
     plate = plate_phase(designed, L, faults, mask_pixel_pitch=1.0, supersample=4)
     window = plate_far_field(plate)(*orders)
@@ -1532,7 +1538,7 @@ def test_a_deep_etch_at_its_tolerance_that_fails_a_dense_design_is_named(tmp_pat
     # -10 % failed the PSF (correlation 0.61) as a bare psf_mismatch, and +10 % was named
     # only because the fit's grid read 0.10000000000000053
     for eps in (-0.1, 0.1):
-        faults = PlateFaults(etch_errors=(eps,))
+        faults = PlateFaults(etch_errors=(eps, 0.0, 0.0))
         code, report, _ = verify_faulty_plate(tmp_path / str(eps), levels, faults, 11)
         # (+10 % also brightens the zero order; the joint etch fit's 0.6 % of M2 is noise)
         expected = ["deep_etch_error", "psf_mismatch"]
@@ -1599,7 +1605,7 @@ def test_a_big_mid_etch_error_does_not_leave_the_zero_order_ambiguous(tmp_path, 
 
 def test_a_diagonal_overlay_does_not_leave_the_zero_order_ambiguous(tmp_path, designed):
     # M2 one mask pixel off in y and in x left the conjugate within 3 of the bare design
-    faults = PlateFaults(overlay_mask=1, overlay_shift=(5e-6, 5e-6))
+    faults = PlateFaults(overlay=((0.0, 0.0), (5e-6, 5e-6), (0.0, 0.0)))
     code, report, _ = verify_faulty_plate(
         tmp_path, designed, faults, 11, supersample=4, pixel_pitch_nm=4990
     )
@@ -1658,7 +1664,7 @@ def test_an_overlay_beyond_the_fit_reach_is_not_named_but_said(tmp_path, levels,
         mask, acceptance = 0, STRICT_ACCEPTANCE
     else:
         tile, mask, acceptance = levels, 1, None
-    faults = PlateFaults(overlay_mask=mask, overlay_shift=(11e-6, 0.0))
+    faults = PlateFaults(overlay=tuple((0.0, 11e-6) if j == mask else (0.0, 0.0) for j in range(3)))
     code, report, _ = verify_faulty_plate(
         tmp_path, tile, faults, 11, acceptance, supersample=4, pixel_pitch_nm=4990
     )
@@ -2139,7 +2145,7 @@ def test_plate_phase_is_the_level_model_with_its_etch_faults():
     # the deep mask etches L/2 steps (pi) into levels 0 .. L/2 - 1; 15 % too deep takes
     # another 0.15 pi of glass off those pixels and leaves the others alone
     for eps in (0.15, -0.1):
-        faulty = plate_phase(lv, L, PlateFaults(etch_errors=(eps,)))
+        faulty = plate_phase(lv, L, PlateFaults(etch_errors=(eps, 0.0, 0.0)))
         _same_phase(faulty, 2 * np.pi * lv / L - eps * np.pi * (lv < L // 2))
 
 
@@ -2149,7 +2155,7 @@ def test_plate_phase_overlay_moves_one_mask_up_and_right(supersample):
     # supersampling. Mask 1 etches 2 steps: bit 2 of the etch code L - 1 - level.
     lv = np.random.default_rng(3).integers(0, L, (12, 12)).astype(np.uint8)
     pitch = 5e-6
-    faults = PlateFaults(overlay_mask=1, overlay_shift=(pitch, -2 * pitch))  # up 1, left 2
+    faults = PlateFaults(overlay=((0.0, 0.0), (-2 * pitch, pitch), (0.0, 0.0)))  # left 2, up 1
     code = (L - 1) - lv.astype(int)
     moved = (code & ~2) | np.roll(code & 2, (-1, -2), axis=(0, 1))
     expected = np.kron(2 * np.pi * ((L - 1) - moved) / L, np.ones((supersample, supersample)))
@@ -2158,7 +2164,7 @@ def test_plate_phase_overlay_moves_one_mask_up_and_right(supersample):
 
 def test_plate_phase_needs_the_pixel_pitch_to_shift_a_mask():
     lv = np.zeros((4, 4), np.uint8)
-    faults = PlateFaults(overlay_mask=1, overlay_shift=(1e-6, 0.0))
+    faults = PlateFaults(overlay=((0.0, 0.0), (0.0, 1e-6), (0.0, 0.0)))
     with pytest.raises(ValueError, match="an overlay shift needs mask_pixel_pitch"):
         plate_phase(lv, L, faults)
 
