@@ -203,16 +203,8 @@ def tolerance_analysis(
     masks = list(masks)
     target = np.asarray(target_psf, dtype=float)
     _check_masks_match_levels(levels, n_levels, masks, level_step)
-    model = plate_model(
-        masks,
-        pixel_pitch,
-        level_step,
-        n_levels,
-        wavelength,
-        refractive_index,
-        target.shape[0],
-        supersample,
-    )
+    optics = (pixel_pitch, level_step, n_levels, wavelength, refractive_index)
+    model = plate_model(masks, *optics, target.shape[0], supersample)
     names = [str(mk.name) for mk in masks]
     order = [getattr(mk, "exposure_order", i + 1) for i, mk in enumerate(masks)]
     ref = int(np.argmin(order))
@@ -226,12 +218,6 @@ def tolerance_analysis(
     # target, so the correlation and rmse thresholds are taken against that PSF.
     design_psf = simulate_levels(levels, n_levels, target.shape[0])[0]
     mc = _monte_carlo(design_psf, budget, names, ref, spec, seed, plates.simulate)
-    acceptance = {
-        "correlation_min": min(mc["correlation_vs_reference"]) - spec.correlation_margin,
-        "rmse_max": max(mc["rmse_vs_reference"]) + spec.rmse_margin,
-        "efficiency_min": min(mc["efficiency"]) * (1 - spec.efficiency_margin),
-        "zero_order_max": max(mc["zero_order"]) + spec.zero_order_margin,
-    }
     return {
         "model": _assumptions(
             names[ref], pixel_pitch, supersample, cd_values, rmse_limit, spec, seed
@@ -242,7 +228,17 @@ def tolerance_analysis(
         "rows": rows,
         "budget": budget,
         "monte_carlo": {"plates": spec.monte_carlo_plates, "seed": seed, **mc},
-        "acceptance": acceptance,
+        "acceptance": _acceptance(mc, spec),
+    }
+
+
+def _acceptance(mc, spec):
+    """Return the acceptance thresholds: the worst Monte Carlo plate, widened by the margins."""
+    return {
+        "correlation_min": min(mc["correlation_vs_reference"]) - spec.correlation_margin,
+        "rmse_max": max(mc["rmse_vs_reference"]) + spec.rmse_margin,
+        "efficiency_min": min(mc["efficiency"]) * (1 - spec.efficiency_margin),
+        "zero_order_max": max(mc["zero_order"]) + spec.zero_order_margin,
     }
 
 

@@ -118,22 +118,10 @@ def simulate_capture(
     sigma = float(np.hypot(spot_sigma_px, blur_sigma_px))
     lattice = (pitch_px * scale, np.radians(rotation_deg), orientation)
     image = _dot_image(order_power, shape, centre, lattice, sigma)
-    full_scale = {8: 255, 12: 4095, 16: 65535}[bits]
-    gain = full_well_e / full_scale  # electrons per DN
     if not image.max() > 0:
         raise ValueError("no order lands in the frame: move centre nearer to it")
-    scale_e = peak_fraction * full_well_e / image.max()
-    electrons = rng.poisson(image * scale_e).astype(np.float64)
-    dark_e = np.zeros((h, w))
-    if hot_pixels:
-        idx = rng.choice(h * w, size=hot_pixels, replace=False)
-        dark_e.flat[idx] = rng.uniform(0.2, 0.9, size=hot_pixels) * full_well_e
-    capture = _digitise(
-        electrons + rng.poisson(dark_e), gain, dark_level_dn, read_noise_dn, full_scale, bits, rng
-    )
-    dark = _digitise(
-        rng.poisson(dark_e).astype(float), gain, dark_level_dn, read_noise_dn, full_scale, bits, rng
-    )
+    exposure = (peak_fraction, full_well_e, read_noise_dn, dark_level_dn, hot_pixels, bits)
+    capture, dark, full_scale = _frames(image, exposure, rng)
     return {
         "capture": capture,
         "dark": dark,
@@ -163,6 +151,31 @@ def _dot_image(order_power, shape, centre, lattice, sigma):
     m, n = _inverse_orientation(orientation, du[inside], dv[inside])
     power = order_power(m, n)
     return _render_dots(rows[inside], cols[inside], power, (h, w), sigma, rad)
+
+
+def _frames(image, exposure, rng):
+    """Return (capture, dark, full scale in DN) of a noiseless image (any units).
+
+    ``exposure`` is (peak fraction, full well in electrons, read noise in DN, dark
+    pedestal in DN, number of hot pixels, ADC bits), as ``simulate_capture`` takes them.
+    """
+    peak_fraction, full_well_e, read_noise_dn, dark_level_dn, hot_pixels, bits = exposure
+    h, w = image.shape
+    full_scale = {8: 255, 12: 4095, 16: 65535}[bits]
+    gain = full_well_e / full_scale  # electrons per DN
+    scale_e = peak_fraction * full_well_e / image.max()
+    electrons = rng.poisson(image * scale_e).astype(np.float64)
+    dark_e = np.zeros((h, w))
+    if hot_pixels:
+        idx = rng.choice(h * w, size=hot_pixels, replace=False)
+        dark_e.flat[idx] = rng.uniform(0.2, 0.9, size=hot_pixels) * full_well_e
+    capture = _digitise(
+        electrons + rng.poisson(dark_e), gain, dark_level_dn, read_noise_dn, full_scale, bits, rng
+    )
+    dark = _digitise(
+        rng.poisson(dark_e).astype(float), gain, dark_level_dn, read_noise_dn, full_scale, bits, rng
+    )
+    return capture, dark, full_scale
 
 
 def _inverse_orientation(orientation, du, dv):
