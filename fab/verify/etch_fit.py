@@ -58,8 +58,7 @@ def fit_etch_error(window, sigma, levels, n_levels, mask_index=0, search=0.5, st
     bitmap = plate.bitmaps[mask_index]
     if bitmap.all() or not bitmap.any():
         return None
-    # whole multiples of the step: np.arange's 0.10000000000000053 passed a 10 % tolerance
-    # that -0.1 did not
+    # whole multiples of the step, so that +-10 % reads as exactly that either way
     eps = step * np.arange(-round(search / step), round(search / step) + 1)
     errors = np.zeros((len(eps), len(plate.bitmaps)))
     errors[:, mask_index] = eps
@@ -123,17 +122,16 @@ def fit_etch_errors(window, sigma, levels, n_levels, search=0.5):
         return None
     wts = np.ones((k, k)) if sigma is None else 1 / np.maximum(np.asarray(sigma), 1e-30)
     fits = _JointEtchFit(plate, windows, free, np.asarray(window, float) * wts, wts, search)
-    # From no error it found the errors of 120 simulated plates (each etch within
-    # +-45 %; a random, the retrieved asymmetric and the default run's design), but on
-    # a 4-level design it stopped in a local minimum past 20 %. A second start, the
-    # best one-mask error on a grid, finds it.
+    # From no error alone the fit can stop in a local minimum near 0 when one etch is
+    # far off (past 20 % on a 4-level design); a second start, the best one-mask error
+    # on a grid, finds it.
     fit = fits.best_fit(np.zeros(len(free)))
     fit_from_grid = fits.best_fit(_best_one_mask_start(fits.residuals, len(free), search))
     if fit_from_grid.cost < fit.cost * (1 - 1e-6):  # not on a tie: keep the same bits
         fit = fit_from_grid
     chi2 = 2 * fit.cost
-    # The photometry's sigmas run 1.2-1.5 times short (reduced chi-square 1.5-2.3 for the
-    # true plate): in those units, a random design's 0.6 % mid-etch "error" was worth 13.8.
+    # The photometry's sigmas run short: gains are taken in units of the fit's reduced
+    # chi-square where that passes 1, so that noise does not pass for an etch error.
     reduced = chi2 / max(k * k - len(free) - 1, 1)
     mask_chi2 = [0.0] * n_masks
     for i, j in enumerate(free):

@@ -20,9 +20,8 @@ from fab.plate.model import PlateFaults, level_plate_model
 # Fitted shifts are named this far each way (10 um at the default 4.99 um pixel):
 # farther, the plate is not this design aligned by any lab's process.
 REACH_PX = 2.0
-# and searched a little farther, so that a shift past the reach lands past it: on
-# a search that ended at the reach, an overlay of 2.25 px stopped at 1.83-1.98 px,
-# inside, and was named short.
+# and searched a little farther, so that a shift past the reach lands past it (a
+# search that ends at the reach stops a shift just past it inside, named short).
 SEARCH_PX = 2.5
 # The search: a grid at COARSE_PX, then one at FINE_PX around its best point.
 COARSE_PX = 0.1
@@ -92,9 +91,9 @@ def fit_overlay_error(window, sigma, levels, n_levels):
     value, j, (dy, dx) = min(fits)
     fitted = shifted[j].power(dx=dx, dy=dy)
     dof = window.size - 3  # the scale and the shift
-    # Photometric sigmas ran 1.2-1.5 times short, and every gain read 1.4-2.3 times too
-    # big: a perfect plate's noise fitted as 0.19 px of M2 was worth 14 in chi-square,
-    # 10.9 over the fit's reduced chi-square of 1.29.
+    # The gain is taken in units of the fit's reduced chi-square where that passes 1:
+    # photometric sigmas run short, and the noise of a perfect plate must not pass for a
+    # shift.
     reduced = value / max(dof, 1)
     return {
         "mask": mask_name(j, len(plate.bitmaps)),
