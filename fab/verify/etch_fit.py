@@ -103,6 +103,20 @@ def _best_one_mask_start(residuals, n_free, search, step=0.05):
     return min(starts, key=lambda x: float((residuals(x) ** 2).sum()))
 
 
+def _level_fields(levels, n_levels, masks, k):
+    """Return each level's K x K window far field (its pixels alone), the pixel envelope,
+    which of ``masks`` etch each level, and each mask's designed phase."""
+    idx, env = _window_orders(levels.shape[0], k)
+    per_level = np.array(
+        [np.fft.fft2(levels == lv)[np.ix_(idx, idx)] / levels.size for lv in range(n_levels)]
+    )
+    # Mask j etches level l when its steps are in the level's depth L - 1 - l (binary).
+    etched = np.array([[(n_levels - 1 - lv) & mk.steps != 0 for mk in masks]
+                       for lv in range(n_levels)])  # fmt: skip
+    phi = np.array([2 * np.pi * mk.steps / n_levels for mk in masks])
+    return per_level, env, etched, phi
+
+
 def fit_etch_errors(window, sigma, levels, n_levels, search=0.5):
     """Fit the depth errors of every mask's etch at once.
 
@@ -133,14 +147,7 @@ def fit_etch_errors(window, sigma, levels, n_levels, search=0.5):
     if not free:
         return None
     k = window.shape[0]
-    idx, env = _window_orders(levels.shape[0], k)
-    per_level = np.array(
-        [np.fft.fft2(levels == lv)[np.ix_(idx, idx)] / levels.size for lv in range(n_levels)]
-    )
-    # Mask j etches level l when its steps are in the level's depth L - 1 - l (binary).
-    etched = np.array([[(n_levels - 1 - lv) & mk.steps != 0 for mk in masks]
-                       for lv in range(n_levels)])  # fmt: skip
-    phi = np.array([2 * np.pi * mk.steps / n_levels for mk in masks])
+    per_level, env, etched, phi = _level_fields(levels, n_levels, masks, k)
     wts = np.ones((k, k)) if sigma is None else 1 / np.maximum(np.asarray(sigma), 1e-30)
     meas = np.asarray(window, float) * wts
 
