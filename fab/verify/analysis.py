@@ -125,7 +125,8 @@ def resolve_thresholds(acceptance, design_efficiency, design_zero_order):
             "rmse_max": d["rmse_max"],
             "efficiency_min": d["efficiency_ratio_min"] * design_efficiency,
             "zero_order_max": float(design_zero_order) + d["zero_order_excess_max"],
-            "source": "defaults (fab.verify.analysis.DEFAULT_ACCEPTANCE)",
+            # the name verify.json has always recorded for these defaults
+            "source": "defaults (fab.verify.DEFAULT_ACCEPTANCE)",
         }
     out["min_window_snr"] = MIN_WINDOW_SNR
     out["deep_etch_error_max"] = (

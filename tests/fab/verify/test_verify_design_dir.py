@@ -255,3 +255,11 @@ def test_a_retrieval_json_of_a_design_verify_cannot_use_exits_2(
     save_npy(folder / "levels.npy", levels)
     write_json(folder / "retrieval.json", {"levels": L, "kernel_size": K, "design": summary})
     assert f"retrieval.json: {problem}" in verify_refusal(tmp_path, folder, levels, capsys)
+
+
+def test_the_thresholds_record_where_they_come_from():
+    # verify.json names the defaults as it did before the modules moved
+    defaults = resolve_thresholds(None, design_efficiency=0.8, design_zero_order=0.01)
+    assert defaults["source"] == "defaults (fab.verify.DEFAULT_ACCEPTANCE)"
+    manifest = dict(correlation_min=0.9, rmse_max=0.1, efficiency_min=0.5, zero_order_max=0.05)
+    assert resolve_thresholds(manifest, 0.8, 0.01)["source"] == "fab_manifest.json acceptance"
