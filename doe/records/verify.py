@@ -12,7 +12,7 @@ from pathlib import Path
 
 from doe.infra.files import read_json, write_json
 
-FILE_NAME = "verify.json"
+VERIFY_JSON = "verify.json"  # its name in a verify output, beside measured_psf.npy
 
 
 @dataclass(frozen=True)

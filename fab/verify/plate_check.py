@@ -24,7 +24,8 @@ from doe.fraunhofer import correlation, simulate_levels
 from doe.infra import flags
 from doe.infra.errors import InputError
 from doe.infra.files import save_npy, staged_output
-from doe.records.verify import VerifyRecord, write_verify
+from doe.records.fab_manifest import MANIFEST_NAME
+from doe.records.verify import VERIFY_JSON, VerifyRecord, write_verify
 from fab.verify.analysis import ORIENTATIONS, analyse, design_order_power, resolve_thresholds
 from fab.verify.capture import read_capture, read_raw_image
 from fab.verify.conditioning import repair_pixels
@@ -42,7 +43,7 @@ from fab.verify.hot_pixels import repair_hot_pixels, repair_stray_spikes
 from fab.verify.lattice import LatticeNotFound, on_lattice_share, register_lattice
 from fab.verify.photometry import measure_orders
 
-VERIFY_FILES = ("verify.json", "measured_psf.npy", "verify_report.html", "verify.png")
+VERIFY_FILES = (VERIFY_JSON, "measured_psf.npy", "verify_report.html", "verify.png")
 # A capture too bright, too dim or ambiguous says nothing of the plate: take another.
 # (A conjugate, mirrored or other plate is a verdict on the plate.)
 UNJUDGED = frozenset({"saturated", "low_signal", "zero_order_ambiguous"})
@@ -321,7 +322,7 @@ def save_verify(result, out, *, force=False):
     figures = result.figures
     with staged_output(out, force, names=VERIFY_FILES) as stage:
         save_npy(stage / "measured_psf.npy", np.asarray(result.measured_psf, dtype=np.float64))
-        write_verify(stage / "verify.json", result.report)
+        write_verify(stage / VERIFY_JSON, result.report)
         write_verify_report(
             stage,
             result.report,
@@ -437,7 +438,7 @@ def _thresholds(design, ref, design_efficiency):
         return resolve_thresholds(ref.acceptance, design_efficiency, zero_order)
     except ValueError as e:  # only a fab folder's manifest holds an acceptance
         where = "." if isinstance(design, DesignRef) else design
-        raise InputError(Path(where) / "fab_manifest.json", str(e)) from None
+        raise InputError(Path(where) / MANIFEST_NAME, str(e)) from None
 
 
 def _why_no_psf(result, ref):
