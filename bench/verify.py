@@ -25,8 +25,11 @@ from doe.retrieval import retrieve_phase
 from doe.targets import make_target
 from fab.plate.model import PlateFaults
 from fab.verify.analysis import analyse, design_order_power, resolve_thresholds
-from fab.verify.capture import read_capture, repair_pixels, write_image
-from fab.verify.lattice import measure_orders, register_lattice, repair_hot_pixels
+from fab.verify.capture import read_capture, write_image
+from fab.verify.conditioning import repair_pixels
+from fab.verify.hot_pixels import repair_hot_pixels
+from fab.verify.lattice import register_lattice
+from fab.verify.photometry import measure_orders
 from fab.verify.simulate import simulate_capture
 
 RUNS = 5

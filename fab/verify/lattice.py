@@ -1,4 +1,4 @@
-"""Registration of the dot lattice in a capture and aperture photometry of its orders.
+"""Registration of the dot lattice in a capture.
 
 The tiled plate puts its light into diffraction orders on a square lattice; the
 capture is a grid of small dots. Registration needs no hint of where the dots
@@ -17,13 +17,15 @@ are, only the design's nominal pitch as a prior:
 
 Lattice coordinates (u, v) count dots down and to the right in the camera frame;
 which dot is the zero order is decided later against the design (``fab.verify.analysis``).
+The orders' powers are measured on the lattice by ``fab.verify.photometry``; hot
+pixels are repaired once it is known by ``fab.verify.hot_pixels``.
 """
 
 from dataclasses import dataclass
 
 import numpy as np
 
-from fab.verify.capture import robust_sigma
+from fab.verify.conditioning import robust_sigma
 
 # Pitch prior: the lattice pitch may differ from the nominal by this fraction
 # (lens focal length, camera pixel pitch, magnification).
@@ -39,15 +41,9 @@ DETECT_SIGMAS = 8.0
 MAX_DOTS = 20000
 # One least-squares step may change a lattice vector by at most this fraction of the pitch.
 MAX_BASIS_STEP = 0.05
-# A dot's light lies within this many pixels of its lattice point (a focused spot is
-# ~0.7 px wide); sharp spikes farther out are hot pixels.
-SPOT_CORE = 1.5
-# ... and at most ~82 % of it falls in one pixel: an aperture with more in one
-# pixel holds a hot pixel.
+# A focused dot puts at most ~82 % of its light in one pixel: an aperture with more
+# in one pixel holds a hot pixel.
 SPIKE_FRACTION = 0.95
-# Aperture photometry radii as fractions of the pitch: dot aperture, background annulus.
-APERTURE_RADIUS = 0.30
-ANNULUS = (0.38, 0.50)
 
 
 @dataclass(frozen=True)
@@ -100,56 +96,6 @@ class Lattice:
             "origin_px": [float(self.origin[0]), float(self.origin[1])],
             "basis_px": self.basis.tolist(),
         }
-
-
-@dataclass(frozen=True)
-class OrderGrid:
-    """Aperture photometry of every lattice point in the frame.
-
-    Attributes
-    ----------
-    u, v : (nu,) and (nv,) int arrays
-        Lattice coordinates of the grid's rows and columns.
-    power : (nu, nv) float array
-        Background-subtracted dot signal in DN (NaN where not measured).
-    valid : (nu, nv) bool array
-        The dot's aperture and background annulus lie inside the frame.
-    rows, cols : (nu, nv) float arrays
-        Dot positions in pixels.
-    saturated : (nu, nv) bool array
-        The aperture holds a saturated pixel.
-    noise_px : float
-        Robust per-pixel noise (DN) of the background annuli.
-    aperture_pixels : int
-        Pixels in one aperture (median).
-    sigma : (nu, nv) float array
-        1-sigma uncertainty of ``power`` from the background noise (DN).
-    aperture_radius_px : float
-        Radius of the photometry apertures.
-    spike_orders : int
-        Apertures whose light was a single hot pixel (removed from their power).
-    spot_sigma_px : float or None
-        RMS radius per axis of the bright dots' light within the background
-        annulus (pixels; None without bright dots); it saturates near 1.7 px
-        for blurred dots, which then spill into their neighbours' apertures.
-    pitch_px : float
-        The lattice pitch the grid was measured on.
-    """
-
-    u: np.ndarray
-    v: np.ndarray
-    power: np.ndarray
-    valid: np.ndarray
-    rows: np.ndarray
-    cols: np.ndarray
-    saturated: np.ndarray
-    noise_px: float
-    aperture_pixels: int
-    sigma: np.ndarray
-    aperture_radius_px: float
-    spike_orders: int = 0
-    spot_sigma_px: float | None = None
-    pitch_px: float = 0.0
 
 
 class LatticeNotFound(ValueError):
@@ -243,7 +189,7 @@ def on_lattice_share(image, lattice, nominal_pitch_px, quantum=0.0):
     """
     x, _, dots, weight = _dots_of(image, nominal_pitch_px, quantum)
     r, c = np.round(dots[:, 0]).astype(int), np.round(dots[:, 1]).astype(int)
-    patch = np.clip(_patches(x, r, c, 1), 0, None)
+    patch = np.clip(pixel_patches(x, r, c, 1), 0, None)
     spot = patch.max(axis=(1, 2)) < SPIKE_FRACTION * patch.sum(axis=(1, 2))
     if not spot.any():
         return None
@@ -286,7 +232,7 @@ def _detect_dots(x, pitch, noise):
     rad = 2
     inside = (r >= rad) & (r < x.shape[0] - rad) & (c >= rad) & (c < x.shape[1] - rad)
     r, c = r[inside], c[inside]
-    patch = np.clip(_patches(x, r, c, rad), 0, None).astype(np.float64)
+    patch = np.clip(pixel_patches(x, r, c, rad), 0, None).astype(np.float64)
     total = patch.sum(axis=(1, 2))
     off = np.arange(-rad, rad + 1, dtype=np.float64)
     safe = np.maximum(total, 1e-30)
@@ -384,7 +330,7 @@ def _recentre(lattice, shape):
     return Lattice(lattice.origin + lattice.basis @ k, lattice.basis)
 
 
-def _lattice_points(lattice, shape, margin):
+def lattice_points(lattice, shape, margin):
     """Return the lattice coordinates (u, v) grids covering the frame, and validity."""
     h, w = shape
     corners_r = np.array([0, 0, h - 1, h - 1], float)
@@ -399,7 +345,7 @@ def _lattice_points(lattice, shape, margin):
     return u, v, rows, cols, valid
 
 
-def _patches(image, rows, cols, radius):
+def pixel_patches(image, rows, cols, radius):
     """Return (P, 2r+1, 2r+1) patches of ``image`` centred on the rounded positions."""
     off = np.arange(-radius, radius + 1)
     rr = np.rint(rows).astype(np.intp)[:, None, None] + off[None, :, None]
@@ -410,10 +356,10 @@ def _patches(image, rows, cols, radius):
 def _refine(x, lattice, noise):
     """Refine origin and basis by least squares on the centroids of the dots above the noise."""
     radius = max(2, round(0.3 * lattice.pitch_px))
-    u, v, rows, cols, valid = _lattice_points(lattice, x.shape, radius)
+    u, v, rows, cols, valid = lattice_points(lattice, x.shape, radius)
     uu, vv = np.meshgrid(u, v, indexing="ij")
     uu, vv, rows, cols = uu[valid], vv[valid], rows[valid], cols[valid]
-    patch = _patches(x, rows, cols, radius).astype(np.float64)
+    patch = pixel_patches(x, rows, cols, radius).astype(np.float64)
     # Each dot less its own background (the median of its patch's rim): a
     # background that varies across the frame would pull every centroid uphill.
     rim = np.concatenate(
@@ -449,216 +395,3 @@ def _refine(x, lattice, noise):
     origin = np.array([coef_r[0], coef_c[0]])
     basis = np.array([[coef_r[1], coef_r[2]], [coef_c[1], coef_c[2]]])
     return _recentre(Lattice(origin, basis), x.shape)
-
-
-def repair_stray_spikes(image, lattice, quantum=0.0):
-    """Repair single-pixel spikes (hot pixels) away from every dot's centre.
-
-    Without a dark frame a hot pixel looks like a compact dot; but a dot's light
-    lies within ``SPOT_CORE`` pixels of its lattice point, so a pixel standing
-    ``DETECT_SIGMAS`` sigma above the median of its 3 x 3 neighbourhood, and
-    highest in it, farther from every lattice point is not light from the plate.
-    It is replaced by the median of its neighbours. Pixels on the frame's rim
-    are left alone: the wing of a dot centred just outside the frame is the
-    highest of the neighbours that can be seen.
-
-    Returns
-    -------
-    (image, repaired)
-        A repaired copy (float32) and the (H, W) bool map of the pixels repaired.
-    """
-    from fab.verify.capture import repair_pixels
-
-    x = np.asarray(image, dtype=np.float32)
-    noise = pixel_noise(x[::4, ::4], quantum)
-    floor = float(np.median(x[::4, ::4]))
-    inner = np.zeros(x.shape, bool)
-    inner[1:-1, 1:-1] = True
-    rows, cols = np.nonzero((x > floor + DETECT_SIGMAS * noise) & inner)
-    spikes = np.zeros(x.shape, bool)
-    if 0 < rows.size <= 0.25 * x.size:  # more: a bright scene, not a dot lattice
-        off = np.arange(-1, 2)
-        block = x[
-            rows[:, None, None] + off[None, :, None], cols[:, None, None] + off[None, None, :]
-        ]
-        block = block.reshape(rows.size, 9)
-        # A spike is the highest pixel of its 3 x 3 block: the wing of a blurred
-        # dot also stands above its neighbours' median, but falls away from the dot.
-        spike = (x[rows, cols] - np.median(block, axis=1) > DETECT_SIGMAS * noise) & (
-            x[rows, cols] >= block.max(axis=1)
-        )
-        spikes[rows[spike], cols[spike]] = True
-    repaired = away_from_dots(spikes, lattice)
-    return repair_pixels(x, repaired), repaired
-
-
-def repair_hot_pixels(image, hot, saturated, lattice):
-    """Repair a dark frame's hot pixels off the dots, and those that clipped.
-
-    On a dot, a hot pixel less its dark still holds the dot's light (the median
-    of its neighbours would not): unless it clipped, it is kept.
-
-    Returns
-    -------
-    (image, repaired)
-        A repaired copy (float32) and the (H, W) bool map of the pixels repaired.
-    """
-    from fab.verify.capture import repair_pixels
-
-    repaired = away_from_dots(hot, lattice) | (hot & saturated)
-    return repair_pixels(image, repaired), repaired
-
-
-def away_from_dots(flagged, lattice):
-    """Return the (H, W) bool map of the ``flagged`` pixels outside every dot's core.
-
-    Outside: farther than ``SPOT_CORE`` pixels from every lattice point.
-    """
-    rows, cols = np.nonzero(flagged)
-    u, v = lattice.coordinates(rows, cols)
-    pr, pc = lattice.positions(np.round(u), np.round(v))
-    far = np.hypot(rows - pr, cols - pc) > SPOT_CORE
-    out = np.zeros(np.shape(flagged), bool)
-    out[rows[far], cols[far]] = True
-    return out
-
-
-def measure_orders(image, lattice, saturated=None, quantum=0.0):
-    """Measure every dot's power by aperture photometry with a local background.
-
-    Each dot's aperture is a disc about its fitted position, just wide enough to
-    hold 99 % of the light of the bright dots (plus a pixel for other sub-pixel
-    phases; at least 2 px, at most ``APERTURE_RADIUS`` pitches), since a wider one only adds
-    noise to the thousands of faint orders. Its background is a sigma-clipped
-    mean over an annulus (``ANNULUS`` pitches) around it, which shrugs off stray
-    hot pixels; the clipped mean rather than the median because the median of
-    integer data is biased by up to half a DN, which summed over thousands of
-    faint orders would bias the total power.
-
-    Parameters
-    ----------
-    image : (H, W) float array
-        Capture in DN.
-    lattice : Lattice
-    saturated : (H, W) bool array or None
-        Saturated pixels of the raw capture.
-    quantum : float
-        Step between the capture's codes in DN; 0 for float data.
-
-    Returns
-    -------
-    OrderGrid
-    """
-    x = np.asarray(image, dtype=np.float32)
-    pitch = lattice.pitch_px
-    outer = int(np.ceil(ANNULUS[1] * pitch))
-    u, v, rows, cols, valid = _lattice_points(lattice, x.shape, outer)
-    off = np.arange(-outer, outer + 1)
-    dist0 = np.hypot(off[:, None], off[None, :])
-    annulus = (dist0 >= ANNULUS[0] * pitch) & (dist0 <= ANNULUS[1] * pitch)
-    pr, pc = rows[valid], cols[valid]
-    patch = _patches(x, pr, pc, outer)
-    ring = patch[:, annulus].astype(np.float64)
-    median = np.median(ring, axis=1)
-    noise = pixel_noise((ring - median[:, None])[:: max(1, ring.shape[0] // 2000)], quantum)
-    near = np.abs(ring - median[:, None]) <= max(4 * noise, 1.0)
-    n_ring = np.maximum(near.sum(axis=1), 1)
-    background = (ring * near).sum(axis=1) / n_ring
-    fr = (pr - np.rint(pr)).astype(np.float32)[:, None, None]
-    fc = (pc - np.rint(pc)).astype(np.float32)[:, None, None]
-    offf = off.astype(np.float32)
-    dist = np.sqrt((offf[None, :, None] - fr) ** 2 + (offf[None, None, :] - fc) ** 2)
-    net = patch - background[:, None, None].astype(np.float32)
-    radius = _aperture_radius(net, dist, noise, max(APERTURE_RADIUS * pitch, 1.5))
-    spot = _spot_sigma(net, dist, noise, ANNULUS[0] * pitch)
-    aperture = dist <= radius
-    n_ap = aperture.sum(axis=(1, 2))
-    inap = np.where(aperture, net, 0).astype(np.float64)
-    signal = inap.sum(axis=(1, 2))
-    sigma_k = noise * np.sqrt(n_ap * (1 + n_ap / n_ring))
-    signal, spikes = _remove_spikes(inap, signal, sigma_k)
-    power = np.full(valid.shape, np.nan)
-    power[valid] = signal
-    sigma = np.full(valid.shape, np.nan)
-    sigma[valid] = sigma_k
-    sat = np.zeros(valid.shape, bool)
-    if saturated is not None and np.any(saturated):
-        sat_patch = _patches(saturated, pr, pc, outer)
-        sat[valid] = (sat_patch & aperture).any(axis=(1, 2))
-    return OrderGrid(
-        u,
-        v,
-        power,
-        valid,
-        rows,
-        cols,
-        sat,
-        noise,
-        int(np.median(n_ap)),
-        sigma,
-        float(radius),
-        spikes,
-        spot,
-        pitch,
-    )
-
-
-def _remove_spikes(inap, signal, sigma):
-    """Take single-pixel spikes (hot pixels) out of the aperture sums.
-
-    A focused dot puts at most ~82 % of its light into one pixel (a spot of
-    0.3 px sigma centred on it); an aperture with more than ``SPIKE_FRACTION``
-    of a significant signal in one pixel holds a hot pixel (or a cosmic ray),
-    whose excess over the median of its 8 neighbours is removed.
-
-    Returns
-    -------
-    (signal, count)
-    """
-    p = inap.shape[0]
-    flat = inap.reshape(p, -1)
-    peak_idx = np.argmax(flat, axis=1)
-    peak = flat[np.arange(p), peak_idx]
-    spike = (signal > DETECT_SIGMAS * sigma) & (peak > SPIKE_FRACTION * signal)
-    if not spike.any():
-        return signal, 0
-    side = inap.shape[1]
-    r, c = np.divmod(peak_idx[spike], side)
-    padded = np.pad(inap[spike], ((0, 0), (1, 1), (1, 1)))
-    off = np.array([(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc])
-    k = np.arange(r.size)[:, None]
-    neigh = padded[k, r[:, None] + 1 + off[None, :, 0], c[:, None] + 1 + off[None, :, 1]]
-    out = signal.copy()
-    out[spike] -= peak[spike] - np.median(neigh, axis=1)
-    return out, int(spike.sum())
-
-
-def _spot_sigma(net, dist, noise, r_max):
-    """Return the per-axis RMS radius (px) of the bright dots' light within ``r_max``."""
-    inside = dist <= r_max
-    flux = np.where(inside, net, 0).sum(axis=(1, 2))
-    bright = np.argsort(flux)[::-1][:50]
-    bright = bright[flux[bright] > 50 * noise * np.sqrt(inside[bright].sum(axis=(1, 2)))]
-    if bright.size < 3:
-        return None
-    second = np.where(inside[bright], net[bright] * dist[bright] ** 2, 0).sum(axis=(1, 2))
-    return float(np.sqrt(max(np.median(second / flux[bright]), 0) / 2))
-
-
-def _aperture_radius(net, dist, noise, r_max):
-    """Return the radius (px) holding 99 % of the bright dots' light, plus 1 px, in [2, r_max].
-
-    The margin covers dots whose sub-pixel phase spreads their light differently
-    from the bright dots' (a compact PSF has only a handful of bright dots).
-    """
-    inside = dist <= r_max
-    flux = np.where(inside, net, 0).sum(axis=(1, 2))
-    bright = np.argsort(flux)[::-1][:50]
-    bright = bright[flux[bright] > 50 * noise * np.sqrt(inside[bright].sum(axis=(1, 2)))]
-    if bright.size < 3:
-        return float(r_max)
-    for r in np.arange(1.0, r_max + 0.25, 0.25):
-        held = np.where(dist[bright] <= r, net[bright], 0).sum(axis=(1, 2)) / flux[bright]
-        if np.median(held) >= 0.99:
-            return float(min(max(r + 1.0, 2.0), r_max))
-    return float(r_max)

@@ -13,7 +13,7 @@ Frequencies are in cycles per pixel along the edge normal.
 
 import numpy as np
 
-from fab.verify.capture import robust_sigma
+from fab.verify.conditioning import robust_sigma
 
 # Rows whose derivative carries less than this fraction of the typical (75th
 # percentile) edge step are left out of the line fit (e.g. where the edge leaves the frame).
@@ -88,6 +88,30 @@ def slanted_edge_mtf(image, oversample=4):
     vertical = np.abs(np.diff(img, axis=1)).mean() >= np.abs(np.diff(img, axis=0)).mean()
     if not vertical:
         img = img.T
+    slope, offset, use, polarity = _fit_edge(img)
+    dist, half, keep = _edge_region(img, slope, offset, use)
+    esf = _edge_spread(img, dist, keep, slope, oversample)
+    rise = _rise_px(esf * polarity, oversample)
+    freq, mtf = _mtf_of_edge_spread(esf, polarity, rise, oversample)
+    return {
+        "frequencies_cycles_per_pixel": freq.tolist(),
+        "mtf": mtf.tolist(),
+        "mtf50_cycles_per_pixel": _crossing(freq, mtf, 0.5),
+        "edge_angle_deg": float(np.degrees(np.arctan(slope))),
+        "edge_orientation": "vertical" if vertical else "horizontal",
+        "oversample": int(oversample),
+        "rows_used": int(use.sum()),
+        "edge_rise_px": rise,
+        "edge_reach_px": half,
+        # A profile cut within ~12 blur widths (sigmas) of the edge reads high; see
+        # REACH_PER_RISE.
+        "region_too_small": bool(half < REACH_PER_RISE * rise),
+    }
+
+
+def _fit_edge(img):
+    """Return the edge line col = offset + slope * row of a near-vertical edge, the rows
+    that show it and the edge's polarity (+1 dark to bright left to right, -1 back)."""
     h, w = img.shape
     deriv = np.diff(img, axis=1)
     _check_single_edge(deriv)
@@ -101,6 +125,18 @@ def slanted_edge_mtf(image, oversample=4):
     for _ in range(3):  # window each row's derivative about the fitted edge, refit
         guess = offset + slope * rows
         slope, offset, use = _fit_line(rows, *_centroids(deriv, x_mid, guess, max(8.0, w / 4)))
+    return slope, offset, use, polarity
+
+
+def _edge_region(img, slope, offset, use):
+    """Return every pixel's distance from the edge along its normal, the reach of the
+    region either side of it (px) and the pixels within that reach on the rows used.
+
+    Raises EdgeNotFound when the edge runs within 4 px of the border or its step does
+    not stand ``MIN_EDGE_SNR`` times out of the noise.
+    """
+    h, w = img.shape
+    rows = np.arange(h, dtype=float)
     cos = 1 / np.hypot(1, slope)
     dist = (np.arange(w)[None, :] - (offset + slope * rows)[:, None]) * cos
     half = float(np.min(np.abs(dist[use][:, [0, -1]])))
@@ -115,6 +151,12 @@ def slanted_edge_mtf(image, oversample=4):
             f"no edge stands out of the noise: step {step:.3g} against a pixel noise "
             f"of {noise:.3g} (at least {MIN_EDGE_SNR:g} times needed)"
         )
+    return dist, half, keep
+
+
+def _edge_spread(img, dist, keep, slope, oversample):
+    """Return the edge spread function: the ``keep`` pixels binned by their distance from
+    the edge, ``oversample`` bins a pixel, resampled onto the even grid."""
     bins = np.floor(dist[keep] * oversample).astype(np.int64)
     lo = bins.min()
     n_bins = bins.max() - lo + 1
@@ -130,18 +172,23 @@ def slanted_edge_mtf(image, oversample=4):
     x = np.arange(n_bins)
     # Each bin's value is placed at its samples' mean position: an edge whose slope is
     # a simple fraction (1/10, 1/4) puts its samples at a few fixed places in each bin,
-    # and read at the bins' centres they jittered the profile (MTF50 3 % off).
+    # which read at the bins' centres would jitter the profile.
     where = np.bincount(bins - lo, weights=dist[keep] * oversample - lo - 0.5, minlength=n_bins)
-    esf = np.interp(x, where[filled] / counts[filled], sums[filled] / counts[filled])
-    rise = _rise_px(esf * polarity, oversample)
+    return np.interp(x, where[filled] / counts[filled], sums[filled] / counts[filled])
+
+
+def _mtf_of_edge_spread(esf, polarity, rise, oversample):
+    """Return (frequencies in cycles per pixel, MTF) of an edge spread function whose
+    10-90 % rise is ``rise`` px: its derivative, windowed, Fourier transformed."""
+    n_bins = esf.size
+    x = np.arange(n_bins)
     lsf = np.zeros(n_bins)
     lsf[1:-1] = 0.5 * (esf[2:] - esf[:-2]) * polarity
     peak = int(
         np.round(np.sum(x * np.clip(lsf, 0, None)) / max(np.clip(lsf, 0, None).sum(), 1e-30))
     )
     # The window spans the whole region up to twice the reach it needs: beyond that the
-    # line spread holds only noise, which roughened the MTF of a wide region until
-    # a noise dip crossed 0.5 early (MTF50 9 % low at 480 px).
+    # line spread holds only noise, which would roughen the MTF of a wide region.
     span = min(n_bins, 2 * int(np.ceil(oversample * max(8.0, 2 * REACH_PER_RISE * rise))) + 1)
     window = np.zeros(n_bins)
     start = n_bins // 2 - span // 2
@@ -159,21 +206,7 @@ def slanted_edge_mtf(image, oversample=4):
     mtf[ok] /= correction[ok]
     mtf[~ok] = np.nan
     keep_f = freq <= min(oversample / 4, 2.0)
-    freq, mtf = freq[keep_f], mtf[keep_f]
-    return {
-        "frequencies_cycles_per_pixel": freq.tolist(),
-        "mtf": mtf.tolist(),
-        "mtf50_cycles_per_pixel": _crossing(freq, mtf, 0.5),
-        "edge_angle_deg": float(np.degrees(np.arctan(slope))),
-        "edge_orientation": "vertical" if vertical else "horizontal",
-        "oversample": int(oversample),
-        "rows_used": int(use.sum()),
-        "edge_rise_px": rise,
-        "edge_reach_px": half,
-        # A profile cut within ~12 blur widths (sigmas) of the edge reads high; see
-        # REACH_PER_RISE.
-        "region_too_small": bool(half < REACH_PER_RISE * rise),
-    }
+    return freq[keep_f], mtf[keep_f]
 
 
 def _check_single_edge(deriv):

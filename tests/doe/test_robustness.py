@@ -150,7 +150,7 @@ VERIFY_MANIFEST = {
 def test_verify_reads_a_design_folder_it_can_use_or_refuses_it(tmp_path_factory, key, value):
     # Each value either makes a design verify can use or an InputError naming the file;
     # "eight", -1, 1e400 and an 11 x 11 target beside kernel_size 9 once went further.
-    from fab.commands.verify import read_design_dir
+    from fab.verify.design_ref import read_design_dir
 
     manifest = json.loads(json.dumps(VERIFY_MANIFEST))
     where, _, field = key.partition(".")

@@ -308,3 +308,28 @@ def test_mtf_refuses_an_edge_stored_with_loss(tmp_path, capsys):
     assert main(["mtf", str(tmp_path / "edge.jpg"), "--out", str(tmp_path / "o")]) == 2
     assert "edge.jpg: JPEG image; give the capture as" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_measure_mtf_as_a_library_returns_the_record_and_writes_it_when_asked(tmp_path):
+    from doe.infra.errors import InputError
+    from fab.verify.mtf_check import MTF_FILES, measure_mtf, save_mtf
+
+    img = np.clip(gaussian_edge(1.2, 5, high=300.0), 0, 255).astype(np.uint8)
+    write_image(tmp_path / "edge.png", img)
+    result = measure_mtf(tmp_path / "edge.png")
+    assert result.out is None and result.files == () and not (tmp_path / "o").exists()
+    assert result.mtf50 == slanted_edge_mtf(img)["mtf50_cycles_per_pixel"]  # clipped: high
+    assert result.mtf50_text == f"{result.mtf50:.4f} cycles/pixel"
+    assert result.record["image"] == "edge.png" and result.record["saturated_pixels"] > 1000
+    (clipped,) = result.messages  # said, never printed by the library
+    assert clipped.startswith(f"warning: {tmp_path / 'edge.png'}: ") and "shorten" in clipped
+    saved = save_mtf(result, tmp_path / "o")
+    assert saved.files == tuple(tmp_path / "o" / name for name in MTF_FILES)
+    assert json.loads((tmp_path / "o" / "mtf.json").read_text())["mtf"] == result.record["mtf"]
+    with pytest.raises(InputError) as refused:
+        measure_mtf(tmp_path / "edge.png", out=tmp_path / "o")  # exists: not overwritten
+    assert "mtf.json" in str(refused.value)
+    write_image(tmp_path / "flat.tif", np.full((40, 40), 100, np.uint16))
+    with pytest.raises(InputError) as refused:
+        measure_mtf(tmp_path / "flat.tif")
+    assert refused.value.source == str(tmp_path / "flat.tif")

@@ -15,12 +15,13 @@ from fab.verify.analysis import (
     ORIENTATIONS,
     analyse,
     design_order_power,
-    locate_zero_order,
     resolve_thresholds,
     to_design_frame,
 )
-from fab.verify.lattice import Lattice, OrderGrid
+from fab.verify.lattice import Lattice
+from fab.verify.photometry import OrderGrid
 from fab.verify.simulate import ORIENTATION_MAPS
+from fab.verify.zero_order import locate_zero_order
 
 N, K, L = 35, 11, 8
 
