@@ -43,14 +43,10 @@ def run(args):
     import numpy as np
 
     from doe import fraunhofer
-    from doe.design import (
-        MAX_TILE_PIXELS,
-        check_psf_grid,
-        derive,
-        design_summary,
-        load_design,
-    )
+    from doe.derived import derive, design_summary
+    from doe.design import MAX_TILE_PIXELS, load_design
     from doe.figures import correlation_text, save_retrieval_figure
+    from doe.goals import CORRELATION_GOAL, RMSE_GOAL, missed_goals
     from doe.infra import flags
     from doe.infra.files import (
         LEVEL_COUNT_RULE,
@@ -61,7 +57,8 @@ def run(args):
         staged_output,
         write_json,
     )
-    from doe.retrieval import CORRELATION_GOAL, RMSE_GOAL, missed_goals, retrieve_phase
+    from doe.records.psf_source import check_psf_grid
+    from doe.retrieval import retrieve_phase
 
     design = load_design(args.config)
     n_levels = design.fabrication.levels if args.levels is None else args.levels

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from doe import fraunhofer
-from doe.retrieval import window_matrix
+from doe.refinement import window_matrix
 
 
 def test_parseval_all_orders_carry_unit_power():

@@ -9,8 +9,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from doe import fraunhofer, retrieval, targets
-from doe.design import design_summary, load_design
+from doe import fraunhofer, goals, quantisation, refinement, retrieval, targets
+from doe.derived import design_summary
+from doe.design import load_design
+from doe.gerchberg_saxton import flat_modulus_start, gerchberg_saxton, mixed_region
 from doe.infra.cli import main
 from doe.infra.files import read_psf
 
@@ -179,7 +181,7 @@ def test_objective_gradient_matches_finite_differences(name):
     target = targets.make_target(name, 5)
     phase = rng.uniform(0, 2 * np.pi, (13, 13))
     assert_gradient_matches_finite_differences(
-        lambda p: retrieval.objective(p, target, weight=3.0), phase
+        lambda p: refinement.objective(p, target, weight=3.0), phase
     )
 
 
@@ -191,7 +193,7 @@ def test_constrained_objective_gradient_matches_finite_differences(name, cap):
     target = targets.make_target(name, 5)
     phase = rng.uniform(0, 2 * np.pi, (13, 13))
     assert_gradient_matches_finite_differences(
-        lambda p: retrieval.constrained_objective(p, target, cap=cap, mu=0.3), phase
+        lambda p: refinement.constrained_objective(p, target, cap=cap, mu=0.3), phase
     )
 
 
@@ -201,19 +203,19 @@ def test_constrained_objective_is_efficiency_within_the_cap_and_penalised_above(
     phase = rng.uniform(0, 2 * np.pi, (15, 15))
     eff = fraunhofer.window_power(phase, 5).sum()
     fid = float(
-        retrieval._values(
-            fraunhofer.window_power(phase, 5), retrieval._Goal.of(target), 0.0, mode="smooth"
+        goals.goal_values(
+            fraunhofer.window_power(phase, 5), goals.Goal.of(target), 0.0, mode="smooth"
         )
     )
-    inside, _ = retrieval.constrained_objective(phase, target, cap=2 * fid, mu=5.0)
+    inside, _ = refinement.constrained_objective(phase, target, cap=2 * fid, mu=5.0)
     assert inside == pytest.approx(-eff, rel=1e-12)
     # each term above the cap is penalised by its own excess
-    (f_rmse, _), (f_corr, _) = retrieval._fidelity_parts(
-        fraunhofer.window_power(phase, 5), retrieval._Goal.of(target)
+    (f_rmse, _), (f_corr, _) = goals.fidelity_parts(
+        fraunhofer.window_power(phase, 5), goals.Goal.of(target)
     )
     assert max(f_rmse, f_corr) == pytest.approx(fid, rel=1e-12)
     cap = min(f_rmse, f_corr) / 2
-    above, _ = retrieval.constrained_objective(phase, target, cap=cap, mu=5.0)
+    above, _ = refinement.constrained_objective(phase, target, cap=cap, mu=5.0)
     expect = -eff + 5.0 * ((f_rmse - cap) ** 2 + (f_corr - cap) ** 2)
     assert above == pytest.approx(expect, rel=1e-10)
 
@@ -225,7 +227,7 @@ def test_flat_modulus_start_of_two_equal_dots_is_the_binary_grating():
     k, n = 11, 175
     target = np.zeros((k, k))
     target[k // 2, k // 2 - 1] = target[k // 2, k // 2 + 1] = 0.5
-    phase = retrieval.flat_modulus_start(target, n, np.random.default_rng(3))
+    phase = flat_modulus_start(target, n, np.random.default_rng(3))
     step = np.angle(np.exp(1j * (phase - phase[0, 0])))
     assert np.allclose(np.minimum(np.abs(step), np.abs(np.abs(step) - np.pi)), 0, atol=1e-9)
     power = fraunhofer.window_power(phase, k)
@@ -240,8 +242,8 @@ def test_mixed_region_with_the_whole_window_is_weighted_gs():
     target = targets.asymmetric(7)
     start = np.random.default_rng(13).uniform(-np.pi, np.pi, (29, 29))
     gains = np.ones((7, 7))
-    gs, gs_gains = retrieval.gerchberg_saxton(target, 29, 6, phase=start, gains=gains)
-    mr, mr_gains = retrieval.mixed_region(target, start, gains, 6, mix=1.0)
+    gs, gs_gains = gerchberg_saxton(target, 29, 6, phase=start, gains=gains)
+    mr, mr_gains = mixed_region(target, start, gains, 6, mix=1.0)
     np.testing.assert_allclose(np.exp(1j * mr), np.exp(1j * gs), atol=1e-9)
     np.testing.assert_allclose(mr_gains, gs_gains, rtol=1e-9)
     np.testing.assert_array_equal(gains, 1.0)  # arguments are not mutated
@@ -250,11 +252,11 @@ def test_mixed_region_with_the_whole_window_is_weighted_gs():
 def test_constrained_refinement_reaches_the_cap_and_gains_efficiency():
     target = targets.flat_top(7)
     rng = np.random.default_rng(14)
-    start, gains = retrieval.gerchberg_saxton(target, 41, 60, rng)
-    start, _ = retrieval.mixed_region(target, start, gains, 60)
-    goal = retrieval._Goal.of(target)
-    before = float(retrieval._values(fraunhofer.window_power(start, 7), goal, 0.0, mode="smooth"))
-    phase, fid, eff = retrieval.refine_constrained(start, target, 0.5, (0.1, 1.0, 10.0), 60)
+    start, gains = gerchberg_saxton(target, 41, 60, rng)
+    start, _ = mixed_region(target, start, gains, 60)
+    goal = goals.Goal.of(target)
+    before = float(goals.goal_values(fraunhofer.window_power(start, 7), goal, 0.0, mode="smooth"))
+    phase, fid, eff = refinement.refine_constrained(start, target, 0.5, (0.1, 1.0, 10.0), 60)
     assert before > 0.5  # the start misses the cap ...
     assert fid <= 0.55  # ... the refinement walks onto it
     assert eff == pytest.approx(fraunhofer.window_power(phase, 7).sum(), rel=1e-12)
@@ -266,22 +268,22 @@ def test_fidelity_terms_measure_the_quality_goals():
     # smooth stand-in equals it when the simulated peak sits where the target's does
     rng = np.random.default_rng(8)
     target = targets.compact_blob(7)
-    phase = retrieval.gerchberg_saxton(target, 31, 30, rng)[0]
+    phase = gerchberg_saxton(target, 31, 30, rng)[0]
     q = fraunhofer.quality(phase, target)
     terms = (
-        (q["rmse"] / retrieval.RMSE_GOAL) ** 2,
-        (1 - q["correlation"]) / (1 - retrieval.CORRELATION_GOAL),
+        (q["rmse"] / goals.RMSE_GOAL) ** 2,
+        (1 - q["correlation"]) / (1 - goals.CORRELATION_GOAL),
     )
     assert min(terms) > 0.3 * max(terms)  # both terms matter here
     expect = max(terms)
-    assert retrieval.fidelity(phase, target) == pytest.approx(expect, rel=1e-6)
+    assert refinement.fidelity(phase, target) == pytest.approx(expect, rel=1e-6)
     # the batched evaluation of coordinate descent agrees with the objective's stand-in
     power = fraunhofer.window_power(phase, 7)
-    goal = retrieval._Goal.of(target)
-    batch = retrieval._values(np.stack([power, power]), goal, 2.0, mode="smooth")
-    one = retrieval._fidelity_terms(power, goal, 2.0)[0]
+    goal = goals.Goal.of(target)
+    batch = goals.goal_values(np.stack([power, power]), goal, 2.0, mode="smooth")
+    one = refinement._fidelity_terms(power, goal, 2.0)[0]
     np.testing.assert_allclose(batch, [one, one], rtol=1e-12)
-    assert one == pytest.approx(retrieval.objective(phase, target, 2.0)[0], rel=1e-12)
+    assert one == pytest.approx(refinement.objective(phase, target, 2.0)[0], rel=1e-12)
 
 
 @pytest.mark.parametrize("mode", ["exact", "smooth"])
@@ -290,27 +292,27 @@ def test_lean_single_window_value_matches_the_batched_one(mode, cap):
     rng = np.random.default_rng(11)
     for name in ("flat_top", "sparse_dots", "anisotropic"):
         target = targets.make_target(name, 7)
-        goal = retrieval._Goal.of(target)
+        goal = goals.Goal.of(target)
         w = (rng.normal(size=(7, 7)) + 1j * rng.normal(size=(7, 7))) * np.sqrt(target) + 1e-3
-        batched = float(retrieval._values(np.abs(w) ** 2, goal, 30.0, cap, mode))
-        assert retrieval._value_one(w, goal, 30.0, cap, mode) == pytest.approx(batched, rel=1e-12)
+        batched = float(goals.goal_values(np.abs(w) ** 2, goal, 30.0, cap, mode))
+        assert goals.window_value(w, goal, 30.0, cap, mode) == pytest.approx(batched, rel=1e-12)
 
 
 def test_fidelity_within_one_exactly_when_both_goals_are_met():
     # the acceptance asks for each figure on its own: rmse <= 0.005 and corr >= 0.9999
     rng = np.random.default_rng(15)
     target = targets.random_dots(7, seed=0, count=5)  # a few dots on a dark ground
-    goal = retrieval._Goal.of(target)
+    goal = goals.Goal.of(target)
     seen = set()
     for scale in np.geomspace(1e-4, 3e-2, 60):
         noise = rng.uniform(0, 1, (7, 7))
         power = 0.8 * (target + scale * noise * target.max())
         psf = power / power.sum()
         met = (
-            fraunhofer.rmse(psf, target) <= retrieval.RMSE_GOAL
-            and fraunhofer.correlation(psf, target) >= retrieval.CORRELATION_GOAL
+            fraunhofer.rmse(psf, target) <= goals.RMSE_GOAL
+            and fraunhofer.correlation(psf, target) >= goals.CORRELATION_GOAL
         )
-        assert (float(retrieval._values(power, goal, 0.0)) <= 1.0) == met
+        assert (float(goals.goal_values(power, goal, 0.0)) <= 1.0) == met
         seen.add(met)
     assert seen == {True, False}
 
@@ -322,25 +324,25 @@ def test_exact_fidelity_uses_the_simulated_peak_on_flat_tops():
     power = target * np.linspace(0.9, 1.1, 25).reshape(5, 5)
     psf = power / power.sum()
     rmse = fraunhofer.rmse(psf, target)
-    goal = retrieval._Goal.of(target)
+    goal = goals.Goal.of(target)
     corr = fraunhofer.correlation(psf, target)
-    expect = max((rmse / retrieval.RMSE_GOAL) ** 2, (1 - corr) / (1 - retrieval.CORRELATION_GOAL))
-    assert float(retrieval._values(power, goal, 0.0)) == pytest.approx(expect, rel=1e-9)
+    expect = max((rmse / goals.RMSE_GOAL) ** 2, (1 - corr) / (1 - goals.CORRELATION_GOAL))
+    assert float(goals.goal_values(power, goal, 0.0)) == pytest.approx(expect, rel=1e-9)
     # the smooth stand-in (mean over the plateau) reads lower here
-    assert float(retrieval._values(power, goal, 0.0, mode="smooth")) < expect
+    assert float(goals.goal_values(power, goal, 0.0, mode="smooth")) < expect
 
 
 def test_fidelity_cap_counts_only_slack_below_the_cap():
     target = targets.compact_blob(5)
-    goal = retrieval._Goal.of(target)
+    goal = goals.Goal.of(target)
     power = 0.9 * target * (1 + 0.001 * np.arange(25).reshape(5, 5) / 25)
-    fid = float(retrieval._values(power, goal, 0.0))
+    fid = float(goals.goal_values(power, goal, 0.0))
     eff = power.sum()
     assert fid < 0.5
-    capped = float(retrieval._values(power, goal, 3.0, cap=0.5))
-    assert capped == pytest.approx(0.5 + retrieval.SLACK * fid - 3.0 * eff, rel=1e-12)
-    above = float(retrieval._values(power, goal, 3.0, cap=fid / 2))
-    assert above == pytest.approx(fid + retrieval.SLACK * fid / 2 - 3.0 * eff, rel=1e-12)
+    capped = float(goals.goal_values(power, goal, 3.0, cap=0.5))
+    assert capped == pytest.approx(0.5 + goals.SLACK * fid - 3.0 * eff, rel=1e-12)
+    above = float(goals.goal_values(power, goal, 3.0, cap=fid / 2))
+    assert above == pytest.approx(fid + goals.SLACK * fid / 2 - 3.0 * eff, rel=1e-12)
 
 
 def test_single_pixel_update_formula_matches_fft():
@@ -348,7 +350,7 @@ def test_single_pixel_update_formula_matches_fft():
     rng = np.random.default_rng(9)
     n, k, n_levels = 21, 7, 8
     levels = rng.integers(0, n_levels, (n, n))
-    a = retrieval.window_matrix(n, k)
+    a = refinement.window_matrix(n, k)
     idx = fraunhofer.window_indices(n, k)
     before = fraunhofer.order_amplitudes(fraunhofer.level_phase(levels, n_levels))[np.ix_(idx, idx)]
     r, c, b = 5, 17, (levels[5, 17] + 3) % n_levels
@@ -365,16 +367,16 @@ def test_coordinate_descent_never_worsens_the_objective():
     target = targets.asymmetric(7)
     levels = rng.integers(0, 8, (25, 25)).astype(np.uint8)
     for weight in (0.0, 10.0):
-        before = retrieval.objective(fraunhofer.level_phase(levels, 8), target, weight)[0]
-        out = retrieval.coordinate_descent(levels, target, 8, weight, sweeps=2, rng=rng)
-        after = retrieval.objective(fraunhofer.level_phase(out, 8), target, weight)[0]
+        before = refinement.objective(fraunhofer.level_phase(levels, 8), target, weight)[0]
+        out = quantisation.coordinate_descent(levels, target, 8, weight, sweeps=2, rng=rng)
+        after = refinement.objective(fraunhofer.level_phase(out, 8), target, weight)[0]
         assert out.dtype == np.uint8 and out.max() < 8
         assert after < before
 
 
 def test_quantised_gs_lands_on_the_levels():
     target = targets.compact_blob(5)
-    phase, _ = retrieval.gerchberg_saxton(target, 17, 5, np.random.default_rng(0), n_levels=4)
+    phase, _ = gerchberg_saxton(target, 17, 5, np.random.default_rng(0), n_levels=4)
     steps = phase / (np.pi / 2)
     np.testing.assert_allclose(steps, np.round(steps), atol=1e-12)
 
@@ -385,12 +387,10 @@ def test_unweighted_gs_keeps_its_gains_and_reads_them_as_target_weights():
     target = targets.asymmetric(7)
     start = np.random.default_rng(17).uniform(-np.pi, np.pi, (29, 29))
     gains = np.random.default_rng(18).uniform(0.5, 2.0, (7, 7))
-    phase, out_gains = retrieval.gerchberg_saxton(
-        target, 29, 4, phase=start, weighted=False, gains=gains
-    )
+    phase, out_gains = gerchberg_saxton(target, 29, 4, phase=start, weighted=False, gains=gains)
     np.testing.assert_array_equal(out_gains, gains)
     reweighted = target * gains**2 / (target * gains**2).sum()
-    plain, ones = retrieval.gerchberg_saxton(reweighted, 29, 4, phase=start, weighted=False)
+    plain, ones = gerchberg_saxton(reweighted, 29, 4, phase=start, weighted=False)
     np.testing.assert_array_equal(ones, 1.0)
     np.testing.assert_allclose(np.exp(1j * phase), np.exp(1j * plain), atol=1e-9)
 
@@ -400,8 +400,8 @@ def test_quantised_gs_projects_onto_the_nearest_level():
     # step of the plain iteration from the same start (the same first order-plane step)
     target = targets.compact_blob(5)
     start = np.random.default_rng(16).uniform(-np.pi, np.pi, (17, 17))
-    plain, _ = retrieval.gerchberg_saxton(target, 17, 1, phase=start)
-    quantised, _ = retrieval.gerchberg_saxton(target, 17, 1, phase=start, n_levels=4)
+    plain, _ = gerchberg_saxton(target, 17, 1, phase=start)
+    quantised, _ = gerchberg_saxton(target, 17, 1, phase=start, n_levels=4)
     err = np.angle(np.exp(1j * (quantised - plain)))
     assert np.abs(err).max() <= np.pi / 4 + 1e-9
     assert np.abs(err).max() > np.pi / 8  # the rounding is not a no-op
@@ -411,9 +411,9 @@ def test_quantised_gs_projects_onto_the_nearest_level():
 @given(st.integers(0, 2**32 - 1), st.sampled_from([2, 4, 8, 16]))
 def test_rounding_levels_is_idempotent(seed, n_levels):
     phase = np.random.default_rng(seed).uniform(-20, 20, (6, 6))
-    levels = retrieval.round_levels(phase, n_levels)
+    levels = fraunhofer.round_levels(phase, n_levels)
     assert levels.dtype == np.uint8 and levels.max() < n_levels
-    again = retrieval.round_levels(fraunhofer.level_phase(levels, n_levels), n_levels)
+    again = fraunhofer.round_levels(fraunhofer.level_phase(levels, n_levels), n_levels)
     np.testing.assert_array_equal(again, levels)
     # the nearest level: the wrapped phase error is at most half a step
     err = np.angle(np.exp(1j * (phase - fraunhofer.level_phase(levels, n_levels))))
@@ -461,8 +461,8 @@ def test_delta_targets_give_a_flat_plate_and_a_blazed_grating():
 def test_rounding_alone_is_much_worse_than_the_finish():
     # what the quantisation-aware finish buys: plain GS + rounding misses the rmse goal
     target = targets.compact_blob(11)
-    phase, _ = retrieval.gerchberg_saxton(target, 61, 150, np.random.default_rng(1))
-    naive = fraunhofer.quality(fraunhofer.level_phase(retrieval.round_levels(phase, 8), 8), target)
+    phase, _ = gerchberg_saxton(target, 61, 150, np.random.default_rng(1))
+    naive = fraunhofer.quality(fraunhofer.level_phase(fraunhofer.round_levels(phase, 8), 8), target)
     res = retrieval.retrieve_phase(target, 61, 8, seed=1)
     assert res.quality_quantised["rmse"] < 0.5 * naive["rmse"]
 
@@ -490,13 +490,14 @@ def test_several_finishes_keep_the_most_efficient_design_within_the_cap():
     again = retrieval.retrieve_phase(target, 31, 8, seed=5, starts=2, finishes=2)
     assert two.levels.tobytes() == again.levels.tobytes()
     # the first finish of both runs is the same computation; the second can only add
-    assert retrieval.fidelity(fraunhofer.level_phase(two.levels, 8), target) <= retrieval.CAP
+    assert refinement.fidelity(fraunhofer.level_phase(two.levels, 8), target) <= goals.CAP
     assert two.quality_quantised["efficiency"] >= one.quality_quantised["efficiency"] - 1e-12
 
 
 def test_the_finish_with_the_best_rank_wins_and_a_tie_keeps_the_first(monkeypatch):
-    # _rank keys, smaller first: the finish over the cap loses to any within it, the
-    # most efficient within it wins, and a later finish only as good does not replace it
+    # quantised_finish's rank keys, smaller first: the finish over the cap loses to any
+    # within it, the most efficient within it wins, and a later finish only as good does
+    # not replace it
     keys = [(1, 2.0), (0, -0.6), (0, -0.5), (0, -0.6)]
     phases = []
 
@@ -504,7 +505,7 @@ def test_the_finish_with_the_best_rank_wins_and_a_tie_keeps_the_first(monkeypatc
         phases.append(phase)
         return keys[len(phases) - 1], np.full(phase.shape, len(phases) - 1, np.uint8)
 
-    monkeypatch.setattr(retrieval, "_finish", finish)
+    monkeypatch.setattr(retrieval, "quantised_finish", finish)
     res = retrieval.retrieve_phase(
         targets.compact_blob(5), 17, 8, starts=4, finishes=4, gs_iterations=5, lbfgs_evals=3
     )
@@ -543,7 +544,7 @@ def test_robustness_targets_meet_the_fidelity_goals_at_full_size(name):
     res = retrieval.retrieve_phase(target, 175, 8, seed=0)
     _check(res.quality_quantised, ROBUST_FAST[name])
     # each figure within the cap: rmse <= 0.005 sqrt(CAP)
-    assert res.quality_quantised["rmse"] <= 0.005 * np.sqrt(retrieval.CAP) + 1e-6
+    assert res.quality_quantised["rmse"] <= 0.005 * np.sqrt(goals.CAP) + 1e-6
 
 
 def test_a_flat_top_design_spends_its_fidelity_budget():
@@ -551,8 +552,8 @@ def test_a_flat_top_design_spends_its_fidelity_budget():
     # climb spends what it leaves (without it: fidelity 0.54, efficiency 0.870)
     target = targets.flat_top(11)
     res = retrieval.retrieve_phase(target, 175, 8, seed=0)
-    fid = retrieval.fidelity(fraunhofer.level_phase(res.levels, 8), target)
-    assert 0.7 <= fid <= retrieval.CAP
+    fid = refinement.fidelity(fraunhofer.level_phase(res.levels, 8), target)
+    assert 0.7 <= fid <= goals.CAP
     assert res.quality_quantised["efficiency"] >= 0.875
 
 
@@ -563,7 +564,7 @@ def test_every_robustness_target_meets_the_fidelity_goals_at_full_size():
             continue
         res = retrieval.retrieve_phase(target, 175, 8, seed=0)
         assert res.quality_quantised["correlation"] >= 0.9999, name
-        assert res.quality_quantised["rmse"] <= 0.005 * np.sqrt(retrieval.CAP) + 1e-6, name
+        assert res.quality_quantised["rmse"] <= 0.005 * np.sqrt(goals.CAP) + 1e-6, name
         # sparse dots are bound-limited (docs/retrieve.md: 0.81-0.85 measured), all else meets 0.85
         floor = 0.80 if name.startswith("dots") else 0.85
         assert res.quality_quantised["efficiency"] >= floor, name
@@ -670,21 +671,21 @@ def test_cli_warns_when_square_pixels_make_the_plate_miss_the_goals(tmp_path, ca
 
 def test_missed_goals_at_and_beyond_each_bound():
     met = {"correlation": 0.9999, "rmse": 0.005, "efficiency": 0.5}
-    assert retrieval.missed_goals(met) == []
-    assert retrieval.missed_goals({**met, "correlation": None}) == []
-    assert retrieval.missed_goals({**met, "correlation": float("nan")}) == []
+    assert goals.missed_goals(met) == []
+    assert goals.missed_goals({**met, "correlation": None}) == []
+    assert goals.missed_goals({**met, "correlation": float("nan")}) == []
     low = {**met, "correlation": 0.99989}
-    assert retrieval.missed_goals(low) == ["correlation 0.999890 < 0.9999"]
-    assert retrieval.missed_goals({**met, "rmse": 0.00501}) == ["rmse 0.00501 > 0.005"]
-    assert len(retrieval.missed_goals({**met, "rmse": float("nan")})) == 1
+    assert goals.missed_goals(low) == ["correlation 0.999890 < 0.9999"]
+    assert goals.missed_goals({**met, "rmse": 0.00501}) == ["rmse 0.00501 > 0.005"]
+    assert len(goals.missed_goals({**met, "rmse": float("nan")})) == 1
 
 
 def test_a_missed_goal_is_never_shown_rounded_onto_the_goal():
     # 0.99989996 was shown as "correlation 0.999900 < 0.9999"
     met = {"correlation": 0.9999, "rmse": 0.005, "efficiency": 0.5}
-    missed = retrieval.missed_goals({"correlation": 0.99989996, "rmse": 0.0050004})
+    missed = goals.missed_goals({"correlation": 0.99989996, "rmse": 0.0050004})
     assert missed == ["correlation 0.99989996 < 0.9999", "rmse 0.0050004 > 0.005"]
-    assert retrieval.missed_goals({**met, "rmse": float("nan")}) == ["rmse nan > 0.005"]
+    assert goals.missed_goals({**met, "rmse": float("nan")}) == ["rmse nan > 0.005"]
 
 
 @given(

@@ -339,8 +339,9 @@ def test_mirrored_plate_fails(tmp_path, levels):
     code, report, _ = run_verify(tmp_path, levels, dict(seed=9, orientation="mirror-x"))
     assert code == 1 and "mirrored" in report["diagnosis"]
     # Its measured PSF is not the plate's in the design's frame: no network is tuned to it.
-    from doe.design import check_psf_grid, load_design
+    from doe.design import load_design
     from doe.infra.errors import InputError
+    from doe.records.psf_source import check_psf_grid
 
     assert report["measured_psf_usable"] is False
     with pytest.raises(InputError, match="could not judge \\(mirrored\\)") as refused:
@@ -364,7 +365,8 @@ def test_capture_with_no_light_in_the_window_is_unusable(tmp_path, levels, capsy
 def test_plate_measured_on_a_bench_lens_hands_its_psf_to_the_design(tmp_path, levels):
     # A bench lens of twice the focal length doubles the dot lattice on the camera;
     # the PSF in orders is the same, and learn once refused it as another grid.
-    from doe.design import check_psf_grid, load_design
+    from doe.design import load_design
+    from doe.records.psf_source import check_psf_grid
 
     code, report, _ = run_verify(
         tmp_path,
@@ -834,7 +836,8 @@ def test_manifest_without_lattice_pitch_takes_it_from_the_optics(tmp_path, level
 
 
 def test_retrieve_folder_is_accepted(tmp_path, levels):
-    from doe.design import design_summary, load_design
+    from doe.derived import design_summary
+    from doe.design import load_design
 
     folder = tmp_path / "ret"
     folder.mkdir()
@@ -850,7 +853,7 @@ def test_retrieve_folder_is_accepted(tmp_path, levels):
     code = main(["verify", str(folder), str(tmp_path / "cap.png"), "--out", str(tmp_path / "o")])
     assert code == 0
     # the lattice of the plate fab makes of this tile: its pitch snapped to the GDS grid
-    from doe.design import derive
+    from doe.derived import derive
 
     design = load_design()
     pitch = derive(design, tile_pixels=N).mask_pixel_pitch
@@ -893,7 +896,8 @@ def test_a_retrieval_json_of_a_design_verify_cannot_use_exits_2(
     tmp_path, levels, capsys, section, key, value, problem
 ):
     # each of these ended in a traceback (exit 3): read after the checks, or divided by 0
-    from doe.design import design_summary, load_design
+    from doe.derived import design_summary
+    from doe.design import load_design
 
     summary = design_summary(load_design())
     if key is None:
