@@ -13,10 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from doe import fraunhofer
+from doe import figures, fraunhofer
 from doe.derived import derive, design_summary
 from doe.design import MAX_TILE_PIXELS, load_design
-from doe.figures import save_retrieval_figure
 from doe.goals import CORRELATION_GOAL, RMSE_GOAL, missed_goals
 from doe.infra import flags
 from doe.infra.errors import InputError
@@ -140,7 +139,8 @@ def retrieve(
         save_npy(stage / "phase.npy", result.phase.astype(np.float64))
         save_npy(stage / "target_psf.npy", target)
         write_retrieval(stage / RETRIEVAL_JSON, record)
-        save_retrieval_figure(
+        # looked up on its module at each call, where a caller (a test) may replace it
+        figures.save_retrieval_figure(
             stage / "retrieval.png",
             target,
             simulated,
