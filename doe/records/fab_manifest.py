@@ -244,7 +244,7 @@ def build_fab_manifest(
     Parameters
     ----------
     design : doe.design.Design
-    derived : doe.design.Derived
+    derived : doe.derived.Derived
         Derived quantities for the tile's N (``derive(design, tile_pixels=N)``).
     layout : layouts.gds.PlateLayout
         Cell names, pitch, tiles and array origin of the written GDS.
