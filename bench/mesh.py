@@ -17,7 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from doe.design import derive, load_design
+from doe.derived import derive
+from doe.design import load_design
 from doe.infra import flags
 from fab.mesh import formats as mesh_io
 from fab.mesh import relief as mesh

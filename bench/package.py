@@ -51,7 +51,8 @@ def time_cli(design, out, repeat):
 
 
 def time_library(levels, flat, repeat, path):
-    from doe.design import derive, load_design
+    from doe.derived import derive
+    from doe.design import load_design
     from fab.package.masks import masks_from_levels
     from layouts.gds import build_library, write_gds
 

@@ -151,7 +151,8 @@ def _train_all(args, out):
 
 def _as_fabricated_psf(learned_psf):
     """PSF of the 8-level plate retrieved for the learned PSF, and the plate's figures."""
-    from doe.design import derive, load_design
+    from doe.derived import derive
+    from doe.design import load_design
     from doe.fraunhofer import simulate_levels
     from doe.retrieval import retrieve_phase
 

@@ -19,8 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
+from doe.fraunhofer import round_levels
+from doe.gerchberg_saxton import gerchberg_saxton
 from doe.infra import flags
-from doe.retrieval import gerchberg_saxton, round_levels
 
 
 def gs_levels(n, target, n_levels, seed=0, iters=120):
@@ -45,7 +46,8 @@ def main(argv=None):
     parser.add_argument("--repeat", type=flags.count, default=3)
     args = parser.parse_args(argv)
 
-    from doe.design import derive, design_summary, load_design
+    from doe.derived import derive, design_summary
+    from doe.design import load_design
     from doe.fraunhofer import simulate_levels
     from fab.package.masks import masks_from_levels
     from fab.package.report import write_fab_report

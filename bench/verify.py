@@ -18,7 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from doe.design import derive, load_design
+from doe.derived import derive
+from doe.design import load_design
 from doe.fraunhofer import simulate_levels
 from doe.infra.files import save_npy, write_json
 from doe.retrieval import retrieve_phase

@@ -1,12 +1,19 @@
 """Optics of diffractive phase plates (numpy, scipy, nlopt; never torch).
 
-- ``design``: the TOML design schema, presets and derived optics
+- ``design``: the TOML design schema, presets, loading and validation
+- ``derived``: the optics that follow from a design, and its JSON summary
+- ``design_match``: whether a record (a tile, a PSF) was made for a design
 - ``materials``: Sellmeier refractive indices
 - ``fraunhofer``: the forward model of CONVENTIONS.md and its quality figures
-- ``retrieval``: Gerchberg-Saxton, nlopt refinement, L-level quantisation
+- ``goals``: the quality goals and the fidelity figures measured against them
+- ``retrieval``: phase retrieval, from a target PSF to an L-level tile, in stages:
+  ``gerchberg_saxton`` (GS, MRAF), ``refinement`` (nlopt L-BFGS),
+  ``quantisation`` (the discrete finish)
+- ``retrieve``: the retrieve stage as a library (a PSF file in, a folder out)
 - ``targets``: named target PSFs for tests, benchmarks and demonstrations
 - ``figures``: the retrieval figure
 - ``bounds``, ``lbfgs``: efficiency bounds of a target, the L-BFGS driver
+- ``records``: the stage files, one module each (typed record, reader, writer)
 - ``infra``: the shared infrastructure (files, errors, flags, images, interrupts, dispatcher)
 - ``commands``: the command modules (only the dispatcher imports them)
 """

@@ -26,6 +26,7 @@ import numpy as np
 import scipy.fft
 
 from doe import fraunhofer
+from doe.goals import RMSE_GOAL, Goal, cap_penalty, goal_values
 from doe.lbfgs import minimise
 
 
@@ -120,9 +121,9 @@ def within_goals(target, n_pixels, n_levels=None, cap=1.0, max_eval=150, mus=(10
     (mean_x Re(g conj q))^2 / |w|^2 with g the band-limited field of w and q its
     nearest unit-modulus (or L-level) value, is maximised here over every order's
     amplitude *and* phase, subject to each fidelity term of
-    :func:`doe.retrieval._fidelity_parts` staying within ``cap`` (1 = the goals
+    :func:`doe.goals.fidelity_parts` staying within ``cap`` (1 = the goals
     just met). Penalty method (the penalty of
-    :func:`doe.retrieval.constrained_objective`, weights ``mus``) with L-BFGS, started from the
+    :func:`doe.refinement.constrained_objective`, weights ``mus``) with L-BFGS, started from the
     target plus the uniform background that spends the rmse of ``cap``
     (:func:`with_background`; it beat random starts in trials); the exact shape's
     own bound (:func:`best_flat_field`) is the floor. Only points whose exact
@@ -136,11 +137,9 @@ def within_goals(target, n_pixels, n_levels=None, cap=1.0, max_eval=150, mus=(10
     window : (K, K) complex128
         Its window field, unit norm.
     """
-    from doe.retrieval import RMSE_GOAL, _cap_penalty, _Goal, _values  # it imports this module
-
     k = target.shape[0]
     sel = np.ix_(*[fraunhofer.window_indices(n_pixels, k)] * 2)
-    goal = _Goal.of(target)
+    goal = Goal.of(target)
     step = None if n_levels is None else 2 * np.pi / n_levels
     best = {"bound": 0.0, "w": None}
 
@@ -153,13 +152,13 @@ def within_goals(target, n_pixels, n_levels=None, cap=1.0, max_eval=150, mus=(10
         m = float(np.real(np.vdot(big_q, w)))
         b = m / np.sqrt(s)
         power = (w.real**2 + w.imag**2) / s
-        penalty, d_p = _cap_penalty(power, goal, cap, mu)
+        penalty, d_p = cap_penalty(power, goal, cap, mu)
         # chain rule through P = |w|^2 / s (complex gradient: d/d re + i d/d im)
         grad = 2.0 * w * (d_p - (d_p * power).sum()) / s
         grad -= 2.0 * b * (big_q / np.sqrt(s) - m * w / s**1.5)
         bound = b * b
         # only patterns whose exact figures (CONVENTIONS.md) are within the cap count
-        if bound > best["bound"] and _values(power, goal, 0.0) <= cap:
+        if bound > best["bound"] and goal_values(power, goal, 0.0) <= cap:
             best["bound"], best["w"] = bound, w / np.sqrt(s)
         return -bound + penalty, np.concatenate([grad.real.ravel(), grad.imag.ravel()])
 

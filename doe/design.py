@@ -1,20 +1,22 @@
-"""Design configuration: TOML schema, the embedded presets, validation, derived optics.
+"""Design configuration: TOML schema, the embedded presets, loading and validation.
 
 A design file is TOML with one table per concern (sensor, optics, psf,
 material, fabrication, learning); every quantity carries its unit in the key
-name. Inside the code everything is SI (metres). ``derive`` computes what an
-optics engineer checks before fabrication.
+name. Inside the code everything is SI (metres). :func:`doe.derived.derive`
+computes what an optics engineer checks before fabrication, and
+:mod:`doe.design_match` compares a record with a design.
 """
 
 import math
 import tomllib
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 from typing import Literal
 
+from doe.derived import derive, lattice_problem
 from doe.infra.errors import InputError
-from doe.infra.files import LEVEL_COUNT_RULE, is_level_count, read_json
+from doe.infra.files import LEVEL_COUNT_RULE, is_level_count
 from doe.infra.flags import MINUTES_MAX, PHOTONS_MAX, SEED_MAX, STEPS_MAX
 from doe.materials import MATERIALS, refractive_index
 
@@ -70,37 +72,6 @@ class Design:
     material: Material
     fabrication: Fabrication
     learning: Learning
-
-
-@dataclass(frozen=True)
-class Derived:
-    """Quantities that follow from a design (SI units).
-
-    ``tile_size`` is N * ``mask_pixel_pitch`` after snapping the pitch to the
-    GDS grid; the dot lattice that the tiled plate puts on the sensor then has
-    pitch lambda f / tile_size, slightly off the sub-pixel pitch, and
-    ``lattice_drift_at_edge`` is how far the outermost dot has wandered, along the
-    sensor's longer side, when the zero order sits at the sensor centre. Both are
-    paraxial (order m at m lambda f / tile_size) and count the grid snap only: a
-    lens that maps angle as f tan(theta) puts order 128 of the default design 22 um
-    further out (an f sin(theta) Fourier lens does not).
-    """
-
-    subpixel_pitch: float
-    tile_size_nominal: float
-    tile_pixels: int
-    mask_pixel_pitch: float
-    tile_size: float
-    lattice_pitch: float
-    lattice_mismatch: float
-    lattice_drift_at_edge: float
-    tiles: int
-    tiled_size: float
-    refractive_index: float
-    level_step: float
-    etch_depths: tuple[float, ...]
-    masks: int
-    fill_factor: float
 
 
 # (section, key) -> (type, unit scale to SI or None, check, explanation)
@@ -327,29 +298,6 @@ def _huge_int(v):
 MAX_TILE_PIXELS = 4096
 
 
-# A coarse GDS grid rounds the mask pixel pitch, which scales the whole PSF: its
-# outermost orders may land at most this fraction of a sub-pixel off their sub-pixels.
-LATTICE_OFFSET_MAX = 0.05
-
-
-def lattice_problem(der, kernel_size, grid):
-    """Return why a tile's dot lattice misses the sub-pixel grid, or None if it fits.
-
-    ``der`` is :func:`derive` for the tile, ``grid`` the GDS grid (m).
-    """
-    offset = kernel_size // 2 * abs(der.lattice_mismatch) / der.subpixel_pitch
-    if offset <= LATTICE_OFFSET_MAX:
-        return None
-    return (
-        f"the {grid * 1e9:g} nm grid snaps the mask pixel pitch to "
-        f"{der.mask_pixel_pitch * 1e9:g} nm (the tile wants "
-        f"{der.tile_size_nominal / der.tile_pixels * 1e9:.1f} nm), which puts the dot "
-        f"lattice {der.lattice_mismatch / der.subpixel_pitch:+.2%} off the sub-pixel pitch: "
-        f"the {kernel_size} x {kernel_size} PSF's outermost dots land {offset:.0%} of a "
-        f"sub-pixel off theirs (at most {LATTICE_OFFSET_MAX:.0%}); use a finer grid"
-    )
-
-
 # The tile's size is wavelength x focal length / sub-pixel pitch: a unit slip in
 # any of these (um typed as mm) shows up first as a tile of the wrong size.
 _TILE_SET_BY = (
@@ -429,250 +377,3 @@ def _check_consistency(d, source):
             f"the tile needs N = {der.tile_pixels} pixels, more than {MAX_TILE_PIXELS} "
             "(retrieval time and memory grow as N^2)",
         )
-
-
-def derive(d, tile_pixels=None):
-    """Return the :class:`Derived` quantities of design ``d``.
-
-    ``tile_pixels`` overrides N (default: the tile size divided by the target
-    feature size, rounded).
-    """
-    sensor, fab, wl, f = d.sensor, d.fabrication, d.optics.wavelength, d.optics.focal_length
-    subpixel = sensor.pixel_pitch / sensor.superres_factor
-    tile_nominal = wl * f / subpixel  # order spacing lambda f / T = sub-pixel pitch
-    n_pix = tile_pixels or max(1, round(tile_nominal / fab.feature_size))
-    grid_steps = round(tile_nominal / n_pix / fab.grid)
-    pitch = grid_steps * fab.grid
-    tile = n_pix * pitch
-    lattice = wl * f / tile if tile > 0 else math.inf
-    half_width_subpixels = max(sensor.columns, sensor.rows) * sensor.superres_factor / 2
-    n = refractive_index(d.material.name, wl)
-    step = wl / (n - 1) / fab.levels
-    masks = int(math.log2(fab.levels))
-    if sensor.active_area_shape == "circle":
-        active = math.pi * (sensor.active_area / 2) ** 2
-    else:
-        active = sensor.active_area**2
-    return Derived(
-        subpixel_pitch=subpixel,
-        tile_size_nominal=tile_nominal,
-        tile_pixels=n_pix,
-        mask_pixel_pitch=pitch,
-        tile_size=tile,
-        lattice_pitch=lattice,
-        lattice_mismatch=lattice - subpixel,
-        lattice_drift_at_edge=(lattice - subpixel) * half_width_subpixels,
-        tiles=max(1, math.floor(fab.aperture / tile + 1e-9)) if tile > 0 else 0,
-        tiled_size=math.floor(fab.aperture / tile + 1e-9) * tile if tile > 0 else 0.0,
-        refractive_index=n,
-        level_step=step,
-        etch_depths=tuple(step * 2**k for k in reversed(range(masks))),
-        masks=masks,
-        fill_factor=active / sensor.pixel_pitch**2,
-    )
-
-
-def as_typed(value, scale):
-    """Return a value held in SI units in the unit the design file gives it in.
-
-    Rounded to 12 significant digits, which undoes the float noise of the SI round
-    trip (655 nm is stored as 6.55e-7 m and comes back as 655.0000000000001).
-    """
-    return float(f"{value * scale:.12g}")
-
-
-def design_summary(d, tile_pixels=None):
-    """Return the design and its derived quantities as a JSON-ready dict, units in the keys.
-
-    ``tile_pixels`` overrides N as in :func:`derive` (a tile of another size).
-    """
-    der = derive(d, tile_pixels)
-    return {
-        "name": d.name,
-        "description": d.description,
-        "sensor": {
-            "columns": d.sensor.columns,
-            "rows": d.sensor.rows,
-            "pixel_pitch_um": as_typed(d.sensor.pixel_pitch, 1e6),
-            "active_area_um": as_typed(d.sensor.active_area, 1e6),
-            "active_area_shape": d.sensor.active_area_shape,
-            "active_offset_um": [as_typed(v, 1e6) for v in d.sensor.active_offset],
-            "superres_factor": d.sensor.superres_factor,
-        },
-        "optics": {
-            "wavelength_nm": as_typed(d.optics.wavelength, 1e9),
-            "focal_length_mm": as_typed(d.optics.focal_length, 1e3),
-        },
-        "psf": {"kernel_size": d.kernel_size},
-        "material": {"name": d.material.name, "thickness_mm": as_typed(d.material.thickness, 1e3)},
-        "fabrication": {
-            "levels": d.fabrication.levels,
-            "feature_size_um": as_typed(d.fabrication.feature_size, 1e6),
-            "aperture_mm": as_typed(d.fabrication.aperture, 1e3),
-            "grid_nm": round(d.fabrication.grid * 1e9),
-        },
-        "learning": asdict(d.learning),
-        "derived": {
-            "subpixel_pitch_um": der.subpixel_pitch * 1e6,
-            "fill_factor": der.fill_factor,
-            "tile_size_nominal_um": der.tile_size_nominal * 1e6,
-            "tile_pixels": der.tile_pixels,
-            "mask_pixel_pitch_nm": round(der.mask_pixel_pitch * 1e9),
-            "tile_size_um": der.tile_size * 1e6,
-            "lattice_pitch_um": der.lattice_pitch * 1e6,
-            "lattice_mismatch_um": der.lattice_mismatch * 1e6,
-            "lattice_drift_at_edge_um": der.lattice_drift_at_edge * 1e6,
-            "tiles_across_aperture": der.tiles,
-            "tiled_size_mm": der.tiled_size * 1e3,
-            "refractive_index": der.refractive_index,
-            "level_step_nm": der.level_step * 1e9,
-            "etch_depths_nm": [v * 1e9 for v in der.etch_depths],
-            "masks": der.masks,
-        },
-    }
-
-
-# What a phase tile is made for: the sub-pixel grid its PSF is sampled on, the
-# optics that map the tile onto that grid, and the glass and grid it is etched
-# in. Aperture, substrate thickness, sensor size and learning do not change the
-# tile. Its level count is not here: retrieve --levels may differ from the
-# design's, so retrieval.json's own "levels" is what a tile is checked against.
-TILE_KEYS = (
-    ("sensor", "pixel_pitch_um"),
-    ("sensor", "superres_factor"),
-    ("optics", "wavelength_nm"),
-    ("optics", "focal_length_mm"),
-    ("material", "name"),
-    ("fabrication", "grid_nm"),
-)
-# What a PSF is made for: the sub-pixel grid it is sampled on.
-PSF_GRID_KEYS = (("sensor", "pixel_pitch_um"), ("sensor", "superres_factor"))
-# A measured PSF is sampled on the plate's dot lattice, which matches the design's
-# sub-pixel pitch to ppm; 2 % admits a hand-measured --lattice-pitch-um in verify.
-LATTICE_MATCH_REL = 0.02
-
-
-def design_differences(recorded, d, keys):
-    """Return "key recorded -> d's" for each of ``keys`` where ``d`` differs from ``recorded``.
-
-    ``recorded`` is a :func:`design_summary` dict read from a file (e.g. the
-    ``design`` of retrieval.json); keys it lacks are not compared. Numbers agree
-    to 1e-9 relative, which absorbs the round trip through the file's units.
-    """
-    return summary_differences(recorded, design_summary(d), keys)
-
-
-def summary_differences(recorded, now, keys):
-    """:func:`design_differences` between two :func:`design_summary` dicts.
-
-    A key missing from either (a partial or hand-edited record) is not compared.
-    """
-    differences = []
-    for section, key in keys:
-        then = _field(_field(recorded, section), key)
-        value = _field(_field(now, section), key)
-        if then is None or value is None or _same_value(then, value):
-            continue
-        differences.append(f"{section}.{key} {_shown(then)} -> {_shown(value)}")
-    return differences
-
-
-def check_psf_grid(psf_path, d):
-    """Refuse a PSF sampled on another sub-pixel grid than design d's (InputError).
-
-    A PSF sampled on another sub-pixel grid makes a wrong tile or a wrong sensor model.
-    """
-    check_measured_psf(psf_path)
-    problem = psf_grid_problem(psf_path, design_summary(d), f"design {d.name!r}")
-    if problem:
-        path, text = problem
-        raise InputError(path, f"{text}; pass the design it was made for with --config")
-
-
-def check_psf_kernel(psf, source, d):
-    """Refuse a PSF of another size than design d's kernel (InputError naming ``source``).
-
-    Else the design's records (learn.json, the fab manifest, verify's window)
-    would contradict the PSF the plate is made for.
-    """
-    k, kd = psf.shape[0], d.kernel_size
-    if k != kd:
-        raise InputError(
-            source,
-            f"is {k} x {k}, but the kernel of design {d.name!r} is {kd} x {kd}; "
-            "pass the design it was made for with --config",
-        )
-
-
-def check_measured_psf(psf_path):
-    """Refuse a measured PSF whose ``verify.json`` says verify could not judge the capture.
-
-    A capture of a mirrored, conjugate or other plate, a camera mounted otherwise
-    than the flag said, clipped or too faint dots: its ``measured_psf.npy`` is not
-    the plate's PSF in the design's frame, and a network tuned to it is tuned wrong.
-    """
-    verified = Path(psf_path).with_name("verify.json")
-    if not verified.is_file():
-        return
-    report = read_json(verified)
-    if report.get("measured_psf_usable") is False:
-        codes = report.get("diagnosis")
-        codes = ", ".join(map(str, codes)) if isinstance(codes, list) else "no diagnosis"
-        raise InputError(
-            verified,
-            f"the PSF beside it comes from a capture that verify could not judge ({codes}): "
-            "it is not the plate's PSF in the design's frame; see the report's notes",
-        )
-
-
-def psf_grid_problem(psf_path, summary, whose):
-    """Return (report file, reason) when a PSF is sampled on another grid than ``summary``'s.
-
-    The grid is read from the report written beside the PSF: ``learn.json`` (a
-    learned psf.npy) or ``verify.json`` (a measured_psf.npy: the design's dot
-    lattice pitch, which its sub-pixels must match). ``summary`` is a
-    :func:`design_summary` dict; ``whose`` names it in the reason. None when
-    neither report says otherwise.
-    """
-    learned = Path(psf_path).with_name("learn.json")
-    if learned.is_file():
-        recorded = read_json(learned).get("design")  # read_json: a JSON object
-        differences = summary_differences(recorded, summary, PSF_GRID_KEYS)
-        if differences:
-            return learned, (
-                f"the PSF was learned for another sub-pixel grid than {whose} "
-                f"({'; '.join(differences)})"
-            )
-    verified = Path(psf_path).with_name("verify.json")
-    if verified.is_file():
-        report = read_json(verified)
-        # The design's lattice (on its sensor); older reports hold only the capture's.
-        lattice = report.get("design_lattice_pitch_um", report.get("lattice_pitch_um"))
-        pitch = _field(_field(summary, "sensor"), "pixel_pitch_um")
-        factor = _field(_field(summary, "sensor"), "superres_factor")
-        if not all(_is_number(v) and v > 0 for v in (lattice, pitch, factor)):
-            return None  # a report without the numbers: nothing to compare
-        subpixel = pitch / factor
-        if not math.isclose(lattice, subpixel, rel_tol=LATTICE_MATCH_REL):
-            return verified, (
-                f"the PSF was measured on a {lattice:g} um dot lattice, but {whose} "
-                f"has {subpixel:g} um sub-pixels"
-            )
-    return None
-
-
-def _field(record, key):
-    """Return record[key] of a JSON object, None when it is not an object or lacks it."""
-    return record.get(key) if isinstance(record, dict) else None
-
-
-def _is_number(v):
-    return isinstance(v, (int, float)) and not isinstance(v, bool)
-
-
-def _same_value(a, b):
-    return math.isclose(a, b, rel_tol=1e-9) if _is_number(a) and _is_number(b) else a == b
-
-
-def _shown(v):
-    return f"{v:g}" if _is_number(v) else repr(v)

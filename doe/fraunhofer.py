@@ -14,6 +14,20 @@ def level_phase(levels, n_levels):
     return 2 * np.pi * np.asarray(levels, dtype=np.float64) / n_levels
 
 
+def level_step(n_levels):
+    """Return the phase step between two levels, 2 pi / L (rad)."""
+    return 2 * np.pi / n_levels
+
+
+def round_levels(phase, n_levels):
+    """Return the nearest level (uint8 (N, N)) to each phase (rad), modulo 2 pi.
+
+    The inverse of :func:`level_phase` on the levels themselves.
+    """
+    q = np.round(np.asarray(phase) * n_levels / (2 * np.pi)).astype(np.int64) % n_levels
+    return q.astype(np.uint8)
+
+
 def order_amplitudes(phase):
     """Return the complex amplitudes of all N x N orders of a tile, total power 1.
 

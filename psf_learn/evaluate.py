@@ -179,8 +179,8 @@ def _evaluation_psf(model, psf_file):
     """Return the PSF of ``psf_file`` checked against the model's grid, or None."""
     if not psf_file:
         return None
-    from doe.design import check_measured_psf, psf_grid_problem
     from doe.infra.files import read_psf
+    from doe.records.psf_source import check_measured_psf, psf_grid_problem
 
     psf = read_psf(psf_file)
     check_measured_psf(psf_file)

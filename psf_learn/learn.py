@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from doe.design import design_summary
+from doe.derived import design_summary
 from doe.infra.files import save_npy, sha256_file, staged_output
 from doe.records.learn import LEARN_JSON, LearnRecord, write_learn
 from psf_learn import store

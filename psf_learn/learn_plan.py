@@ -14,11 +14,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from doe.design import check_psf_grid, check_psf_kernel, load_design
+from doe.design import load_design
+from doe.design_match import check_psf_kernel
 from doe.infra import flags
 from doe.infra.errors import InputError
 from doe.infra.files import _refuse_overwrite, check_out_folder, read_psf
 from doe.records.learn import LEARN_JSON
+from doe.records.psf_source import check_psf_grid
 from psf_learn import images as imgio
 from psf_learn import store
 from psf_learn.network import FEATURES_MAX, STAGES_MAX, check_arch

@@ -2,7 +2,8 @@
 
 import json
 
-from doe.design import DEFAULT_PRESET, design_summary, load_design, preset_names
+from doe.derived import design_summary
+from doe.design import DEFAULT_PRESET, load_design, preset_names
 
 
 def register(sub):

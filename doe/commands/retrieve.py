@@ -1,11 +1,6 @@
-"""``doefab retrieve``: an 8-level phase tile from a target PSF (see doe.retrieval)."""
+"""``doefab retrieve``: an 8-level phase tile from a target PSF (see doe.retrieve)."""
 
 import sys
-from pathlib import Path
-
-from doe.infra.errors import InputError
-
-OUTPUTS = ("levels.npy", "phase.npy", "target_psf.npy", "retrieval.json", "retrieval.png")
 
 
 def register(sub):
@@ -40,136 +35,40 @@ def register(sub):
 
 
 def run(args):
-    import numpy as np
+    from doe.figures import correlation_text
+    from doe.retrieve import retrieve
 
-    from doe import fraunhofer
-    from doe.design import (
-        MAX_TILE_PIXELS,
-        check_psf_grid,
-        derive,
-        design_summary,
-        load_design,
+    result = retrieve(
+        args.psf,
+        args.out,
+        config=args.config,
+        levels=args.levels,
+        tile_pixels=args.tile_pixels,
+        seed=args.seed,
+        force=args.force,
     )
-    from doe.figures import correlation_text, save_retrieval_figure
-    from doe.infra import flags
-    from doe.infra.files import (
-        LEVEL_COUNT_RULE,
-        is_level_count,
-        read_psf,
-        save_npy,
-        sha256_file,
-        staged_output,
-        write_json,
-    )
-    from doe.retrieval import CORRELATION_GOAL, RMSE_GOAL, missed_goals, retrieve_phase
-
-    design = load_design(args.config)
-    n_levels = design.fabrication.levels if args.levels is None else args.levels
-    if not is_level_count(n_levels):
-        raise InputError("--levels", f"must be {LEVEL_COUNT_RULE}, got {n_levels}")
-    n = derive(design).tile_pixels if args.tile_pixels is None else args.tile_pixels
-    if not 1 <= n <= MAX_TILE_PIXELS:
-        raise InputError(
-            "--tile-pixels",
-            f"must be 1 to {MAX_TILE_PIXELS} pixels (time and memory grow as N^2), got {n}",
-        )
-    flags.seed("--seed", args.seed)
-    if args.seed is None:
-        args.seed = design.learning.seed
-    target = read_psf(args.psf)
-    check_psf_grid(args.psf, design)
-    k = target.shape[0]
-    if k > n:
-        raise InputError(
-            args.psf,
-            f"kernel size K = {k} exceeds the tile size N = {n}; "
-            "use a smaller PSF or a larger --tile-pixels",
-        )
-    with staged_output(args.out, args.force, names=OUTPUTS) as stage:
-        result = retrieve_phase(target, n, n_levels, seed=args.seed, progress=True)
-        psf, _ = fraunhofer.simulate_levels(result.levels, n_levels, k)
-        missed = missed_goals(result.quality_quantised)
-        plate = fraunhofer.plate_quality(fraunhofer.level_phase(result.levels, n_levels), target)
-        plate_missed = missed_goals(plate)
-        save_npy(stage / "levels.npy", result.levels)
-        save_npy(stage / "phase.npy", result.phase.astype(np.float64))
-        save_npy(stage / "target_psf.npy", target)
-        write_json(
-            stage / "retrieval.json",
-            {
-                "continuous": result.quality_continuous,
-                "quantised": result.quality_quantised,
-                "goals": {
-                    "correlation_min": CORRELATION_GOAL,
-                    "rmse_max": RMSE_GOAL,
-                    "met": not missed,
-                    "missed": missed,
-                },
-                # the quantised design as fabricated: square pixels, whose sinc^2
-                # envelope the contract's figures leave out
-                "square_pixels": {**plate, "goals_met": not plate_missed, "missed": plate_missed},
-                "seconds": round(result.seconds, 3),
-                "seed": args.seed,
-                "levels": n_levels,
-                "tile_pixels": n,
-                "kernel_size": k,
-                # name and digest, not the path: the same input gives the same bytes
-                "target_psf": Path(args.psf).name,
-                "target_psf_sha256": sha256_file(args.psf),
-                # the design as this tile realises it: its N and L, where flags set them
-                "design": design_summary(_with_levels(design, n_levels), tile_pixels=n),
-                "versions": _versions(),
-            },
-        )
-        save_retrieval_figure(
-            stage / "retrieval.png", target, psf, result.levels, n_levels, result.quality_quantised
-        )
-    q = result.quality_quantised
+    record, q = result.record, result.retrieval.quality_quantised
     print(
-        f"retrieve: {n_levels} levels, N = {n}, K = {k}: "
+        f"retrieve: {record.levels} levels, N = {record.tile_pixels}, K = {record.kernel_size}: "
         f"correlation {correlation_text(q['correlation'])}, "
-        f"rmse {q['rmse']:.5f}, efficiency {q['efficiency']:.4f} in {result.seconds:.1f} s "
-        f"-> {args.out}"
+        f"rmse {q['rmse']:.5f}, efficiency {q['efficiency']:.4f} in "
+        f"{result.retrieval.seconds:.1f} s -> {args.out}"
     )
-    if missed:
+    if result.missed:
         # still a valid plate (exit 0), but not the target: say so before anyone fabricates it
         print(
-            f"doefab retrieve: warning: the {n_levels}-level design misses the quality goals "
-            f"({'; '.join(missed)}); more --levels or a larger --tile-pixels may meet them",
+            f"doefab retrieve: warning: the {record.levels}-level design misses the quality "
+            f"goals ({'; '.join(result.missed)}); more --levels or a larger --tile-pixels may "
+            "meet them",
             file=sys.stderr,
         )
-    elif plate_missed:
+    elif result.square_pixels_missed:
         # a flat top filling the window: its outer orders are dimmed by the pixels' envelope
         print(
             "doefab retrieve: warning: the design meets the goals, but a plate of square "
             f"pixels, whose sinc^2 envelope dims the outer orders, misses them "
-            f"({'; '.join(plate_missed)}); more tile pixels (finer features) flatten the envelope",
+            f"({'; '.join(result.square_pixels_missed)}); more tile pixels (finer features) "
+            "flatten the envelope",
             file=sys.stderr,
         )
     return 0
-
-
-def _versions():
-    from importlib import metadata
-
-    import nlopt
-    import numpy
-    import scipy
-
-    try:
-        doefab = metadata.version("doefab")
-    except metadata.PackageNotFoundError:
-        doefab = "unknown"
-    return {
-        "numpy": numpy.__version__,
-        "scipy": scipy.__version__,
-        "nlopt": nlopt.__version__,
-        "doefab": doefab,
-    }
-
-
-def _with_levels(design, n_levels):
-    """Return ``design`` quantised to ``n_levels`` (``--levels`` may differ from its own)."""
-    from dataclasses import replace
-
-    return replace(design, fabrication=replace(design.fabrication, levels=n_levels))

@@ -22,7 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from doe.design import LONGEST_LENGTH, SHORTEST_LENGTH, as_typed
+from doe.derived import as_typed
+from doe.design import LONGEST_LENGTH, SHORTEST_LENGTH
 from doe.infra.errors import InputError
 from doe.infra.files import LEVEL_COUNT_RULE, is_level_count, previous_files, read_json, write_json
 
@@ -243,7 +244,7 @@ def build_fab_manifest(
     Parameters
     ----------
     design : doe.design.Design
-    derived : doe.design.Derived
+    derived : doe.derived.Derived
         Derived quantities for the tile's N (``derive(design, tile_pixels=N)``).
     layout : layouts.gds.PlateLayout
         Cell names, pitch, tiles and array origin of the written GDS.

@@ -9,7 +9,7 @@ readers then skip what they would compare):
     ``--psf`` given, kernel size, photon level, dark counts, sample cell, design
     name, ``--init`` folder).
 ``design``
-    :func:`doe.design.design_summary` of the design trained for: the sub-pixel
+    :func:`doe.derived.design_summary` of the design trained for: the sub-pixel
     grid ``psf.npy`` is sampled on, which the PSF-provenance checks compare.
 ``images``
     ``{"source", "count"}`` of the training images.
@@ -58,7 +58,7 @@ class LearnRecord:
     config : dict or None
         The training's settings.
     design : dict or None
-        :func:`doe.design.design_summary` of the design learned for.
+        :func:`doe.derived.design_summary` of the design learned for.
     images : dict or None
         ``{"source": str, "count": int}`` of the training images.
     steps : int or None

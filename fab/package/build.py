@@ -83,7 +83,7 @@ def load_design_dir(design_dir, design):
     target : (K, K) float64 or None
         None when DESIGN_DIR has no target_psf.npy.
     """
-    from doe.design import TILE_KEYS, design_differences
+    from doe.design_match import TILE_KEYS, design_differences
     from doe.infra.files import read_json, read_levels, read_psf
 
     d = Path(design_dir)
@@ -122,7 +122,7 @@ def load_design_dir(design_dir, design):
 
 def tile_derived(design, n):
     """Return derive(design) for a tile of N pixels (pitch re-snapped to the grid if N differs)."""
-    from doe.design import derive
+    from doe.derived import derive
 
     der = derive(design)
     return der if der.tile_pixels == n else derive(design, tile_pixels=n)
@@ -130,7 +130,7 @@ def tile_derived(design, n):
 
 def tile_summary(design, der):
     """Return design_summary(design) with its derived optics for the tile actually fabricated."""
-    from doe.design import design_summary
+    from doe.derived import design_summary
 
     return design_summary(design, tile_pixels=der.tile_pixels)
 
@@ -217,7 +217,8 @@ def build_package(design_dir, out, *, config=None, force=False, oasis=False, pro
 
 def _check_tile(design, levels, target, design_dir):
     """Refuse a tile that cannot be made under ``design``; return (derived, pitch_nm, K)."""
-    from doe.design import MAX_TILE_PIXELS, lattice_problem
+    from doe.derived import lattice_problem
+    from doe.design import MAX_TILE_PIXELS
 
     n = levels.shape[0]
     if n > MAX_TILE_PIXELS:  # as doefab retrieve --tile-pixels and the design check refuse
@@ -254,7 +255,7 @@ def _check_tile(design, levels, target, design_dir):
 
 def _plan(design, der, levels, target, k, pitch_nm):
     """Simulate the tile and cut its masks; return (_Tile, warnings)."""
-    from doe.design import derive
+    from doe.derived import derive
     from doe.fraunhofer import simulate_levels
     from fab.package.masks import masks_from_levels
 
@@ -367,7 +368,7 @@ def _goal_warnings(levels, n_levels, target, simulated):
     """Say when the nominal plate misses the design goals, as the report's Summary does:
     in the contract's model, or only as a plate of square pixels (whose sinc^2 envelope
     dims the outer orders, which the contract's model does not)."""
-    from doe.retrieval import goals_missed
+    from doe.goals import goals_missed
 
     missed, plate_missed = goals_missed(levels, n_levels, target, simulated)
     if missed:

@@ -16,8 +16,8 @@ import numpy as np
 
 from doe.figures import correlation_text
 from doe.fraunhofer import correlation, level_phase, rmse
+from doe.goals import CORRELATION_GOAL, RMSE_GOAL, goals_missed
 from doe.infra.files import atomic_write_bytes, write_json
-from doe.retrieval import CORRELATION_GOAL, RMSE_GOAL, goals_missed
 from fab.package.manifest import file_records
 from fab.templates import render_page
 

@@ -150,9 +150,11 @@ def _check_inputs(options):
 
     A bad value must stop the run before its first stage, not minutes into it.
     """
-    from doe.design import check_psf_grid, check_psf_kernel, load_design
+    from doe.design import load_design
+    from doe.design_match import check_psf_kernel
     from doe.infra import flags
     from doe.infra.files import read_psf
+    from doe.records.psf_source import check_psf_grid
     from fab.mesh.checks import check_float32_heights, parse_formats
 
     flags.positive("--minutes", options.minutes)

@@ -5,12 +5,12 @@ import platform
 from importlib import metadata
 from pathlib import Path
 
-from doe.design import design_summary
+from doe.derived import design_summary
 from doe.figures import value_and_limit
+from doe.goals import CORRELATION_GOAL, RMSE_GOAL
 from doe.infra.files import atomic_write_bytes, sha256_file, write_json
 from doe.records.fab_manifest import MANIFEST_NAME
 from doe.records.learn import LEARN_JSON
-from doe.retrieval import CORRELATION_GOAL, RMSE_GOAL
 from fab.templates import render_page
 
 PACKAGES = (

@@ -105,7 +105,7 @@ def read_design_dir(path):
         raise InputError(source, f"levels {n_levels} must be {LEVEL_COUNT_RULE}")
     levels = read_levels(levels_file, n_levels)
     if kind == "retrieve":
-        # The mask pixel pitch snaps to the GDS grid for this N (as doe.design.derive does).
+        # The mask pixel pitch snaps to the GDS grid for this N (as doe.derived.derive does).
         n = levels.shape[0]
         pitch = round(tile_nominal / n / grid) * grid
         if pitch == 0:

@@ -5,17 +5,9 @@ import math
 
 import pytest
 
-from doe.design import (
-    PSF_GRID_KEYS,
-    TILE_KEYS,
-    _read_preset,
-    derive,
-    design_differences,
-    design_summary,
-    load_design,
-    parse_design,
-    preset_names,
-)
+from doe.derived import derive, design_summary
+from doe.design import _read_preset, load_design, parse_design, preset_names
+from doe.design_match import PSF_GRID_KEYS, TILE_KEYS, design_differences
 from doe.infra.cli import main
 from doe.infra.errors import InputError
 from doe.materials import MATERIALS, refractive_index

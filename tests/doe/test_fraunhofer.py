@@ -2,9 +2,11 @@
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from doe import fraunhofer
-from doe.retrieval import window_matrix
+from doe.refinement import window_matrix
 
 
 def test_parseval_all_orders_carry_unit_power():
@@ -168,3 +170,16 @@ def test_plate_quality_is_that_of_a_finely_sampled_plate_of_square_pixels():
     assert plate["rmse"] == pytest.approx(fraunhofer.rmse(psf, target), rel=1e-4)
     # and not the contract's point-like pixels, whose figures differ by more than that
     assert fraunhofer.quality(phase, target)["efficiency"] > window.sum() * (1 + 1e-2)
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.sampled_from([2, 4, 8, 16]))
+def test_rounding_levels_is_idempotent(seed, n_levels):
+    phase = np.random.default_rng(seed).uniform(-20, 20, (6, 6))
+    levels = fraunhofer.round_levels(phase, n_levels)
+    assert levels.dtype == np.uint8 and levels.max() < n_levels
+    again = fraunhofer.round_levels(fraunhofer.level_phase(levels, n_levels), n_levels)
+    np.testing.assert_array_equal(again, levels)
+    # the nearest level: the wrapped phase error is at most half a step
+    err = np.angle(np.exp(1j * (phase - fraunhofer.level_phase(levels, n_levels))))
+    assert np.abs(err).max() <= np.pi / n_levels + 1e-9

@@ -8,7 +8,8 @@ import pytest
 import torch
 from skimage import io
 
-from doe.design import design_summary, load_design
+from doe.derived import design_summary
+from doe.design import load_design
 from doe.infra.cli import main
 from psf_learn.evaluate import evaluate, evaluate_image
 from psf_learn.images import dead_leaves
@@ -169,7 +170,7 @@ def test_evaluate_shows_progress_on_a_terminal(trained, capsys):
 def test_evaluate_refuses_a_psf_made_for_another_grid(trained, tmp_path, capsys):
     # A factor-4 model evaluated with a PSF learned, or measured, on a factor-2 grid
     # gave a PSNR as if nothing were wrong.
-    from doe.design import derive
+    from doe.derived import derive
 
     out, images = trained
     (tmp_path / "factor2.toml").write_text("[sensor]\nsuperres_factor = 2\n")

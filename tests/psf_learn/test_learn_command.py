@@ -9,7 +9,8 @@ import pytest
 import torch
 from skimage import io
 
-from doe.design import design_summary, load_design
+from doe.derived import design_summary
+from doe.design import load_design
 from doe.infra.cli import main
 from doe.infra.files import check_psf
 from psf_learn.psf import baseline_psf, box_psf, gaussian_psf
@@ -221,7 +222,8 @@ def test_fixed_psf_learned_for_another_grid_is_refused(tmp_path, capsys):
 def test_measured_psf_of_a_plate_for_another_grid_is_refused(tmp_path, capsys):
     # verify.json beside a measured PSF records the plate's dot lattice: 75 um for a
     # factor-2 design, twice the default design's 37.5 um sub-pixels.
-    from doe.design import check_psf_grid, derive
+    from doe.derived import derive
+    from doe.records.psf_source import check_psf_grid
 
     factor2 = tmp_path / "factor2.toml"
     factor2.write_text("[sensor]\nsuperres_factor = 2\n")
@@ -247,7 +249,7 @@ def test_measured_psf_of_a_plate_for_another_grid_is_refused(tmp_path, capsys):
      ("learn.json", json.dumps({"design": design_summary(load_design(None))}))],
 )  # fmt: skip
 def test_psf_reports_without_a_grid_are_not_compared(tmp_path, name, text):
-    from doe.design import check_psf_grid, psf_grid_problem
+    from doe.records.psf_source import check_psf_grid, psf_grid_problem
 
     np.save(tmp_path / "psf.npy", gaussian_psf(K))
     (tmp_path / name).write_text(text)

@@ -8,7 +8,8 @@ import re
 import numpy as np
 import pytest
 
-from doe.design import derive, design_summary, load_design
+from doe.derived import derive, design_summary
+from doe.design import load_design
 from doe.fraunhofer import simulate_levels
 from doe.infra.cli import main
 from fab.package.layer_images import read_image

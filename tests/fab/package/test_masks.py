@@ -8,7 +8,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from doe.design import derive, load_design
+from doe.derived import derive
+from doe.design import load_design
 from fab.package.masks import (
     Mask,
     etch_depth_map,

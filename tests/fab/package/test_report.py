@@ -6,7 +6,8 @@ import re
 import numpy as np
 import pytest
 
-from doe.design import derive, design_summary, load_design
+from doe.derived import derive, design_summary
+from doe.design import load_design
 from doe.fraunhofer import simulate_levels
 from fab.package.masks import masks_from_levels
 from fab.package.report import FIGURES, REPORT_HTML, REPORT_MD, TOLERANCE_JSON, write_fab_report

@@ -380,7 +380,8 @@ def test_fine_pitch_tabulates_only_cd_biases_below_half_a_pixel(pitch, tabulated
 
 @pytest.mark.slow
 def test_full_size_tile_nominal_row_is_the_enveloped_contract_model():
-    from doe.design import derive, load_design
+    from doe.derived import derive
+    from doe.design import load_design
 
     design = load_design()
     der = derive(design)

@@ -34,7 +34,8 @@ def test_an_acceptance_threshold_that_is_no_number_is_refused(value):
 def test_plate_measured_on_a_bench_lens_hands_its_psf_to_the_design(tmp_path, levels):
     # A bench lens of twice the focal length doubles the dot lattice on the camera;
     # the PSF in orders is the same, and learn once refused it as another grid.
-    from doe.design import check_psf_grid, load_design
+    from doe.design import load_design
+    from doe.records.psf_source import check_psf_grid
 
     code, report, _ = run_verify(
         tmp_path,
@@ -184,7 +185,8 @@ def test_manifest_without_lattice_pitch_takes_it_from_the_optics(tmp_path, level
 
 
 def test_retrieve_folder_is_accepted(tmp_path, levels):
-    from doe.design import design_summary, load_design
+    from doe.derived import design_summary
+    from doe.design import load_design
 
     folder = tmp_path / "ret"
     folder.mkdir()
@@ -200,7 +202,7 @@ def test_retrieve_folder_is_accepted(tmp_path, levels):
     code = main(["verify", str(folder), str(tmp_path / "cap.png"), "--out", str(tmp_path / "o")])
     assert code == 0
     # the lattice of the plate fab makes of this tile: its pitch snapped to the GDS grid
-    from doe.design import derive
+    from doe.derived import derive
 
     design = load_design()
     pitch = derive(design, tile_pixels=N).mask_pixel_pitch
@@ -243,7 +245,8 @@ def test_a_retrieval_json_of_a_design_verify_cannot_use_exits_2(
     tmp_path, levels, capsys, section, key, value, problem
 ):
     # each of these ended in a traceback (exit 3): read after the checks, or divided by 0
-    from doe.design import design_summary, load_design
+    from doe.derived import design_summary
+    from doe.design import load_design
 
     summary = design_summary(load_design())
     if key is None:

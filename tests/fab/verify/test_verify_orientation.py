@@ -89,7 +89,8 @@ def test_mirrored_plate_fails(tmp_path, levels):
     code, report, _ = run_verify(tmp_path, levels, dict(seed=9, orientation="mirror-x"))
     assert code == 1 and "mirrored" in report["diagnosis"]
     # Its measured PSF is not the plate's in the design's frame: no network is tuned to it.
-    from doe.design import check_psf_grid, load_design
+    from doe.design import load_design
+    from doe.records.psf_source import check_psf_grid
 
     assert report["measured_psf_usable"] is False
     with pytest.raises(InputError, match="could not judge \\(mirrored\\)") as refused:
