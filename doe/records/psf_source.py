@@ -13,7 +13,8 @@ from pathlib import Path
 from doe.derived import design_summary
 from doe.design_match import PSF_GRID_KEYS, is_number, summary_differences, summary_field
 from doe.infra.errors import InputError
-from doe.infra.files import read_json
+from doe.records.learn import LEARN_JSON, read_learn
+from doe.records.verify import VERIFY_JSON, read_verify
 
 # A measured PSF is sampled on the plate's dot lattice, which matches the design's
 # sub-pixel pitch to ppm; 2 % admits a hand-measured --lattice-pitch-um in verify.
@@ -39,12 +40,12 @@ def check_measured_psf(psf_path):
     than the flag said, clipped or too faint dots: its ``measured_psf.npy`` is not
     the plate's PSF in the design's frame, and a network tuned to it is tuned wrong.
     """
-    verified = Path(psf_path).with_name("verify.json")
+    verified = Path(psf_path).with_name(VERIFY_JSON)
     if not verified.is_file():
         return
-    report = read_json(verified)
-    if report.get("measured_psf_usable") is False:
-        codes = report.get("diagnosis")
+    report = read_verify(verified)
+    if report.measured_psf_usable is False:
+        codes = report.diagnosis
         codes = ", ".join(map(str, codes)) if isinstance(codes, list) else "no diagnosis"
         raise InputError(
             verified,
@@ -62,20 +63,21 @@ def psf_grid_problem(psf_path, summary, whose):
     :func:`design_summary` dict; ``whose`` names it in the reason. None when
     neither report says otherwise.
     """
-    learned = Path(psf_path).with_name("learn.json")
+    learned = Path(psf_path).with_name(LEARN_JSON)
     if learned.is_file():
-        recorded = read_json(learned).get("design")  # read_json: a JSON object
+        recorded = read_learn(learned).design
         differences = summary_differences(recorded, summary, PSF_GRID_KEYS)
         if differences:
             return learned, (
                 f"the PSF was learned for another sub-pixel grid than {whose} "
                 f"({'; '.join(differences)})"
             )
-    verified = Path(psf_path).with_name("verify.json")
+    verified = Path(psf_path).with_name(VERIFY_JSON)
     if verified.is_file():
-        report = read_json(verified)
+        report = read_verify(verified)
         # The design's lattice (on its sensor); older reports hold only the capture's.
-        lattice = report.get("design_lattice_pitch_um", report.get("lattice_pitch_um"))
+        has_design_lattice = "design_lattice_pitch_um" in report.data
+        lattice = report.design_lattice_pitch_um if has_design_lattice else report.lattice_pitch_um
         pitch = summary_field(summary_field(summary, "sensor"), "pixel_pitch_um")
         factor = summary_field(summary_field(summary, "sensor"), "superres_factor")
         if not all(is_number(v) and v > 0 for v in (lattice, pitch, factor)):

@@ -84,18 +84,17 @@ def load_design_dir(design_dir, design):
         None when DESIGN_DIR has no target_psf.npy.
     """
     from doe.design_match import TILE_KEYS, design_differences
-    from doe.infra.files import read_json, read_levels, read_psf
+    from doe.infra.files import read_levels, read_psf
+    from doe.records.retrieval import RETRIEVAL_JSON, read_retrieval
 
     d = Path(design_dir)
     n_levels = design.fabrication.levels
     if not d.is_dir():
         raise InputError(d, "no such design folder (expected doefab retrieve's output)")
-    info = d / "retrieval.json"
+    info = d / RETRIEVAL_JSON
     if info.is_file():
-        record = read_json(info)
-        got = record.get("levels")
-        if got is not None and (not isinstance(got, int) or isinstance(got, bool)):
-            raise InputError(info, f"'levels' must be a whole number, got {got!r}")
+        record = read_retrieval(info)  # refuses a 'levels' that is no whole number
+        got = record.levels
         if got is not None and got != n_levels:
             raise InputError(
                 info,
@@ -103,7 +102,7 @@ def load_design_dir(design_dir, design):
                 f"{n_levels}; pass a --config whose [fabrication] levels = {got}",
             )
         # a tile etched for another wavelength, glass or sub-pixel grid is a wrong plate
-        differences = design_differences(record.get("design"), design, TILE_KEYS)
+        differences = design_differences(record.design, design, TILE_KEYS)
         if differences:
             raise InputError(
                 info,

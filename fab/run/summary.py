@@ -1,6 +1,5 @@
 """The run folder's front page (``index.html``) and ``manifest.json``."""
 
-import json
 import platform
 from importlib import metadata
 from pathlib import Path
@@ -8,9 +7,11 @@ from pathlib import Path
 from doe.derived import design_summary
 from doe.figures import value_and_limit
 from doe.goals import CORRELATION_GOAL, RMSE_GOAL
+from doe.infra.errors import InputError
 from doe.infra.files import atomic_write_bytes, sha256_file, write_json
-from doe.records.fab_manifest import MANIFEST_NAME
-from doe.records.learn import LEARN_JSON
+from doe.records.fab_manifest import MANIFEST_NAME, read_fab_manifest
+from doe.records.learn import LEARN_JSON, read_learn
+from doe.records.retrieval import RETRIEVAL_JSON, read_retrieval
 from fab.templates import render_page
 
 PACKAGES = (
@@ -35,17 +36,17 @@ HEADLINES = (
     ("learn", LEARN_JSON, ("final_psnr_db",), "training PSNR (dB)", None),
     (
         "retrieve",
-        "retrieval.json",
+        RETRIEVAL_JSON,
         ("quantised", "correlation"),
         "correlation ({quantised})",
         CORRELATION_GOAL,
     ),
-    ("retrieve", "retrieval.json", ("quantised", "rmse"), "rmse ({quantised})", RMSE_GOAL),
-    ("retrieve", "retrieval.json", ("quantised", "efficiency"), "efficiency ({quantised})", None),
-    ("retrieve", "retrieval.json", ("goals", "met"), "correlation and rmse goals met", None),
+    ("retrieve", RETRIEVAL_JSON, ("quantised", "rmse"), "rmse ({quantised})", RMSE_GOAL),
+    ("retrieve", RETRIEVAL_JSON, ("quantised", "efficiency"), "efficiency ({quantised})", None),
+    ("retrieve", RETRIEVAL_JSON, ("goals", "met"), "correlation and rmse goals met", None),
     (
         "retrieve",
-        "retrieval.json",
+        RETRIEVAL_JSON,
         ("square_pixels", "goals_met"),
         "goals met as a plate of square pixels (their sinc^2 envelope)",
         None,
@@ -117,13 +118,22 @@ def write_manifest(run_dir, design, options, stages, timings, stage_seconds):
     )
 
 
+# Each stage file the front page quotes, read through its record: (name) -> JSON object.
+_READERS = {
+    LEARN_JSON: lambda p: read_learn(p).data,
+    RETRIEVAL_JSON: lambda p: read_retrieval(p).as_dict(),
+    MANIFEST_NAME: lambda p: read_fab_manifest(p).fields,
+}
+
+
 def _lookup(run_dir, stage, name, path):
+    """Return the value at key ``path`` of a stage's file, None where it has none."""
     try:
-        value = json.loads((Path(run_dir) / stage / name).read_text())
+        value = _READERS[name](Path(run_dir) / stage / name)
         for key in path:
             value = value[key]
         return value
-    except (OSError, KeyError, TypeError, json.JSONDecodeError):
+    except (InputError, KeyError, TypeError):
         return None
 
 
@@ -152,7 +162,7 @@ def write_index(run_dir, design, stages):
 
 def _headline_rows(run_dir, stages):
     """Return the front page's Summary as (label, value shown) rows, from the stages' files."""
-    levels = _lookup(run_dir, "retrieve", "retrieval.json", ("levels",))
+    levels = _lookup(run_dir, "retrieve", RETRIEVAL_JSON, ("levels",))
     quantised = f"{levels} levels" if levels else "quantised"
     rows = []
     for stage, name, path, label, goal in HEADLINES:
@@ -160,7 +170,7 @@ def _headline_rows(run_dir, stages):
         if value is None:
             continue
         if isinstance(value, bool):
-            shown = "yes" if value else "NO: see retrieve/retrieval.json"
+            shown = "yes" if value else f"NO: see retrieve/{RETRIEVAL_JSON}"
         elif isinstance(value, float):
             shown = f"{value:.6g}" if goal is None else value_and_limit(value, goal, 6)[0]
         else:
