@@ -66,6 +66,14 @@ def lattice_problem(der, kernel_size, grid):
     )
 
 
+def snapped_pixel_pitch(tile_nominal, tile_pixels, grid):
+    """Return the mask pixel pitch (m): the nominal tile over N pixels, snapped to the grid.
+
+    0 when the grid is coarser than twice the pitch (the caller refuses that).
+    """
+    return round(tile_nominal / tile_pixels / grid) * grid
+
+
 def derive(d, tile_pixels=None):
     """Return the :class:`Derived` quantities of design ``d``.
 
@@ -76,8 +84,7 @@ def derive(d, tile_pixels=None):
     subpixel = sensor.pixel_pitch / sensor.superres_factor
     tile_nominal = wl * f / subpixel  # order spacing lambda f / T = sub-pixel pitch
     n_pix = tile_pixels or max(1, round(tile_nominal / fab.feature_size))
-    grid_steps = round(tile_nominal / n_pix / fab.grid)
-    pitch = grid_steps * fab.grid
+    pitch = snapped_pixel_pitch(tile_nominal, n_pix, fab.grid)
     tile = n_pix * pitch
     lattice = wl * f / tile if tile > 0 else math.inf
     half_width_subpixels = max(sensor.columns, sensor.rows) * sensor.superres_factor / 2

@@ -9,6 +9,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from doe.derived import snapped_pixel_pitch
 from doe.infra.errors import InputError
 from doe.records.fab_manifest import (
     LEVELS_FILE,
@@ -150,8 +151,7 @@ def _retrieval_reference(source):
 
 def _retrieve_lattice(ref, n, source):
     """Return (lattice pitch, mask pixel pitch) of a retrieve folder's tile of N = ``n``."""
-    # The mask pixel pitch snaps to the GDS grid for this N (as doe.derived.derive does).
-    pitch = round(ref.tile_nominal / n / ref.grid) * ref.grid
+    pitch = snapped_pixel_pitch(ref.tile_nominal, n, ref.grid)  # as derive() snaps it
     if pitch == 0:
         raise InputError(source, f"its grid_nm is coarser than the mask pixels of N = {n}")
     return ref.wavelength * ref.focal_length / (n * pitch), pitch
