@@ -107,8 +107,8 @@ def efficiency_bound(target, n_pixels, n_levels=None, rng=None, restarts=16, max
     """Return the exact-shape efficiency bound of a continuous (None) or L-level tile.
 
     The best of ``restarts`` random starts: the maximum has many local peaks on
-    flat-topped targets (an 8-level square 5 x 5 read 0.899 from 3 starts, 0.903
-    from 16, 0.915 from 32), where sparse dots agree from 3 starts to 32.
+    flat-topped targets, where more starts find a higher one; on sparse dots a few
+    starts already find it.
     """
     return best_flat_field(target, n_pixels, n_levels, rng, restarts, max_eval)[0]
 
@@ -125,7 +125,7 @@ def within_goals(target, n_pixels, n_levels=None, cap=1.0, max_eval=150, mus=(10
     just met). Penalty method (the penalty of
     :func:`doe.refinement.constrained_objective`, weights ``mus``) with L-BFGS, started from the
     target plus the uniform background that spends the rmse of ``cap``
-    (:func:`with_background`; it beat random starts in trials); the exact shape's
+    (:func:`with_background`, a better start than random ones); the exact shape's
     own bound (:func:`best_flat_field`) is the floor. Only points whose exact
     figures (CONVENTIONS.md) are within ``cap`` count, so the result is an
     estimate from below of the true maximum, like the others.

@@ -293,8 +293,8 @@ def _huge_int(v):
     return isinstance(v, int) and not isinstance(v, bool) and abs(v) > SEED_MAX
 
 
-# Retrieval time and memory grow as N^2: N = 1024 took 183 s and 445 MB at peak on the
-# 2-core machine, so N = 4096 takes ~50 min and ~7 GB. Larger tiles are refused.
+# Retrieval time and memory grow as N^2: N = 4096 takes about 50 min and 7 GB on a
+# 2-core machine. Larger tiles are refused.
 MAX_TILE_PIXELS = 4096
 
 

@@ -82,8 +82,8 @@ def flat_modulus_start(target, n_pixels, rng=None, restarts=3, max_eval=200):
     that maximise mean |g| (:func:`doe.bounds.best_flat_field`: Wyrowski's bound
     on the efficiency of a plate forming exactly the target's shape) has the
     flattest modulus, so arg g is a start that is already both efficient and
-    close to the target shape (on a hard 5 x 5 square it beat two random starts
-    by 3.5 % of efficiency; like theirs, its result varies with the seed).
+    close to the target shape (on hard flat tops it starts more efficient than random
+    phases; like theirs, its result varies with the seed).
     """
     return np.angle(bounds.best_flat_field(target, n_pixels, None, rng, restarts, max_eval)[1])
 

@@ -29,7 +29,7 @@ CLIMB_SWEEPS = 3
 """Most exact-figure coordinate-descent sweeps that spend fidelity left below the cap."""
 
 CLIMB_WEIGHT = 10.0
-"""Efficiency weight of those sweeps (30 overshoots the cap more often; measured on flat tops)."""
+"""Efficiency weight of those sweeps (a larger one, such as 30, overshoots the cap on flat tops)."""
 
 
 def coordinate_descent(
@@ -127,8 +127,8 @@ def quantised_finish(
     """Return (rank, levels): the discrete stages of :func:`doe.retrieval.retrieve_phase`.
 
     Two descents, one from quantised GS and one from the best plain rounding: which
-    of them ends higher is a lottery (on 7 hard flat tops x 2 seeds the second won
-    13 times, by 0.0004-0.012 of efficiency), so both run and the better is kept.
+    of them ends higher is a lottery (on hard flat tops mostly the second, by up to
+    about 0.01 of efficiency, but not always), so both run and the better is kept.
 
     Parameters
     ----------

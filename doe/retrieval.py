@@ -46,7 +46,7 @@ SCREEN_RATE = 0.012
 """Efficiency that one unit of fidelity above the cap costs L-BFGS on its way to the cap.
 
 Screened starts are ranked by efficiency - SCREEN_RATE * fidelity after MRAF
-(0.008-0.014 measured on hard flat tops; the ranking, not the value, matters).
+(it lies between 0.008 and 0.014 on hard flat tops; the ranking, not the value, matters).
 """
 
 STARTS = 2
@@ -216,7 +216,7 @@ def _screen(target, n_pixels, screens, gs_iterations, mraf_iterations, rng, bar)
 
     Cheap starts (the flat-modulus one, then random weighted GS), each with MRAF;
     which basin the later stages end in is a lottery that the screened figures
-    predict well (measured on flat tops and sparse dots).
+    predict well, on flat tops and sparse dots alike.
     """
     k = target.shape[0]
     screened = []

@@ -49,8 +49,8 @@ def main(argv=None):
     # A command that runs other commands (run: one per stage) is handed the dispatcher
     # rather than importing it back, which would make an import circle.
     args.invoke = main
-    # Ctrl-C and SIGTERM unwind (SIGTERM once killed the process and left the staging
-    # folder behind), and are remembered when a library swallows their exception.
+    # Ctrl-C and SIGTERM unwind, so that staging folders are removed, and are remembered
+    # when a library swallows their exception.
     with interrupts.handled():
         return _dispatch(args)
 

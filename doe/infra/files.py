@@ -265,8 +265,8 @@ def _staging_folder(out_dir):
         where, prefix = out_dir, ".staging-"
     else:
         where, prefix = parent, f".{out_dir.name}.staging-"
-    # host and process in the name: a run killed outright (SIGKILL, power cut) left its
-    # folder for good; the next run into out_dir removes those of processes now gone
+    # host and process in the name: a run killed outright (SIGKILL, power cut) leaves its
+    # folder behind; the next run into out_dir removes those of processes now gone
     prefix += f"{re.sub(r'[^A-Za-z0-9]', '_', socket.gethostname())}-"
     _remove_orphans(where, prefix)
     return Path(tempfile.mkdtemp(dir=where, prefix=f"{prefix}{os.getpid()}-"))

@@ -31,7 +31,7 @@ SEED_MAX = 2**63 - 1
 # Expected counts per pixel: numpy's Poisson draws stop near 1e19; no SPAD comes near.
 PHOTONS_MAX = 1e12
 # Training budgets: a million minutes is two years; a larger one is a typing error
-# (1e308 minutes overflowed the deadline after the data had loaded).
+# (1e308 minutes would overflow the deadline, and only after the data had loaded).
 MINUTES_MAX = 1e6
 STEPS_MAX = 10**9
 

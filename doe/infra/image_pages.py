@@ -12,8 +12,8 @@ from doe.infra.errors import InputError
 def check_file_kind(path):
     """Raise InputError for a folder, a pipe or device, or a dangling link named as an image.
 
-    Opening a pipe waits for a writer for ever, and "no such file" of /dev/zero or of a
-    link to nothing misled; a missing file is each reader's to name.
+    Opening a pipe waits for a writer for ever, and "no such file" would mislead for
+    /dev/zero or a link to nothing; a missing file is each reader's to name.
     """
     path = Path(path)
     if path.is_dir():
