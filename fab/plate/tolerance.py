@@ -120,7 +120,7 @@ def zero_order_power_balanced(eps, n_levels, steps):
         P0 = 4 sin^2(pi steps eps / L) |A|^2,  A = (1/L) sum_{l covered} exp(2 pi i l / L).
 
     For L = 8 and the deep mask (steps = 4): |A|^2 = (1 + (1 + sqrt 2)^2) / 64 =
-    0.1067, and P0 = 4 sin^2(pi eps / 2) 0.1067 ~ 1.053 eps^2 (the issue's 1.05 eps^2).
+    0.1067, and P0 = 4 sin^2(pi eps / 2) 0.1067 ~ 1.053 eps^2.
     """
     lv = np.arange(n_levels)
     covered = ((n_levels - 1 - lv) & steps) != 0

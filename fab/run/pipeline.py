@@ -197,7 +197,8 @@ def own_files(stage, state, run_dir):
 
 def _own_files(rec, folder):
     """Every entry of ``folder`` the run did not write: hidden files, links and empty
-    folders included (stage_files skips them, and the swap removed them with the folder)."""
+    folders included (stage_files skips them, and the swap would remove them with the
+    folder)."""
     ours = {*rec.get("files", {}), *rec.get("replaces", {})}
     folder = Path(folder)
     own = []
@@ -214,8 +215,8 @@ def _own_files(rec, folder):
 
 def discard_unfinished(stage, run_dir):
     """Remove the ``.NAME.new`` of a stage found up to date that an interrupted run left
-    unfinished (it still holds its key): no later run would (a --force run stopped during
-    training left its checkpoint there for good)."""
+    unfinished (it still holds its key): no later run would, and a --force run stopped
+    during training would leave its checkpoint there for good."""
     new = Path(run_dir) / f".{stage.name}.new"
     if (new / ".stage_key").exists():
         _remove_tree(new)

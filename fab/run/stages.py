@@ -192,8 +192,8 @@ def plan_stages(run_dir, design, options):
         psf = Path(options.psf)
     else:
         # A step budget keeps the run reproducible; --minutes trades that for a time budget.
-        # Reproducible means on the CPU: CUDA's gradients sum in a varying order, and two
-        # runs on an H100 learned PSFs 4e-4 apart, hence two plates.
+        # Reproducible means on the CPU: CUDA's gradients sum in a varying order, so two
+        # runs on a GPU learn slightly different PSFs, hence two plates.
         budget = (
             ["--minutes", str(options.minutes)]
             if options.minutes is not None

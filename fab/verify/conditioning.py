@@ -91,7 +91,7 @@ def check_dark(raw, dark, dark_source):
 def _code_kind(raw):
     """How a file's codes read in DN: a 12-bit sensor's codes read the same stored
     MSB-aligned in 16 bits or as a BitsPerSample-12 TIFF (a capture as PNG and its dark
-    as such a TIFF were refused as "other camera settings"). A 16-bit file of values
+    as such a TIFF are not refused as "other camera settings"). A 16-bit file of values
     <= 4095 stays apart: it may be a 16-bit mode's dark."""
     if raw.encoding in ("uint16-msb12", "uint12") and raw.full_scale == 4095.0:
         return "12-bit DN"

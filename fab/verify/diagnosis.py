@@ -133,8 +133,8 @@ def _other_design(result):
     plate of this design with a depth or overlay error still matches the fitted model.
     """
     fits = list(_significant_fits(result).values())
-    # and an overlay fit beyond the reach a shift is named in: still this design (M2 of
-    # a random design 11 um off, fitted at 2.25 px, matched the frame at 0.99)
+    # and an overlay fit beyond the reach a shift is named in: a mask printed far off
+    # still makes a plate of this design, which the fit at its search's edge matches
     overlay = result["overlay_error_fit"]
     if (
         overlay is not None
@@ -146,17 +146,16 @@ def _other_design(result):
     frames = [fit["frame_correlation"] for fit in fits]
     # The joint etch fit's plate counts for the frame even when it needs the deepest etch
     # alone (deep_etch_error's, not among the significant fits): a dense design's every
-    # order changes with it (a random tile with its deep etch 30 % off had a frame
-    # correlation of 0.77 with the design and failed as other_design).
+    # order changes with it, so a deep etch far off takes the bare design's frame
+    # correlation below OTHER_DESIGN_MAX as another design would.
     etch = result["etch_error_fit"]
     if _decisive(etch):
         frames.append(etch["frame_correlation"])
     for value in frames:  # NaN (no frame to judge) loses to any number
         frame = float(np.fmax(frame, value))
     # but a fitted plate that lights its zero order alone leaves the frame nothing to
-    # judge: a near-delta design's mid etch 30 % off put 97.6 % of the beam in the zero
-    # order, and the rest, near the noise, correlated at 0.21 with the design's
-    # (other_design, though the window matched at 0.9995)
+    # judge: the rest of the beam lies near the noise and correlates with nothing, though
+    # the window may match the design closely
     flat = any(value is None or np.isnan(value) for value in frames)
     if frame < OTHER_DESIGN_MAX and not flat:
         return True
@@ -239,9 +238,9 @@ def _pinned_correlation(result):
     """Return the window correlation of the best decisive fit left out at the edge of its
     range (-1 when none is).
 
-    A fault named must explain the window better: it is that one, beyond its reach
-    (an 11 um overlay of M1 was named a 7.5 % etch error of M2, whose fit passed the
-    strict thresholds, and on a sparse design the deepest etch, 5 % off).
+    A fault named must explain the window better: it is that one, beyond its reach (a
+    mask printed far off can pass for an etch error of another mask, whose fit meets the
+    strict thresholds, or on a sparse design for the deepest etch a few per cent off).
     """
     overlay, etch = result["overlay_error_fit"], result["etch_error_fit"]
     pinned = [
@@ -266,8 +265,8 @@ def _ambiguous(result, thresholds):
     search = result["zero_order_search"]
     if search["runner_up_margin"] < DECISIVE_CHI2:
         return True
-    # a mid etch 45 % off left a mirror within 9 of the bare design (ambiguous), where
-    # the design with the fitted etch explained the window at 0.9999 and the frame at 1.000
+    # a plate with an etch far off can fit a mirror about as well as the bare design,
+    # while the design with the fitted etch explains window and frame: not ambiguous
     fault = frame_of_explaining_fault(result, thresholds)
     return any(
         abs(d) <= DECISIVE_CHI2
@@ -304,8 +303,8 @@ def _deep_etch_off(result, thresholds):
     """Whether the deepest etch's own fit is off decisively: beyond its tolerance, or, on a
     PSF that fails or a zero order brightened, by what brings the PSF within the thresholds.
 
-    A deep etch 9.8 % off failed a random design's PSF (correlation 0.61) as a bare
-    psf_mismatch, its fit explaining the window at 0.9999.
+    A deep etch off within its tolerance can still fail a design's PSF: where its fit
+    explains the window, it is named rather than left a bare psf_mismatch.
     """
     fit = result["deep_etch_error_fit"]
     if fit is None or result["deep_etch_error_fit_significance"] <= (SIGNIFICANCE + 1) ** 2:
@@ -324,7 +323,7 @@ def _deep_etch_off(result, thresholds):
     if psf_fails(result, thresholds):
         return explains
     # a zero order brightened, the PSF within: the deepest only where the others' fit agrees
-    # (a sparse design's mid etch 45 % off moved the deepest's own fit to +10.3 %)
+    # (on a sparse design, another etch far off pulls the deepest's own fit off too)
     return zero_order_brightened(result, thresholds) and explains and joint_off
 
 
@@ -343,8 +342,8 @@ def diagnose(result, thresholds):
     if result["window_snr"] < thresholds["min_window_snr"]:
         codes.append("low_signal")
     reflection = None if result["reflection_set_aside"] else winning_reflection(result)
-    # The reflection must explain the window too: a plate of another design won as the
-    # conjugate of a nearly point-symmetric one (frame 0.83) and matched it at 0.85.
+    # The reflection must explain the window too: a plate of another design can fit the
+    # conjugate of a nearly point-symmetric design better than the design itself.
     if reflection and result["correlation_as_measured"] >= EXPLAINED_MIN:
         codes.append("conjugate_plate" if reflection == "rot180" else "mirrored")
     elif not codes and (reflection or _other_design(result)):  # clipped or noisy windows

@@ -191,7 +191,7 @@ class _JointEtchFit:
         and the rest refitted, and every mask's 1-sigma error.
 
         Where two masks trade off (a near-delta design's M2 and M3), the full fit
-        stopped anywhere along the valley; a held error's sigma is the full fit's:
+        stops anywhere along the valley; a held error's sigma is the full fit's:
         how well the window could tell it.
         """
 

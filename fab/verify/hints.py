@@ -11,15 +11,15 @@ from fab.verify.diagnosis import SIGNIFICANCE, etched_off, explaining_fit, withi
 from fab.verify.overlay import REACH_PX
 
 # Below this share of the dots' light on the fitted lattice, "other_design" may be a
-# wrong pitch flag. Measured on simulated captures of random, designed, Gaussian and
-# sparse-dot plates: 1.0 at the right pitch (0.81-0.94 with 300 hot pixels left by
-# a dark frame); 0.13-0.83 at 0.59, 0.75, 1.33, 1.7 and 2 times it, except where the
-# fitted lattice is finer than the plate's and holds it (0.5 or 0.7 times): 1.0.
+# wrong pitch flag. On simulated captures of random, designed, Gaussian and sparse-dot
+# plates the share is 1.0 at the right pitch (0.81-0.94 with 300 hot pixels left by a
+# dark frame) and 0.13-0.83 at 0.59 to 2 times it, except where the fitted lattice is
+# finer than the plate's and holds it (0.5 or 0.7 times): 1.0.
 ON_LATTICE_MIN = 0.9
 # Below this share of the design's light outside the window in orders above the noise,
-# the efficiency is the design's share, not a measurement (see capture_notes): 0-0.035 on
-# 8-bit captures of 4, 8 and 16-level designs, whose faulty plates read the design's
-# efficiency (0.713 for a true 0.551); 0.26-0.72 on 16-bit ones, which measured it.
+# the efficiency is the design's share, not a measurement (see capture_notes): 8-bit
+# captures, whose outer orders drown in noise, reach 0-0.035 and read the design's
+# efficiency whatever the plate; 16-bit ones reach 0.26-0.72 and measure it.
 OUTSIDE_LIGHT_MEASURED_MIN = 0.1
 
 

@@ -30,10 +30,8 @@ from fab.verify.conditioning import robust_sigma
 # Pitch prior: the lattice pitch may differ from the nominal by this fraction
 # (lens focal length, camera pixel pitch, magnification).
 PITCH_TOLERANCE = 0.15
-# Dots closer than this (px) cannot be measured: the photometry aperture (>= 1.5 px)
-# then overlaps its background annulus (from 0.38 pitch). Simulated captures at 3 px
-# gave a false conjugate_plate verdict, at 4 px 2 of 4 did not register, from 4.5 px
-# all passed.
+# Dots closer than this (px) are not resolved well enough to register and measure: the
+# photometry aperture (>= 1.5 px) then overlaps its background annulus (from 0.38 pitch).
 MIN_PITCH_PX = 4.5
 # A dot is detected when its smoothed peak stands this many noise sigmas out.
 DETECT_SIGMAS = 8.0

@@ -39,8 +39,8 @@ def clipped_pixels(data, full_scale=None):
     """Return (dark, bright): how many pixels of an edge image sit at a clipping level.
 
     Clipping flattens a side of the edge spread and overstates the MTF (an edge of
-    1 px blur clipped on either side read MTF50 45 % high). Integer files clip at
-    code 0 and at ``full_scale``; float files (``full_scale`` None) where their
+    1 px blur clipped on either side reads MTF50 tens of per cent high). Integer files
+    clip at code 0 and at ``full_scale``; float files (``full_scale`` None) where their
     minimum or maximum is held by ``PLATEAU_SHARE`` of them and by more than any value
     between the two (each side on its own: one clipped on both loses neither).
     """
@@ -230,7 +230,7 @@ def _centroids(deriv, x_mid, guess, width=None):
     """Return each row's derivative centroid and sum (Hamming-windowed about ``guess``).
 
     The derivative keeps its sign, as ISO 12233 has it: clipped at zero, the noise
-    became weight everywhere in the window, which pulled every centroid to the
+    would become weight everywhere in the window, pulling every centroid to the
     window's centre and the fitted edge towards the pixel axis.
     """
     d = deriv

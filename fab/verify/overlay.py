@@ -113,8 +113,8 @@ def _shift_sigma(chi2, dy, dx, best, dof, h=FINE_PX):
     (finite differences of step ``h``, in units of its reduced chi-square where that
     passes 1), or None at the edge of the search, where the curvature is not there to take.
 
-    A sparse design's few bright orders leave the valley flat: its shift wandered by
-    0.1-0.4 px over noise, with nothing said of it.
+    A sparse design's few bright orders leave the valley flat: its shift wanders with
+    the noise by tenths of a pixel, which the sigmas say.
     """
     if max(abs(dy), abs(dx)) + h > SEARCH_PX:
         return None

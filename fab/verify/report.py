@@ -100,7 +100,7 @@ def write_verify_report(stage, report, image, grid, lattice, measured_psf, desig
         f"{report['correlation']:.4f}, rmse {report['rmse']:.4f}, orientation "
         f"{orientation}"
     )
-    # room for the two-line title (a long diagnosis list ran past the figure's width)
+    # room for the two-line title (a long diagnosis list would run past the figure's width)
     fig.tight_layout(rect=(0, 0, 1, 1 - 0.5 / fig.get_figheight()))
     save_png(fig, stage / "verify.png", dpi=90)
     plt.close(fig)
