@@ -48,8 +48,8 @@ def cell_name(design_name, suffix):
 
 def array_origin_nm(tiles, tile_pixels, pitch_nm, grid_nm=1):
     """Return the lower-left corner (nm, integers) of a tiles[0] x tiles[1] array centred
-    on 0, on the ``grid_nm`` grid (an odd number of odd-sized tiles put it half a pitch
-    off: every vertex of a 5 nm design then missed its grid by 2-3 nm)."""
+    on 0, on the ``grid_nm`` grid (an odd number of odd-sized tiles would put it half a
+    pitch off, and every vertex of a 5 nm design off its grid)."""
     nx, ny = tiles
     size = int(tile_pixels) * int(pitch_nm)
     return (-(nx * size // 2 // grid_nm * grid_nm), -(ny * size // 2 // grid_nm * grid_nm))

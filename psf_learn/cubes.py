@@ -84,7 +84,8 @@ def sorted_frames(paths):
     """Return the frame files in scan order (:func:`frame_order`).
 
     A ``-`` before a number is read as its sign only where the names differ by it
-    (``t_-20ps`` beside ``t_0ps``, once sorted as -0, 20, -20 and scrambled), not where
+    (``t_-20ps`` beside ``t_0ps``, which unsigned would sort after 0 and scramble the
+    scan), not where
     every name has it (``frame-10`` is frame 10).
     """
     signed = _minus_is_sign(paths)
@@ -202,7 +203,7 @@ def read_frame(path):
             raise InputError(path, f"could not read the pixels ({inp.geterror()})")
         if has_more_pages(inp):  # a multi-page TIFF: which page is this shift's frame?
             raise InputError(path, "holds several images (pages); give one frame per file")
-        # Counts as stored: a 12-bit TIFF's 4095 came as 65535, a 1-bit PNG's 1 as 255.
+        # Counts as stored: a 12-bit TIFF's 4095 comes as 65535, a 1-bit PNG's 1 as 255.
         bits = stored_bits(spec, path)
     finally:
         inp.close()

@@ -167,7 +167,7 @@ def evaluate_folder(
     res = evaluate(
         model, names, scenes, psf, EVAL_SEED if seed is None else seed, progress=progress
     )
-    if not math.isfinite(res["psnr"]):  # images in [0, 1]: the weights overflowed float32
+    if not math.isfinite(res["psnr"]):  # images in [0, 1]: only weights past float32 give this
         raise InputError(Path(model_dir) / "model.pt", "gives non-finite estimates")
     result = Evaluation(res["psnr"], res["ssim"], res["images"], model_dir, images, psf_file)
     if out is not None:

@@ -72,7 +72,7 @@ def read_image(path):
     a, bits = _decode(path)
     if bits and a.dtype.kind == "u" and bits < 8 * a.dtype.itemsize:
         # A 12-bit TIFF's white is 4095, not the 65535 of its uint16 container
-        # (it read 16 times too dark); a 4-bit one's 15, not 255.
+        # (scaled by that, it would read 16 times too dark); a 4-bit one's 15, not 255.
         a = a.astype(np.float32) / ((1 << bits) - 1)
     return to_gray(a, path)
 
@@ -140,7 +140,7 @@ def _pillow_quiet(Image):
     """Keep Pillow's warnings about a file off stderr: the file is read or refused anyway.
 
     A header past 89 Mpx (Pillow's "decompression bomb") and a palette with byte
-    transparency each printed two lines beside the one-line refusal or the result.
+    transparency each print two lines beside the one-line refusal or the result.
     """
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", Image.DecompressionBombWarning)
@@ -174,8 +174,8 @@ def _decode_oiio(path):
 def _white_to_black(a, bits, path):
     """Values of a MinIsWhite TIFF (0 = white: scans, fax) as light, 0 = black.
 
-    tifffile hands the codes over as stored; read as they were, the picture and a
-    frame's counts came out as their negative.
+    tifffile hands the codes over as stored; read so, the picture and a frame's
+    counts would come out as their negative.
     """
     if a.dtype != bool and a.dtype.kind != "u":  # no code is white: OpenImageIO keeps them
         raise InputError(path, f"MinIsWhite (inverted) image of {a.dtype}: give MinIsBlack")

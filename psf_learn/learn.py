@@ -101,7 +101,7 @@ def learn(out, *, config=None, progress=None, on_note=None, **options):
     for note in notes if on_note is not None else ():
         on_note(note)
     result = _train(plan, progress)
-    # A fixed PSF is written as given (through float32 logits it came back 4e-7 off).
+    # A fixed PSF is written as given (a round trip through float32 logits moves it by ~4e-7).
     learned = plan.config.learn_psf
     psf = result.camera.psf.numpy() if learned else np.asarray(plan.psf0, dtype=np.float64)
     record = None

@@ -157,7 +157,7 @@ def plan_learning(out, design_config, opts):
     ------
     doe.infra.errors.InputError
         Naming the flag or file at fault, the first in the order ``doefab learn``
-        has always checked them.
+        checks them.
     """
     _check_numbers(opts)
     # The thread count changes a run's last bits: a steps run (deterministic,

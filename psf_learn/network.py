@@ -31,7 +31,7 @@ def check_arch(arch, factor):
     """Raise ValueError unless network ``arch`` can super-resolve by ``factor``.
 
     A DBPN projection (kernel 2 f, stride f, padding f // 2) maps h to f h + 1 at an odd
-    f: its output then missed the bicubic base by a row (a RuntimeError in training).
+    f: its output would then miss the bicubic base by a row (a RuntimeError in training).
     """
     if arch not in ARCHS:
         raise ValueError(f"arch must be 'resnet' or 'dbpn', got {arch!r}")

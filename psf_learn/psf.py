@@ -66,7 +66,7 @@ def gaussian_psf(k, sigma=GAUSSIAN_SIGMA, centre=(0.0, 0.0)):
         d = np.abs(r - c)
         inside = d <= k // 2 - abs(c)
         # Measured from the nearest cell, a tiny sigma tends to its limit (the light on
-        # the nearest cells); from the centre, every sample underflowed to 0 / 0.
+        # the nearest cells); from the centre, every sample would underflow to 0 / 0.
         excess = d**2 - d[inside].min() ** 2
         with np.errstate(divide="ignore", invalid="ignore"):
             p = np.where(excess == 0, 1.0, np.exp(-excess / two_var))

@@ -59,8 +59,9 @@ def load_model(model_dir):
 def _check_network(network):
     """Raise ValueError unless ``network`` is a configuration ``learn`` writes.
 
-    Checked before the network is built: 10**6 features asked torch for terabytes,
-    10**6 stages built modules for minutes, and a missing key took SRNet's default.
+    Checked before the network is built: 10**6 features would ask torch for terabytes,
+    10**6 stages would build modules for minutes, and a missing key would take SRNet's
+    default.
     """
     keys = ("factor", "features", "stages", "arch")
     if not isinstance(network, dict) or set(network) != set(keys):
@@ -76,13 +77,13 @@ def _check_network(network):
 def _check_weights(state):
     """Raise ValueError unless every entry of ``state`` is a tensor of finite floats.
 
-    load_state_dict takes what it is given: NaN weights wrote NaN images (exit 0),
-    complex ones lost their imaginary part and integer ones their fractions.
+    load_state_dict takes what it is given: NaN weights would write NaN images (exit 0),
+    complex ones lose their imaginary part and integer ones their fractions.
     """
     if not isinstance(state, dict):
         raise ValueError(f"state_dict must be a table of tensors, got {type(state).__name__}")
     for name, value in state.items():
-        if not isinstance(name, str):  # load_state_dict raised AttributeError (exit 3)
+        if not isinstance(name, str):  # load_state_dict would raise AttributeError (exit 3)
             raise ValueError(f"state_dict keys must be parameter names, got {name!r}")
         if not (isinstance(value, torch.Tensor) and value.is_floating_point()):
             kind = value.dtype if isinstance(value, torch.Tensor) else type(value).__name__
@@ -114,7 +115,7 @@ def _check_sensor(sensor, factor):
 def _count(record, name):
     """Return ``record[name]`` as a float, or raise ValueError unless it is a number.
 
-    float() took "100" and True, and raised OverflowError (exit 3) on a 400-digit integer.
+    float() takes "100" and True, and raises OverflowError on a 400-digit integer.
     """
     value = record[name]
     if isinstance(value, bool) or not isinstance(value, (int, float)):

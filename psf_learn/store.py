@@ -56,7 +56,7 @@ def load_checkpoint(path):
 def _load(path):
     """torch.load of tensors and plain types only, without torch's warnings.
 
-    A plain pickle (not torch's zip) made torch warn on stderr, two lines before the
+    A plain pickle (not torch's zip) makes torch warn on stderr, two lines before the
     one-line refusal.
     """
     with warnings.catch_warnings():

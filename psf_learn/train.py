@@ -428,7 +428,7 @@ def _step(camera, model, opt, batch, step, device, fine_tuning):
     loss = F.l1_loss(estimate, target)
     opt.zero_grad(set_to_none=True)
     loss.backward()
-    # long runs at a high learning rate spike without this (seen at 14 k steps)
+    # long runs at a high learning rate spike without this
     norm = nn.utils.clip_grad_norm_(camera.parameters(), 1.0)
     if not torch.isfinite(norm):  # the same on every rank: the gradients are shared
         # One more step would make the PSF NaN, and the next capture's Poisson draw raise.
@@ -446,8 +446,8 @@ def _resume(state, camera, opt, path):
     """Load checkpoint ``state`` of this run into camera and opt; return (step, elapsed, history).
 
     Its identity matched, but what it holds must be what :func:`train` saves: else
-    loading raised (exit 3), NaN weights trained on to a NaN model, and a NaN elapsed
-    time never reached a --minutes budget. InputError naming ``path`` if not.
+    loading would raise (exit 3), NaN weights would train on to a NaN model, and a NaN
+    elapsed time would never reach a --minutes budget. InputError naming ``path`` if not.
     """
     try:
         camera.load_state_dict(state["camera"])

@@ -19,11 +19,11 @@ DEPTH_ARRAYS = (
 )
 DEPTH_FIGURES = ("intensity.png", "depth.png", "pixel_fits.png")
 # Above this median Poisson deviance per degree of freedom (1 for profiles that
-# follow the model) the returns do not follow it: the cube's time axis in the wrong
-# place or scrambled gave 15-86 in the review, pile-up 9-11.
+# follow the model) the returns do not follow it: a cube whose time axis is in the
+# wrong place or scrambled gives 15 or more, pile-up about 10.
 FIT_QUALITY_WARN = 3.0
 # An IRF cut above this share of its peak is extended over much of its shape (the
-# extension is good to ~0.01 of the peak for a cut at half the peak, tested).
+# extension is good to ~0.01 of the peak for a cut at half the peak).
 IRF_CUT_WARN = 0.5
 GATE_FLAGS = {  # flag attribute -> (default, GateModel field, help)
     "gate_width_ps": (200.0, "width", "length of the undistorted gate rectangle [0, width]"),
