@@ -7,6 +7,7 @@ import types
 
 import numpy as np
 import pytest
+from depth_helpers import PS, SHIFT, T, scene
 
 from doe.infra.cli import main
 from psf_learn.cubes import scan_gaps, write_frame_png16
@@ -16,21 +17,12 @@ from psf_learn.depth import (
     gate_response,
     scan_times,
 )
-from psf_learn.depth_sim import random_scene, simulate_cube
-
-PS = 1e-12
-SHIFT = 20 * PS
-T = 120  # 2.4 ns scan: room for a complete profile anywhere in [0.62, 0.82] ns
+from psf_learn.depth_sim import simulate_cube
 
 
 @pytest.fixture(scope="module")
 def response():
     return gate_response(GateModel())
-
-
-def scene(shape, amplitude, background, response, seed, margin=None):
-    rng = np.random.default_rng(seed)
-    return random_scene(shape, amplitude, background, SHIFT, T, response, rng, margin)
 
 
 def write_scene_cube(tmp_path, response, shape=(6, 10), amplitude=80.0, background=2.0, seed=12):

@@ -7,6 +7,7 @@ from math import erf, sqrt
 
 import numpy as np
 import pytest
+from depth_helpers import PS, SHIFT, T, scene
 
 from psf_learn.depth import (
     FWHM_PER_SIGMA,
@@ -22,19 +23,10 @@ from psf_learn.depth import (
 )
 from psf_learn.depth_sim import random_scene, simulate_cube
 
-PS = 1e-12
-SHIFT = 20 * PS
-T = 120  # 2.4 ns scan: room for a complete profile anywhere in [0.62, 0.82] ns
-
 
 @pytest.fixture(scope="module")
 def response():
     return gate_response(GateModel())
-
-
-def scene(shape, amplitude, background, response, seed, margin=None):
-    rng = np.random.default_rng(seed)
-    return random_scene(shape, amplitude, background, SHIFT, T, response, rng, margin)
 
 
 # --- the gate model -------------------------------------------------------------------
