@@ -1,6 +1,5 @@
 """``fab.package.build.build_package`` as a library: its result and its refusals."""
 
-import importlib.util
 import json
 
 import numpy as np
@@ -10,8 +9,6 @@ from doe.fraunhofer import simulate_levels
 from doe.infra.errors import InputError
 from doe.records.fab_manifest import MANIFEST_NAME, read_fab_manifest
 from fab.package.build import PackageCheckFailed, PackageResult, build_package
-
-HAS_REPORT = importlib.util.find_spec("fab.package.report") is not None
 
 
 def make_design_dir(path, n=21, n_levels=8, seed=0, target=True, k=11):
@@ -39,8 +36,7 @@ def test_result_lists_every_file_written(built):
     assert list(result.files) == on_disk
     assert {"mask.gds", "mask.oas", MANIFEST_NAME, "levels.npy", "target_psf.npy"} <= set(on_disk)
     assert set(result.report_files) <= set(result.files)
-    if HAS_REPORT:
-        assert {"fab_report.md", "fab_report.html"} <= set(result.report_files)
+    assert {"fab_report.md", "fab_report.html"} <= set(result.report_files)
 
 
 def test_result_manifest_is_the_file_written(built):
