@@ -40,38 +40,19 @@ def register(sub):
         help="fit arrival time (depth), amplitude and background per pixel of a gated SPAD cube",
     )
     _common(p)
-    g = p.add_argument_group("gate model (in ps; not together with --irf)")
-    for attr, (default, _, text) in GATE_FLAGS.items():
-        g.add_argument(
-            "--" + attr.replace("_", "-"),
-            dest=attr,
-            type=float,
-            default=None,
-            help=f"{text} (default {default:g})",
-        )
-    g.add_argument(
-        "--pulse",
-        choices=("gaussian", "emg"),
-        default=None,
-        help="laser pulse shape (default gaussian)",
-    )
-    g.add_argument("--tau-ps", type=float, default=None, help="exponential tail of an 'emg' pulse")
-    p.add_argument(
-        "--irf",
-        help="measured instrument response (.npy, 1-D) on the scan axis, "
-        "from a reference target at --irf-t0-ps; replaces the gate model",
-    )
-    p.add_argument(
-        "--irf-t0-ps",
-        type=float,
-        help="arrival time of the IRF's reference target (default 0)",
-    )
+    _gate_flags(p)
     p.add_argument(
         "--min-significance",
         type=float,
         default=20.0,
         help="likelihood-ratio threshold 2 dlogL for a return (default 20, about "
         "1e-4 false returns per background pixel)",
+    )
+    p.add_argument(
+        "--calibration",
+        metavar="CAL",
+        help="fit every pixel with its own gate: a folder from 'doefab depth-calibrate' "
+        "of a scan with the same settings (not with --sr)",
     )
     p.set_defaults(func=_depth)
 
@@ -82,6 +63,7 @@ def register(sub):
     _common(p, "super-resolve the frames with a model from 'doefab learn' (they replace them)")
     p.add_argument("--fps", type=float, default=10.0, help="GIF frame rate (default 10)")
     p.set_defaults(func=_transient)
+    _register_calibrate(sub)
 
 
 def _common(p, sr_help="also super-resolve with a model from 'doefab learn' (into sr/)"):
@@ -178,6 +160,7 @@ def _depth(args):
         check_scan(cube.shape[-1], shift, response)
     except ValueError as e:
         raise InputError(args.cube, f"{e}; check --shift-ps and the gate flags") from None
+    calibration = _calibration(args, cube, gate_summary)
     cubes = {"": cube}
     if args.sr:
         cubes["sr/"] = super_resolve_cube(args.sr, cube)
@@ -198,10 +181,14 @@ def _depth(args):
             "gate's opening after the laser pulse; h(x) = integral G(t) Pi(t - x) dt; "
             "depth_m = c * mu / 2",
         }
+        if calibration is not None:
+            summary["calibration"] = str(args.calibration)
         for prefix, data in cubes.items():
             folder = stage / prefix
             folder.mkdir(exist_ok=True)
-            stats = _fit_and_write(folder, data, shift, response, args.min_significance, save_npy)
+            stats = _fit_and_write(
+                folder, data, shift, response, args.min_significance, save_npy, calibration
+            )
             summary["sr" if prefix else "native"] = stats
         summary["warnings"] = (
             gate_summary.pop("warnings", []) + scan_gaps(args.cube) + _model_warnings(summary)
@@ -222,11 +209,14 @@ def _depth(args):
     return 0
 
 
-def _fit_and_write(folder, cube, shift, response, threshold, save_npy):
+def _fit_and_write(folder, cube, shift, response, threshold, save_npy, calibration=None):
     from psf_learn.depth import expected_counts, fit_profiles, scan_times
+    from psf_learn.depth_calibration import apply_calibration
     from psf_learn.depth_plots import example_pixels, save_map, save_pixel_fits
 
-    fit = fit_profiles(cube, shift, response, threshold=threshold, progress=True)
+    # raw: the fit against the common response, whose timing the pixel fits' models need
+    raw = fit_profiles(cube, shift, response, threshold=threshold, progress=True)
+    fit = raw if calibration is None else apply_calibration(raw, calibration)
     arrays = {
         "timing_ps": fit.timing / 1e-12,
         "depth_m": fit.depth,
@@ -254,9 +244,9 @@ def _fit_and_write(folder, cube, shift, response, threshold, save_npy):
         expected_counts(
             response,
             times,
-            fit.amplitude[r, c],
-            np.nan_to_num(fit.timing[r, c]),
-            fit.background[r, c],
+            raw.amplitude[r, c],
+            np.nan_to_num(raw.timing[r, c]),
+            raw.background[r, c],
         )
         for r, c, _ in picks
     ]
@@ -360,3 +350,105 @@ def _transient(args):
         f"wrote {args.out}"
     )
     return 0
+
+
+def _calibration(args, cube, gate_summary):
+    """The calibration of --calibration, checked against the cube's scan; None without it."""
+    if not args.calibration:
+        return None
+    from psf_learn.depth_calibration import CALIBRATION_JSON, read_calibration, scan_mismatch
+
+    if args.sr:
+        raise InputError(
+            "--calibration",
+            "holds native pixels' gates; the super-resolved cube has none (drop --sr)",
+        )
+    calibration = read_calibration(args.calibration)
+    problem = scan_mismatch(calibration, cube.shape, args.shift_ps * 1e-12, gate_summary)
+    if problem:
+        record = Path(args.calibration) / CALIBRATION_JSON
+        raise InputError(
+            args.cube, f"taken with other scan settings than the calibration {record}: {problem}"
+        )
+    return calibration
+
+
+def _register_calibrate(sub):
+    p = sub.add_parser(
+        "depth-calibrate",
+        help="fit each pixel's gate delay from a gate scan of a flat target at a known distance",
+    )
+    p.add_argument("cube", metavar="CUBE", help="(H, W, T) counts of the flat target's scan")
+    p.add_argument(
+        "--distance-m", type=float, required=True, help="distance of the flat target (m)"
+    )
+    p.add_argument(
+        "--shift-ps", type=float, default=20.0, help="gate shift between samples (default 20)"
+    )
+    p.add_argument("--out", required=True, help="calibration folder")
+    p.add_argument("--force", action="store_true", help="overwrite existing outputs")
+    _gate_flags(p)
+    p.set_defaults(func=_calibrate)
+
+
+def _calibrate(args):
+    from psf_learn.cubes import read_cube, scan_gaps
+    from psf_learn.depth import check_scan
+    from psf_learn.depth_calibration import calibrate_gates, write_calibration
+
+    response, gate_summary = _response(args)
+    flags.positive("--distance-m", args.distance_m)
+    cube = read_cube(args.cube)
+    shift = args.shift_ps * 1e-12
+    try:
+        check_scan(cube.shape[-1], shift, response)
+        calibration = calibrate_gates(
+            cube,
+            shift,
+            response,
+            args.distance_m,
+            gate={k: v for k, v in gate_summary.items() if k != "warnings"},
+        )
+    except ValueError as e:
+        raise InputError(args.cube, f"{e}; check --shift-ps and the gate flags") from None
+    warnings = gate_summary.get("warnings", []) + scan_gaps(args.cube)
+    write_calibration(args.out, calibration, args.cube, warnings, force=args.force)
+    for warning in warnings:
+        print(f"depth-calibrate: warning: {warning}", file=sys.stderr)
+    s = calibration.summary()
+    print(
+        f"depth-calibrate: {s['calibrated_pixels']}/{s['pixels']} pixels calibrated, gate delay "
+        f"mean {s['mean_ps']:.1f} ps, std {s['std_ps']:.1f} ps (FWHM {s['fwhm_ps']:.1f} ps, "
+        f"fit noise {s['median_sigma_ps']:.2f} ps); wrote {args.out}"
+    )
+    return 0
+
+
+def _gate_flags(p):
+    """The gate model's flags and --irf, shared by depth and depth-calibrate."""
+    g = p.add_argument_group("gate model (in ps; not together with --irf)")
+    for attr, (default, _, text) in GATE_FLAGS.items():
+        g.add_argument(
+            "--" + attr.replace("_", "-"),
+            dest=attr,
+            type=float,
+            default=None,
+            help=f"{text} (default {default:g})",
+        )
+    g.add_argument(
+        "--pulse",
+        choices=("gaussian", "emg"),
+        default=None,
+        help="laser pulse shape (default gaussian)",
+    )
+    g.add_argument("--tau-ps", type=float, default=None, help="exponential tail of an 'emg' pulse")
+    p.add_argument(
+        "--irf",
+        help="measured instrument response (.npy, 1-D) on the scan axis, "
+        "from a reference target at --irf-t0-ps; replaces the gate model",
+    )
+    p.add_argument(
+        "--irf-t0-ps",
+        type=float,
+        help="arrival time of the IRF's reference target (default 0)",
+    )
