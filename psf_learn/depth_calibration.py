@@ -66,6 +66,9 @@ class GateCalibration:
         Distance of the flat target (m).
     gate : dict
         The response's settings (as ``depth.json``'s "gate").
+    median_fit_quality : float
+        Median Poisson deviance per dof of the returns (about 1 where the
+        profiles follow the response; NaN when not known).
     """
 
     gate_delay: np.ndarray = field(repr=False)
@@ -74,6 +77,7 @@ class GateCalibration:
     n_samples: int
     distance: float
     gate: dict = field(default_factory=dict)
+    median_fit_quality: float = float("nan")
 
     @property
     def shape(self):
@@ -137,6 +141,7 @@ def calibrate_gates(cube, shift, response, distance, gate=None, threshold=20.0):
         n_samples=int(cube.shape[-1]),
         distance=float(distance),
         gate=dict(gate or {}),
+        median_fit_quality=float(np.median(fit.fit_quality[fit.valid])),
     )
 
 
@@ -234,6 +239,7 @@ def _record(calibration, cube_name, warnings):
         "round_trip_ps": 2 * calibration.distance / SPEED_OF_LIGHT / _PS,
         "gate": calibration.gate,
         "gate_delay": calibration.summary(),
+        "median_fit_quality_of_returns": calibration.median_fit_quality,
         "convention": CONVENTION,
         "files": list(CALIBRATION_FILES[:-1]),
         "warnings": list(warnings),
@@ -266,6 +272,7 @@ def read_calibration(folder):
     except (KeyError, TypeError, ValueError) as e:
         raise InputError(path, f"not a calibration record ({type(e).__name__}: {e})") from None
     arrays = [_read_map(folder / name, shape[:2]) for name in (GATE_DELAY_NPY, DELAY_SIGMA_NPY)]
+    quality = record.get("median_fit_quality_of_returns")
     return GateCalibration(
         gate_delay=arrays[0] * _PS,
         delay_sigma=arrays[1] * _PS,
@@ -273,6 +280,7 @@ def read_calibration(folder):
         n_samples=shape[2],
         distance=distance,
         gate=gate,
+        median_fit_quality=float("nan") if quality is None else float(quality),
     )
 
 

@@ -402,16 +402,20 @@ def _calibrate(args):
     shift = args.shift_ps * 1e-12
     try:
         check_scan(cube.shape[-1], shift, response)
-        calibration = calibrate_gates(
-            cube,
-            shift,
-            response,
-            args.distance_m,
-            gate={k: v for k, v in gate_summary.items() if k != "warnings"},
-        )
     except ValueError as e:
         raise InputError(args.cube, f"{e}; check --shift-ps and the gate flags") from None
+    gate = {k: v for k, v in gate_summary.items() if k != "warnings"}
+    try:
+        calibration = calibrate_gates(cube, shift, response, args.distance_m, gate=gate)
+    except ValueError as e:
+        raise InputError(args.cube, str(e)) from None
     warnings = gate_summary.get("warnings", []) + scan_gaps(args.cube)
+    if calibration.median_fit_quality > FIT_QUALITY_WARN:
+        warnings.append(
+            f"the flat target's profiles do not follow the response model (median fit "
+            f"quality {calibration.median_fit_quality:.3g}; about 1 when they do): its delays "
+            "are not the gates'; check the cube's axes, --shift-ps and the gate flags or --irf"
+        )
     write_calibration(args.out, calibration, args.cube, warnings, force=args.force)
     for warning in warnings:
         print(f"depth-calibrate: warning: {warning}", file=sys.stderr)

@@ -210,6 +210,7 @@ def test_the_calibration_records_its_scan_and_plots_its_skew(calibrated, saved_f
     assert record["shape"] == [8, 16, 200] and record["frames"] == 200
     assert record["shift_ps"] == 20.0 and record["distance_m"] == 0.3
     assert record["gate"]["width_ps"] == 200.0
+    assert record["median_fit_quality_of_returns"] < 1.5 and record["warnings"] == []
     summary = record["gate_delay"]
     assert {"mean_ps", "std_ps", "fwhm_ps"} <= set(summary) and 100 < summary["std_ps"] < 200
     delay = np.load(cal / "gate_delay_ps.npy")
@@ -221,3 +222,17 @@ def test_the_calibration_records_its_scan_and_plots_its_skew(calibrated, saved_f
           "--out", str(cal.parent / "again")])  # fmt: skip
     labels = {(ax.get_xlabel(), ax.get_ylabel()) for ax in saved_figures[-1].axes}
     assert {("column", "row"), ("", "gate delay (ps)"), ("gate delay (ps)", "pixels")} <= labels
+
+
+def test_a_flat_scan_that_does_not_follow_the_gate_model_is_warned_of(tmp_path, capsys):
+    # Gates twice as long as the model's: the delays fitted are not the gates'.
+    delay, _ = skewed_array(10)
+    wide = gate_response(GateModel(width=400 * PS))
+    np.save(tmp_path / "flat.npy", flat_scan(delay, None, wide, 11).astype(np.uint16))
+    args = [str(tmp_path / "flat.npy"), "--distance-m", "0.3", "--out", str(tmp_path / "cal")]
+    assert main(["depth-calibrate", *args]) == 0
+    assert "depth-calibrate: warning: the flat target's profiles do not follow" in (
+        capsys.readouterr().err
+    )
+    record = json.loads((tmp_path / "cal" / "calibration.json").read_text())
+    assert record["median_fit_quality_of_returns"] > 3 and len(record["warnings"]) == 1
