@@ -21,6 +21,7 @@ import numpy as np
 from psf_learn.depth_response import (
     FWHM_PER_SIGMA,
     MAX_RESPONSE_SAMPLES,
+    SCANS,
     GateModel,
     Response,
     ResponseTable,
@@ -31,6 +32,7 @@ from psf_learn.depth_response import (
 __all__ = [
     "FWHM_PER_SIGMA",
     "MAX_RESPONSE_SAMPLES",
+    "SCANS",
     "SPEED_OF_LIGHT",
     "GateModel",
     "ProfileFit",
@@ -100,6 +102,15 @@ class ProfileFit:
         Likelihood-ratio statistic 2 (log L_fit - log L_background-only).
     valid : bool array
         True where a return was detected (significance >= threshold).
+    timing_sigma : float64 array
+        1-sigma of the timing (s) from the Poisson likelihood's curvature at the
+        fit: the Cramer-Rao bound of the fitted model, amplitude and background
+        as nuisance parameters (the full 3 x 3 Fisher matrix inverted); NaN
+        where there is no return.
+    log_likelihood : float64 array
+        Poisson log-likelihood of the reported model (the fit where a return,
+        the constant background elsewhere) less that of the saturated model:
+        minus half its deviance.
     """
 
     timing: np.ndarray
@@ -108,11 +119,18 @@ class ProfileFit:
     fit_quality: np.ndarray
     significance: np.ndarray
     valid: np.ndarray
+    timing_sigma: np.ndarray
+    log_likelihood: np.ndarray
 
     @property
     def depth(self):
         """Return the round-trip depth (m), NaN where there is no return."""
         return depth_from_timing(self.timing)
+
+    @property
+    def depth_sigma(self):
+        """Return the 1-sigma of the depth (m), ``c * timing_sigma / 2``; NaN: no return."""
+        return depth_from_timing(self.timing_sigma)
 
 
 def scan_times(n_samples, shift):
@@ -181,7 +199,9 @@ def fit_profiles(
         _fit_chunk(y[i : i + chunk], t, table, lo_mu, hi_mu, grid, floor[i : i + chunk], max_iter)
         for i in starts
     ]
-    a, mu, b, significance, deviance, mean = (np.concatenate(p) for p in zip(*parts, strict=True))
+    a, mu, b, significance, deviance, mean, sigma = (
+        np.concatenate(p) for p in zip(*parts, strict=True)
+    )
     # A fit stopped at an end of the searched range has no timing: its light came
     # before or after the scan could place it.
     inside = (mu > lo_mu) & (mu < hi_mu)
@@ -189,9 +209,8 @@ def fit_profiles(
 
     # A no-return pixel is reported as the constant background, so its quality is that
     # model's: its deviance exceeds the full fit's by exactly the likelihood ratio.
-    quality = np.where(
-        valid, deviance / max(n_t - 3, 1), (deviance + significance) / max(n_t - 1, 1)
-    )
+    reported = np.where(valid, deviance, deviance + significance)
+    quality = reported / np.where(valid, max(n_t - 3, 1), max(n_t - 1, 1))
     timing = np.where(valid, mu * _PS, np.nan)
     amplitude = np.where(valid, a, 0.0)
     background = np.where(valid, b, mean)
@@ -202,6 +221,8 @@ def fit_profiles(
         fit_quality=quality.reshape(shape),
         significance=significance.reshape(shape),
         valid=valid.reshape(shape),
+        timing_sigma=np.where(valid, sigma * _PS, np.nan).reshape(shape),
+        log_likelihood=(-0.5 * reported).reshape(shape),
     )
 
 
@@ -228,7 +249,7 @@ def check_scan(n_samples, shift, response):
 
 
 def _fit_chunk(y, t, table, lo_mu, hi_mu, grid, floor, max_iter):
-    """Fit (P, T) profiles; return per-pixel a, mu (ps), b, significance, deviance, mean."""
+    """Fit (P, T) profiles; per pixel a, mu (ps), b, significance, deviance, mean, sigma (ps)."""
 
     def model(a, mu, b):
         h, dh = table(t[None, :] - mu[:, None], derivative=True)
@@ -236,12 +257,36 @@ def _fit_chunk(y, t, table, lo_mu, hi_mu, grid, floor, max_iter):
 
     a, mu, b = _grid_start(y, t, table, lo_mu, hi_mu, grid)
     a, mu, b = _poisson_lm(y, model, a, mu, b, lo_mu, hi_mu, floor, max_iter)
-    m = np.maximum(model(a, mu, b)[2], floor)
+    h, dh, m = model(a, mu, b)
+    m = np.maximum(m, floor)
     mean = y.mean(axis=1)
     nll_bg = _poisson_nll(y, np.maximum(mean[:, None], floor))
     significance = np.maximum(2 * (nll_bg - _poisson_nll(y, m)), 0.0)
     deviance = 2 * np.sum(xlogy(y, y) - xlogy(y, m) - (y - m), axis=1)
-    return a, mu, b, significance, deviance, mean
+    sigma = _timing_sigma(h, -a[:, None] * dh, m)
+    return a, mu, b, significance, deviance, mean, sigma
+
+
+def _timing_sigma(h, dmu, m):
+    """The Cramer-Rao std of mu: sqrt of [F^-1]_11, F the (A, mu, b) Fisher information.
+
+    ``h``, ``dmu`` (dm/dmu) and ``m`` are (P, T); dm/db = 1. The inverse's middle
+    element is a cofactor over the determinant, written out (no batched inverse of
+    singular matrices where A = 0).
+    """
+    w = 1.0 / m
+    wh, wd = w * h, w * dmu
+    f00, f01, f02 = (wh * h).sum(1), (wh * dmu).sum(1), wh.sum(1)
+    f11, f12, f22 = (wd * dmu).sum(1), wd.sum(1), w.sum(1)
+    cof = f00 * f22 - f02 * f02
+    det = (
+        f00 * (f11 * f22 - f12 * f12)
+        - f01 * (f01 * f22 - f12 * f02)
+        + f02 * (f01 * f12 - f11 * f02)
+    )
+    with np.errstate(divide="ignore", invalid="ignore"):
+        var = np.where(det > 0, cof / np.where(det > 0, det, 1.0), np.nan)
+    return np.sqrt(np.where(var >= 0, var, np.nan))
 
 
 def _timing_range(t, response):

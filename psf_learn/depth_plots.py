@@ -24,22 +24,42 @@ def _figure(figsize):
     return fig
 
 
-def save_map(path, image, title, label, cmap="gray", valid=None):
-    """Save a (H, W) map with a colour bar; invalid pixels (``valid`` False) drawn grey."""
+def _draw_map(fig, ax, image, title, label, cmap="gray", valid=None):
+    """Draw a (H, W) map with a colour bar on ``ax``; invalid pixels (``valid`` False) grey."""
     from matplotlib import colormaps
 
     data = np.ma.masked_invalid(np.asarray(image, dtype=np.float64))
     if valid is not None:
         data = np.ma.masked_where(~np.asarray(valid), data)
     colors = colormaps[cmap].with_extremes(bad="0.6")
-    h, w = data.shape
-    fig = _figure((6, 6 * h / w * 0.8 + 0.8))
-    ax = fig.add_subplot()
     im = ax.imshow(data, cmap=colors, interpolation="nearest")
     ax.set_title(title)
     ax.set_xlabel("column")
     ax.set_ylabel("row")
     fig.colorbar(im, ax=ax, label=label, shrink=0.8)
+
+
+def save_map(path, image, title, label, cmap="gray", valid=None):
+    """Save a (H, W) map with a colour bar; invalid pixels (``valid`` False) drawn grey."""
+    h, w = np.shape(image)
+    fig = _figure((6, 6 * h / w * 0.8 + 0.8))
+    _draw_map(fig, fig.add_subplot(), image, title, label, cmap, valid)
+    save_png(fig, path, dpi=100)
+
+
+def save_depth_maps(path, depth, depth_sigma, valid):
+    """Save the depth map (m) beside its precision, the 1-sigma of each depth (mm).
+
+    Both panels draw pixels without a return grey.
+    """
+    h, w = np.shape(depth)
+    fig = _figure((12, 6 * h / w * 0.8 + 0.8))
+    left, right = fig.subplots(1, 2)
+    _draw_map(fig, left, depth, "depth (c mu / 2); grey: no return", "depth (m)", "viridis", valid)
+    sigma_mm = np.asarray(depth_sigma, dtype=np.float64) * 1e3
+    _draw_map(
+        fig, right, sigma_mm, "precision: 1-sigma of the depth", "depth sigma (mm)", "magma", valid
+    )
     save_png(fig, path, dpi=100)
 
 

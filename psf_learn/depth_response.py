@@ -32,6 +32,9 @@ FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
 _TAIL = 1e-9
 # The fine grid of a gate response holds at most this many samples (10 us at 1 ps).
 MAX_RESPONSE_SAMPLES = 10_000_000
+# Scan directions: "gate", the gate delayed from sample to sample (h = G correlated
+# with Pi); "laser", the time-reversed convention (h = G * Pi, the paper's Eq. 9).
+SCANS = ("gate", "laser")
 
 
 @dataclass(frozen=True)
@@ -159,11 +162,14 @@ class ResponseTable:
         return h, row[..., 2] + frac * row[..., 3]
 
 
-def gate_response(model=None, step=1e-12):
+def gate_response(model=None, step=1e-12, scan="gate"):
     """Return the response h(x) = integral G(t) Pi(t - x) dt of a gate model, peak 1.
 
     x = t_k - mu is the gate's opening time less the light's arrival: h is the
     pulse G convolved with the gate Pi reversed in time (see the module docstring).
+    With ``scan="laser"`` it is the time-reversed convention, the convolution
+    h(x) = integral G(t) Pi(x - t) dt (the paper's Eq. 9, I = G * Pi): for a
+    symmetric pulse, the gate direction's h mirrored about x = 0.
 
     Parameters
     ----------
@@ -172,12 +178,16 @@ def gate_response(model=None, step=1e-12):
     step : float
         Fine grid spacing (s); 1 ps keeps interpolation errors far below the
         timing precision.
+    scan : {"gate", "laser"}
+        Scan direction (see :data:`SCANS`).
 
     Returns
     -------
     Response
     """
     model = model or GateModel()
+    if scan not in SCANS:
+        raise ValueError(f"scan must be one of {SCANS}, got {scan!r}")
     sigma_pulse = model.pulse_fwhm / FWHM_PER_SIGMA
     blur = np.hypot(sigma_pulse, model.band_sigma)
     lo = -8 * blur - step
@@ -201,8 +211,8 @@ def gate_response(model=None, step=1e-12):
     right_after_end = end_value * _decay(np.array([0.0]), model.fall)[0]
     gate[np.isclose(t, 0.0, atol=step / 4)] = 0.5 * _rise(np.array([0.0]), model.rise)[0]
     gate[np.isclose(t, model.width, atol=step / 4)] = 0.5 * (end_value + right_after_end)
-    # A gate opening x after the light sees it at time -x of its own: reverse Pi.
-    gate, t = gate[::-1], -t[::-1]
+    if scan == "gate":  # a gate opening x after the light sees it at time -x of its own
+        gate, t = gate[::-1], -t[::-1]
 
     # Kernels centred on the grid so that the convolution keeps the time origin.
     kt = np.arange(-np.ceil(10 * blur / step), np.ceil(10 * blur / step) + 1) * step

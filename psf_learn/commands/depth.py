@@ -16,6 +16,8 @@ DEPTH_ARRAYS = (
     "fit_quality",
     "significance",
     "valid",
+    "timing_sigma_ps",
+    "depth_sigma_m",
 )
 DEPTH_FIGURES = ("intensity.png", "depth.png", "pixel_fits.png")
 # Above this median Poisson deviance per degree of freedom (1 for profiles that
@@ -84,11 +86,34 @@ def _common(p, sr_help="also super-resolve with a model from 'doefab learn' (int
         metavar="MODEL_DIR",
         help=sr_help,
     )
+    p.add_argument(
+        "--scan",
+        choices=("gate", "laser", "auto"),
+        default="auto",
+        help="scan direction: gate (the gate delayed, h = G correlated with Pi), laser "
+        "(time-reversed, h = G * Pi) or auto (fit both, keep the likelier; default)",
+    )
     p.add_argument("--force", action="store_true", help="overwrite existing outputs")
 
 
-def _response(args):
-    """The temporal response from the gate flags or from --irf."""
+def _responses(args):
+    """{direction: response} for --scan (both for auto; "irf" for --irf) and the summary."""
+    if args.irf:
+        if args.scan != "auto":
+            raise InputError(
+                "--scan",
+                "a measured IRF, taken in the same scan, fixes the direction by itself; "
+                "drop --scan",
+            )
+        response, summary = _response(args)
+        return {"irf": response}, summary
+    scans = ("gate", "laser") if args.scan == "auto" else (args.scan,)
+    parts = [_response(args, scan) for scan in scans]
+    return {scan: r for scan, (r, _) in zip(scans, parts, strict=True)}, parts[0][1]
+
+
+def _response(args, scan="gate"):
+    """The temporal response from the gate flags (in direction ``scan``) or from --irf."""
     from psf_learn.cubes import read_irf
     from psf_learn.depth_response import GateModel, gate_response, response_from_irf
 
@@ -129,7 +154,7 @@ def _response(args):
     summary = {f"{k}_ps": v / 1e-12 for k, v in params.items()}
     summary.update(pulse=pulse, tau_ps=tau)
     try:
-        return gate_response(model), summary
+        return gate_response(model, scan=scan), summary
     except ValueError as e:
         raise InputError("gate model", f"{e}; check the gate flags (ps)") from None
 
@@ -147,20 +172,33 @@ def _irf_warnings(irf):
     ]
 
 
+GATE_CONVENTION = (
+    "counts(t_k) = A h(t_k - mu) + b, t_k = k * shift, the "
+    "gate's opening after the laser pulse; h(x) = integral G(t) Pi(t - x) dt; "
+    "depth_m = c * mu / 2"
+)
+LASER_CONVENTION = (
+    "counts(t_k) = A h(t_k - mu) + b, t_k = k * shift, the time-reversed (laser) scan; "
+    "h(x) = integral G(t) Pi(x - t) dt = (G * Pi)(x); depth_m = c * mu / 2"
+)
+
+
 def _depth(args):
     from doe.infra.files import previous_files, save_npy, staged_output, write_json
     from psf_learn.cubes import read_cube, scan_gaps, super_resolve_cube
     from psf_learn.depth import check_scan
 
-    response, gate_summary = _response(args)
+    responses, gate_summary = _responses(args)
     flags.non_negative("--min-significance", args.min_significance)
     cube = read_cube(args.cube)
     shift = args.shift_ps * 1e-12
     try:
-        check_scan(cube.shape[-1], shift, response)
+        check_scan(cube.shape[-1], shift, next(iter(responses.values())))
     except ValueError as e:
         raise InputError(args.cube, f"{e}; check --shift-ps and the gate flags") from None
-    calibration = _calibration(args, cube, gate_summary)
+    scan, native_fit, scan_summary, note = _scan_direction(args, cube, shift, responses)
+    response = responses[scan]
+    calibration = _calibration(args, cube, _with_scan(gate_summary, scan))
     cubes = {"": cube}
     if args.sr:
         cubes["sr/"] = super_resolve_cube(args.sr, cube)
@@ -176,18 +214,18 @@ def _depth(args):
             "shape": list(cube.shape),
             "shift_ps": args.shift_ps,
             "gate": gate_summary,
+            "scan": scan_summary,
             "min_significance": args.min_significance,
-            "timing_convention": "counts(t_k) = A h(t_k - mu) + b, t_k = k * shift, the "
-            "gate's opening after the laser pulse; h(x) = integral G(t) Pi(t - x) dt; "
-            "depth_m = c * mu / 2",
+            "timing_convention": LASER_CONVENTION if scan == "laser" else GATE_CONVENTION,
         }
         if calibration is not None:
             summary["calibration"] = str(args.calibration)
         for prefix, data in cubes.items():
             folder = stage / prefix
             folder.mkdir(exist_ok=True)
+            fit = None if prefix else native_fit
             stats = _fit_and_write(
-                folder, data, shift, response, args.min_significance, save_npy, calibration
+                folder, data, shift, response, args.min_significance, save_npy, calibration, fit
             )
             summary["sr" if prefix else "native"] = stats
         summary["warnings"] = (
@@ -196,6 +234,8 @@ def _depth(args):
         write_json(stage / "depth.json", summary)
     for warning in summary["warnings"]:
         print(f"depth: warning: {warning}", file=sys.stderr)
+    if note:
+        print(f"depth: {note}")
     s = summary["native"]
     timing = (
         f"timing {s['timing_ps_min']:.1f} .. {s['timing_ps_max']:.1f} ps"
@@ -209,13 +249,53 @@ def _depth(args):
     return 0
 
 
-def _fit_and_write(folder, cube, shift, response, threshold, save_npy, calibration=None):
+def _scan_direction(args, cube, shift, responses, threshold=None):
+    """Return (direction, its native fit or None, the JSON record, a note to print or None).
+
+    One response (--scan gate|laser, --irf) is the direction as given; two are fitted
+    both ways by :func:`psf_learn.depth_scan.choose_scan`, refused (exit 2) when they
+    are not told apart.
+    """
+    from psf_learn.depth_scan import choose_scan
+
+    if len(responses) == 1:
+        (scan,) = responses
+        if scan == "irf":
+            note = "scan direction fixed by the IRF (measured in the same scan)"
+            return scan, None, {"direction": "irf", "chosen_by": "irf"}, note
+        return scan, None, {"direction": scan, "chosen_by": "--scan"}, None
+    threshold = args.min_significance if threshold is None else threshold
+    choice = choose_scan(cube, shift, responses, threshold=threshold, progress=True)
+    if choice.ambiguous:
+        raise InputError(
+            args.cube,
+            "the scan directions are not told apart (log-likelihood difference "
+            f"{choice.difference:.3g} < {choice.min_difference:g} over {choice.returns} "
+            "returns): give --scan gate or --scan laser",
+        )
+    other = next(s for s in responses if s != choice.scan)
+    note = (
+        f"scan direction {choice.scan} (auto): log-likelihood {choice.difference:.4g} "
+        f"above the {other} direction's"
+        if choice.returns
+        else "scan direction not determined (no return either way; nothing depends on it)"
+    )
+    return choice.scan, choice.fit, choice.summary(), note
+
+
+def _with_scan(gate_summary, scan):
+    """The gate settings a calibration is checked against: a laser scan says so."""
+    return {**gate_summary, "scan": scan} if scan == "laser" else gate_summary
+
+
+def _fit_and_write(folder, cube, shift, response, threshold, save_npy, calibration=None, raw=None):
     from psf_learn.depth import expected_counts, fit_profiles, scan_times
     from psf_learn.depth_calibration import apply_calibration
-    from psf_learn.depth_plots import example_pixels, save_map, save_pixel_fits
+    from psf_learn.depth_plots import example_pixels, save_depth_maps, save_map, save_pixel_fits
 
     # raw: the fit against the common response, whose timing the pixel fits' models need
-    raw = fit_profiles(cube, shift, response, threshold=threshold, progress=True)
+    if raw is None:
+        raw = fit_profiles(cube, shift, response, threshold=threshold, progress=True)
     fit = raw if calibration is None else apply_calibration(raw, calibration)
     arrays = {
         "timing_ps": fit.timing / 1e-12,
@@ -225,18 +305,13 @@ def _fit_and_write(folder, cube, shift, response, threshold, save_npy, calibrati
         "fit_quality": fit.fit_quality,
         "significance": fit.significance,
         "valid": fit.valid,
+        "timing_sigma_ps": fit.timing_sigma / 1e-12,
+        "depth_sigma_m": fit.depth_sigma,
     }
     for name, value in arrays.items():
         save_npy(folder / f"{name}.npy", value)
     save_map(folder / "intensity.png", fit.amplitude, "fitted amplitude A", "peak counts")
-    save_map(
-        folder / "depth.png",
-        fit.depth,
-        "depth (c mu / 2); grey: no return",
-        "depth (m)",
-        cmap="viridis",
-        valid=fit.valid,
-    )
+    save_depth_maps(folder / "depth.png", fit.depth, fit.depth_sigma, fit.valid)
     times = scan_times(cube.shape[-1], shift)
     picks = example_pixels(fit)
     profiles = [cube[r, c] for r, c, _ in picks]
@@ -260,7 +335,18 @@ def _fit_and_write(folder, cube, shift, response, threshold, save_npy, calibrati
         for r, c, why in picks
     ]
     save_pixel_fits(folder / "pixel_fits.png", times, profiles, models, labels)
+    return _fit_stats(fit)
+
+
+def _fit_stats(fit):
+    """The depth.json summary of one fit: valid pixels, timing range, quality, precision."""
     valid_t = fit.timing[fit.valid] / 1e-12
+    sigma_t = fit.timing_sigma[fit.valid] / 1e-12
+    sigma_d = fit.depth_sigma[fit.valid]
+
+    def stat(values, q):
+        return float(np.percentile(values, q)) if values.size else float("nan")
+
     return {
         "pixels": int(fit.valid.size),
         "valid_pixels": int(fit.valid.sum()),
@@ -270,7 +356,41 @@ def _fit_and_write(folder, cube, shift, response, threshold, save_npy, calibrati
         "median_fit_quality_of_returns": float(np.median(fit.fit_quality[fit.valid]))
         if fit.valid.any()
         else None,
+        "timing_sigma_ps_median": stat(sigma_t, 50),
+        "timing_sigma_ps_p90": stat(sigma_t, 90),
+        "timing_sigma_ps_max": float(sigma_t.max()) if sigma_t.size else float("nan"),
+        "depth_sigma_m_median": stat(sigma_d, 50),
+        "depth_sigma_m_p90": stat(sigma_d, 90),
     }
+
+
+def _transient_scan(args, cube):
+    """The frames' scan direction, the arrival time each frame shows best, a note.
+
+    The direction (given, or told from the cube with the default gate model as
+    ``depth`` does) sets which arrival time peaks in frame k: ``t_k`` less the
+    response's peak time. A cube too short to time, or without a return, leaves it
+    undetermined (the frames themselves do not depend on it).
+    """
+    from psf_learn.depth import check_scan
+    from psf_learn.depth_scan import scan_responses
+
+    shift = args.shift_ps * 1e-12
+    responses = scan_responses()
+    if args.scan != "auto":
+        responses = {args.scan: responses[args.scan]}
+    else:
+        try:
+            check_scan(cube.shape[-1], shift, responses["gate"])
+        except ValueError as e:
+            note = f"scan direction not determined ({e}); --scan labels the frames"
+            return {"direction": None, "chosen_by": "auto"}, None, note
+    scan, _, record, note = _scan_direction(args, cube, shift, responses, threshold=20.0)
+    if record.get("returns_either_direction") == 0:
+        return {**record, "direction": None}, None, note
+    peak_ps = responses[scan].peak_time / 1e-12
+    arrival = [round(k * args.shift_ps - peak_ps, 6) for k in range(cube.shape[-1])]
+    return record, arrival, note
 
 
 def _model_warnings(summary):
@@ -300,6 +420,7 @@ def _transient(args):
         raise InputError("--fps", str(e)) from None
     cube = read_cube(args.cube, min_samples=1)
     gaps = scan_gaps(args.cube)
+    scan_record, arrival, note = _transient_scan(args, cube)
     if args.sr:
         cube = super_resolve_cube(args.sr, cube)
     frames = np.moveaxis(cube, -1, 0)
@@ -333,11 +454,15 @@ def _transient(args):
                 "png_full_scale_counts": scale,
                 "png_note": "frame PNGs are 16-bit, counts = value / 65535 * png_full_scale_counts",
                 "gif_fps": gif_fps,
+                "scan": scan_record,
+                "frame_arrival_ps": arrival,
                 "warnings": gaps,
             },
         )
     for warning in gaps:
         print(f"transient: warning: {warning}", file=sys.stderr)
+    if note:
+        print(f"transient: {note}")
     if abs(gif_fps - args.fps) > 0.005 * args.fps:
         print(
             f"transient: preview.gif plays at {gif_fps:.4g} fps, the nearest to --fps "
