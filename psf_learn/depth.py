@@ -39,6 +39,7 @@ __all__ = [
     "Response",
     "ResponseTable",
     "check_scan",
+    "cramer_rao_timing",
     "depth_from_timing",
     "expected_counts",
     "fit_profiles",
@@ -76,6 +77,34 @@ def expected_counts(response, times, amplitude, timing, background):
     h = response(np.asarray(times)[None, :] - timing.reshape(-1, 1))
     m = amplitude.reshape(-1, 1) * h + background.reshape(-1, 1)
     return m.reshape((*amplitude.shape, len(times)))
+
+
+def cramer_rao_timing(response, times, amplitude, timing, background):
+    """Return the Cramer-Rao bound on the std of mu (s) of every pixel, Poisson counts.
+
+    The same bound as :attr:`ProfileFit.timing_sigma` (the full (A, mu, b) Fisher
+    matrix inverted), at the given parameters instead of the fitted ones.
+
+    Parameters
+    ----------
+    response : Response
+    times : (T,) array
+        Scan times (s).
+    amplitude, timing, background : (...) arrays
+        Peak counts A, arrival time mu (s) and background counts b per pixel.
+
+    Returns
+    -------
+    (...) float64 array
+    """
+    amplitude, timing, background = np.broadcast_arrays(
+        *(np.asarray(v, dtype=np.float64) for v in (amplitude, timing, background))
+    )
+    x = np.asarray(times)[None, :] - timing.reshape(-1, 1)
+    h, dh = response(x, derivative=True)
+    a = amplitude.reshape(-1, 1)
+    m = np.maximum(a * h + background.reshape(-1, 1), 1e-300)
+    return _timing_sigma(h, -a * dh, m).reshape(amplitude.shape)
 
 
 def depth_from_timing(timing):
