@@ -185,6 +185,7 @@ def apply_calibration(fit, calibration):
         timing=np.where(ok, fit.timing + np.nan_to_num(delay), np.nan),
         amplitude=np.where(ok, fit.amplitude, 0.0),
         valid=ok,
+        timing_sigma=np.where(ok, fit.timing_sigma, np.nan),
     )
 
 

@@ -388,7 +388,7 @@ def test_a_random_scene_needs_room_for_a_complete_profile(response):
 
 
 def test_depth_module_does_not_import_torch():
-    code = "import sys, psf_learn.depth, psf_learn.depth_response, psf_learn.depth_sim, psf_learn.cubes, psf_learn.commands.depth; print('torch' in sys.modules)"  # noqa: E501
+    code = "import sys, psf_learn.depth, psf_learn.depth_response, psf_learn.depth_sim, psf_learn.depth_scan, psf_learn.depth_options, psf_learn.cubes, psf_learn.commands.depth; print('torch' in sys.modules)"  # noqa: E501
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
 

@@ -270,3 +270,28 @@ def test_default_flags_time_either_direction_as_well_as_a_fit_that_knows_it(resp
         rmse = np.sqrt(np.mean((choice.fit.timing - mu) ** 2))
         reference = least_squares_timing(cube, responses[scan], a, mu, b)
         assert rmse <= 1.1 * np.sqrt(np.mean((reference - mu) ** 2)), level
+
+
+def test_a_laser_scan_is_calibrated_and_checked_in_its_direction(tmp_path, responses, capsys):
+    # depth-calibrate tells the direction as depth does and records a laser scan's;
+    # a cube fitted in the other direction than its calibration is refused.
+    from psf_learn.depth_sim import random_gate_skew, random_scene, simulate_skewed_cube
+
+    laser, n, rng = responses["laser"], 200, np.random.default_rng(41)
+    delay = random_gate_skew((4, 8), 150 * PS, rng)
+    flat = np.full((4, 8), 2 * 0.15 / 299_792_458.0)
+    cube = simulate_skewed_cube(1000.0, flat, 10.0, delay, n, SHIFT, laser, rng)
+    np.save(tmp_path / "flat.npy", cube.astype(np.uint16))
+    a, mu, b = random_scene((4, 8), 100.0, 5.0, SHIFT, n, laser, rng, 700 * PS)
+    np.save(tmp_path / "scene.npy", simulate_skewed_cube(a, mu, b, delay, n, SHIFT, laser, rng))
+    cal = tmp_path / "cal"
+    args = [str(tmp_path / "flat.npy"), "--distance-m", "0.15", "--out", str(cal)]
+    assert main(["depth-calibrate", *args]) == 0
+    assert "depth-calibrate: scan direction laser (auto)" in capsys.readouterr().out
+    assert json.loads((cal / "calibration.json").read_text())["gate"]["scan"] == "laser"
+    scene = [str(tmp_path / "scene.npy"), "--calibration", str(cal)]
+    assert main(["depth", *scene, "--out", str(tmp_path / "o")]) == 0
+    timing = np.load(tmp_path / "o" / "timing_ps.npy")
+    assert np.sqrt(np.mean((timing - mu / PS) ** 2)) < 10  # the skew alone: 150 ps
+    assert main(["depth", *scene, "--scan", "gate", "--out", str(tmp_path / "g")]) == 2
+    assert "gate scan None against laser" in capsys.readouterr().err
