@@ -20,7 +20,7 @@ least-squares fit that knows the true model (direction, gate; started from the
 truth), the Cramer-Rao bound (RMS over the pixels), their ratio (acceptance
 <= 1.1) and the command's wall time (acceptance <= 5 s).
 
-Run: ``python bench/depth.py [--subset 300] [--seed 0] [--only directions]``
+Run: ``python bench/depth.py [--subset 300] [--seed 0] [--only directions|calibration|...]``
 """
 
 import argparse
@@ -218,6 +218,14 @@ def _children_cpu():
     return usage.ru_utime + usage.ru_stime
 
 
+def skewed_array(subset, seed):
+    """Print bench/depth_calibration.py's table: a skewed array with and without calibration."""
+    script = Path(__file__).with_name("depth_calibration.py")
+    subprocess.run(
+        [sys.executable, str(script), "--subset", str(subset), "--seed", str(seed)], check=True
+    )
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
@@ -225,13 +233,16 @@ def main():
     )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
-        "--only", choices=("accuracy", "directions", "speed", "memory"), help="one part only"
+        "--only",
+        choices=("accuracy", "directions", "calibration", "speed", "memory"),
+        help="one part only",
     )
     args = parser.parse_args()
     response = gate_response(GateModel())
     parts = {
         "accuracy": lambda: accuracy(response, args.subset, args.seed),
         "directions": lambda: directions(args.seed),
+        "calibration": lambda: skewed_array(args.subset, args.seed),
         "speed": lambda: speed(response, args.seed),
         "memory": lambda: memory(response, args.seed),
     }

@@ -34,7 +34,7 @@ import numpy as np
 
 from doe.infra.errors import InputError
 from doe.infra.files import load_npy, read_json, save_npy, staged_output, write_json
-from psf_learn.depth import FWHM_PER_SIGMA, SPEED_OF_LIGHT, fit_profiles, scan_times
+from psf_learn.depth import FWHM_PER_SIGMA, SPEED_OF_LIGHT, fit_profiles
 
 CALIBRATION_JSON = "calibration.json"
 GATE_DELAY_NPY = "gate_delay_ps.npy"
@@ -133,41 +133,15 @@ def calibrate_gates(cube, shift, response, distance, gate=None, threshold=20.0):
     if not fit.valid.any():
         raise ValueError("no pixel of the calibration scan has a return: no delay to fit")
     round_trip = 2 * float(distance) / SPEED_OF_LIGHT
-    sigma = timing_sigma(cube, fit, shift, response)
     return GateCalibration(
         gate_delay=np.where(fit.valid, round_trip - fit.timing, np.nan),
-        delay_sigma=np.where(fit.valid, sigma, np.nan),
+        delay_sigma=np.where(fit.valid, fit.timing_sigma, np.nan),
         shift=float(shift),
         n_samples=int(cube.shape[-1]),
         distance=float(distance),
         gate=dict(gate or {}),
         median_fit_quality=float(np.median(fit.fit_quality[fit.valid])),
     )
-
-
-def timing_sigma(cube, fit, shift, response, chunk=4096):
-    """Return each pixel's 1-sigma timing (s): the Cramer-Rao bound of (A, mu, b) at the fit.
-
-    The inverse of the Poisson Fisher information ``sum_k J_k J_k^T / m_k``
-    (J: the model's derivatives by A, mu, b); NaN where the fit has no return.
-    """
-    y = np.asarray(cube, dtype=np.float64).reshape(-1, cube.shape[-1])
-    a = fit.amplitude.ravel()
-    mu = np.nan_to_num(fit.timing.ravel()) / _PS
-    b = fit.background.ravel()
-    t = scan_times(y.shape[1], shift) / _PS
-    out = np.full(y.shape[0], np.nan)
-    for i in range(0, y.shape[0], chunk):
-        s = slice(i, i + chunk)
-        h, dh = response((t[None, :] - mu[s, None]) * _PS, derivative=True)
-        m = np.maximum(a[s, None] * h + b[s, None], 1e-9)
-        jac = np.stack([h, -a[s, None] * dh * _PS, np.ones_like(h)], axis=-1)
-        fisher = np.einsum("ptk,ptl->pkl", jac / m[..., None], jac)
-        det_ok = np.linalg.det(fisher) > 0
-        cov = np.full_like(fisher, np.nan)
-        cov[det_ok] = np.linalg.inv(fisher[det_ok])
-        out[s] = np.sqrt(np.clip(cov[:, 1, 1], 0.0, None)) * _PS
-    return np.where(fit.valid.ravel(), out, np.nan).reshape(fit.valid.shape)
 
 
 def apply_calibration(fit, calibration):
