@@ -96,19 +96,27 @@ LASER_CONVENTION = (
 )
 
 
-def _depth(args):
-    from doe.infra.files import previous_files, save_npy, staged_output, write_json
-    from psf_learn.cubes import read_cube, scan_gaps, super_resolve_cube
+def _read_scan(args, responses):
+    """Return the cube of ``args.cube`` and its shift (s); InputError if the scan cannot be fit."""
+    from psf_learn.cubes import read_cube
     from psf_learn.depth import check_scan
 
-    responses, gate_summary = responses_from_flags(args)
-    flags.non_negative("--min-significance", args.min_significance)
     cube = read_cube(args.cube)
     shift = args.shift_ps * 1e-12
     try:
         check_scan(cube.shape[-1], shift, next(iter(responses.values())))
     except ValueError as e:
         raise InputError(args.cube, f"{e}; check --shift-ps and the gate flags") from None
+    return cube, shift
+
+
+def _depth(args):
+    from doe.infra.files import previous_files, save_npy, staged_output, write_json
+    from psf_learn.cubes import scan_gaps, super_resolve_cube
+
+    responses, gate_summary = responses_from_flags(args)
+    flags.non_negative("--min-significance", args.min_significance)
+    cube, shift = _read_scan(args, responses)
     scan, native_fit, scan_summary, note = _scan_direction(args, cube, shift, responses)
     response = responses[scan]
     calibration = _calibration(args, cube, _with_scan(gate_summary, scan))
@@ -431,18 +439,12 @@ def _register_calibrate(sub):
 
 
 def _calibrate(args):
-    from psf_learn.cubes import read_cube, scan_gaps
-    from psf_learn.depth import check_scan
+    from psf_learn.cubes import scan_gaps
     from psf_learn.depth_calibration import calibrate_gates, write_calibration
 
     responses, gate_summary = responses_from_flags(args)
     flags.positive("--distance-m", args.distance_m)
-    cube = read_cube(args.cube)
-    shift = args.shift_ps * 1e-12
-    try:
-        check_scan(cube.shape[-1], shift, next(iter(responses.values())))
-    except ValueError as e:
-        raise InputError(args.cube, f"{e}; check --shift-ps and the gate flags") from None
+    cube, shift = _read_scan(args, responses)
     scan, _, _, note = _scan_direction(args, cube, shift, responses, threshold=20.0)
     response = responses[scan]
     gate = {k: v for k, v in _with_scan(gate_summary, scan).items() if k != "warnings"}
