@@ -9,7 +9,7 @@ SI units inside, the design file's units in the summary's keys.
 import math
 from dataclasses import asdict, dataclass
 
-from doe.materials import refractive_index
+from doe.materials import MATERIALS, IndexTable
 
 
 @dataclass(frozen=True)
@@ -88,7 +88,7 @@ def derive(d, tile_pixels=None):
     tile = n_pix * pitch
     lattice = wl * f / tile if tile > 0 else math.inf
     half_width_subpixels = max(sensor.columns, sensor.rows) * sensor.superres_factor / 2
-    n = refractive_index(d.material.name, wl)
+    n = d.material.dispersion.index(wl)
     step = wl / (n - 1) / fab.levels
     masks = int(math.log2(fab.levels))
     if sensor.active_area_shape == "circle":
@@ -123,6 +123,23 @@ def as_typed(value, scale):
     return float(f"{value * scale:.12g}")
 
 
+def material_summary(m):
+    """The summary's ``[material]``: a custom glass with its coefficients or index table."""
+    out = {"name": m.name, "thickness_mm": as_typed(m.thickness, 1e3)}
+    glass = m.dispersion
+    if MATERIALS.get(m.name) is glass:
+        return out
+    if isinstance(glass, IndexTable):
+        rows = zip(glass.wavelengths, glass.indices, strict=True)
+        return {**out, "index_table": [[as_typed(w, 1e9), n] for w, n in rows]}
+    return {
+        **out,
+        "sellmeier_b": list(glass.B),
+        "sellmeier_c_um2": list(glass.C),
+        "range_nm": [as_typed(v, 1e9) for v in glass.valid],
+    }
+
+
 def design_summary(d, tile_pixels=None):
     """Return the design and its derived quantities as a JSON-ready dict, units in the keys.
 
@@ -146,7 +163,7 @@ def design_summary(d, tile_pixels=None):
             "focal_length_mm": as_typed(d.optics.focal_length, 1e3),
         },
         "psf": {"kernel_size": d.kernel_size},
-        "material": {"name": d.material.name, "thickness_mm": as_typed(d.material.thickness, 1e3)},
+        "material": material_summary(d.material),
         "fabrication": {
             "levels": d.fabrication.levels,
             "feature_size_um": as_typed(d.fabrication.feature_size, 1e6),

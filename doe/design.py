@@ -18,7 +18,7 @@ from doe.derived import derive, lattice_problem
 from doe.infra.errors import InputError
 from doe.infra.files import LEVEL_COUNT_RULE, is_level_count
 from doe.infra.flags import MINUTES_MAX, PHOTONS_MAX, SEED_MAX, STEPS_MAX
-from doe.materials import MATERIALS, refractive_index
+from doe.materials import CUSTOM_KEYS, IndexTable, Sellmeier, material_dispersion
 
 
 @dataclass(frozen=True)
@@ -40,8 +40,12 @@ class Optics:
 
 @dataclass(frozen=True)
 class Material:
+    """The substrate: ``name`` is canonical for a catalogue glass (``dispersion.source``
+    says where its index comes from)."""
+
     name: str
     thickness: float
+    dispersion: Sellmeier | IndexTable
 
 
 @dataclass(frozen=True)
@@ -100,11 +104,7 @@ _SCHEMA = {
         "kernel_size": (int, None, (lambda v: v > 0 and v % 2 == 1, "must be odd and > 0")),
     },
     "material": {
-        "name": (
-            str,
-            None,
-            (lambda v: v in MATERIALS, f"must be one of {', '.join(sorted(MATERIALS))}"),
-        ),
+        "name": (str, None, (lambda v: True, "")),  # checked by material_dispersion
         "thickness_mm": (float, 1e-3, _POSITIVE),
     },
     "fabrication": {
@@ -128,6 +128,10 @@ _SCHEMA = {
         ),
     },
 }
+
+
+# Keys a table may hold beside its _SCHEMA keys; their checks are the section's own.
+_OPTIONAL = {"material": CUSTOM_KEYS}
 
 
 def preset_names():
@@ -211,10 +215,11 @@ def parse_design(raw, source="design"):
             raise InputError(source, f"missing table [{section}]")
         if not isinstance(table, dict):  # [[optics]] or optics = 5
             raise InputError(source, f"[{section}] must be a table of keys, got {table!r}")
-        unknown = set(table) - set(fields)
+        known = {*fields, *_OPTIONAL.get(section, ())}
+        unknown = set(table) - known
         if unknown:
             raise InputError(
-                source, f"[{section}] has unknown key(s) {sorted(unknown)}; known: {sorted(fields)}"
+                source, f"[{section}] has unknown key(s) {sorted(unknown)}; known: {sorted(known)}"
             )
         for key, (typ, scale, (ok, why)) in fields.items():
             where = f"{source}: [{section}] {key}"
@@ -226,6 +231,7 @@ def parse_design(raw, source="design"):
             raise InputError(f"{source}: {key}", "must be a string")
 
     s = lambda sec, k: si[sec, k]  # noqa: E731
+    glass, dispersion = material_dispersion(raw["material"], f"{source}: [material]")
     design = Design(
         name=raw.get("name", Path(str(source)).stem),
         description=raw.get("description", ""),
@@ -240,7 +246,7 @@ def parse_design(raw, source="design"):
         ),
         optics=Optics(s("optics", "wavelength_nm"), s("optics", "focal_length_mm")),
         kernel_size=s("psf", "kernel_size"),
-        material=Material(s("material", "name"), s("material", "thickness_mm")),
+        material=Material(glass, s("material", "thickness_mm"), dispersion),
         fabrication=Fabrication(
             s("fabrication", "levels"),
             s("fabrication", "feature_size_um"),
@@ -331,7 +337,7 @@ def _check_consistency(d, source):
             f"leaves its {sensor.pixel_pitch * 1e6:g} um pixel",
         )
     try:
-        refractive_index(d.material.name, d.optics.wavelength)
+        d.material.dispersion.index(d.optics.wavelength)
     except InputError as e:
         raise InputError(f"{source}: [optics] wavelength_nm", e.problem) from None
     der = derive(d)

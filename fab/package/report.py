@@ -18,6 +18,7 @@ from doe.figures import correlation_text
 from doe.fraunhofer import correlation, level_phase, rmse
 from doe.goals import CORRELATION_GOAL, RMSE_GOAL, goals_missed
 from doe.infra.files import atomic_write_bytes, write_json
+from doe.materials import TABLE_KEY, index_source
 from fab.package.manifest import file_records
 from fab.templates import render_page
 
@@ -244,14 +245,14 @@ def _design_blocks(design):
 
 def _material_blocks(design, man):
     step = man["level_step_nm"]
+    material = design["material"]
+    how = "index table" if TABLE_KEY in material else "Sellmeier"
     rows = [
-        ["substrate", str(design["material"]["name"])],
-        ["thickness", f"{design['material']['thickness_mm']:g} mm"],
+        ["substrate", str(material["name"])],
+        ["source of the index", index_source(material)],
+        ["thickness", f"{material['thickness_mm']:g} mm"],
         ["design wavelength", f"{man['wavelength_nm']:g} nm"],
-        [
-            "refractive index at the design wavelength (Sellmeier)",
-            f"{man['refractive_index']:.5f}",
-        ],
+        [f"refractive index at the design wavelength ({how})", f"{man['refractive_index']:.5f}"],
         ["step height lambda / ((n - 1) L)", f"{step:.2f} nm"],
     ]
     return [("h2", "Material"), ("table", ["quantity", "value"], rows)]

@@ -156,7 +156,7 @@ def test_an_unknown_material_is_refused_with_the_known_ones():
         # once clamped into the pixel's corner cell by the sensor model, without a word
         ("sensor", "active_offset_um", [100.0, 0.0], "leaves its 150 um pixel"),
         ("sensor", "active_offset_um", [0.0, -61.0], "leaves its 150 um pixel"),
-        ("material", "name", "unobtainium", "must be one of"),
+        ("material", "name", "unobtainium", "unknown material .unobtainium.; choose one of"),
         ("sensor", "columns", 64.5, "must be int"),
         ("optics", "focal_length_mm", float("nan"), "finite"),
         ("sensor", "active_offset_um", [1.0], r"\[x, y\]"),

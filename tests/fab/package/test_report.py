@@ -361,3 +361,33 @@ def test_html_report_escapes_the_design_and_carries_the_shared_stylesheet(tmp_pa
     assert f"<style>\n{css}</style>" in page
     for name in (FIGURES["levels"], FIGURES["psf"]):
         assert f'<img src="{name}" alt="' in page
+
+
+@pytest.mark.parametrize(
+    ("material", "source", "how"),
+    [
+        ({"name": "fused_silica"}, "Sellmeier, Malitson, JOSA 55, 1205 (1965)", "Sellmeier"),
+        ({"name": "bk7"}, "Sellmeier, SCHOTT N-BK7 data sheet", "Sellmeier"),
+        (
+            {"name": "g", "sellmeier_b": [1.0], "sellmeier_c_um2": [0.01], "range_nm": [300, 900]},
+            "design file: Sellmeier coefficients",
+            "Sellmeier",
+        ),
+        (
+            {"name": "g", "index_table": [[400.0, 1.5], [700.0, 1.4]]},
+            "design file: index table, 2 points",
+            "index table",
+        ),
+    ],
+)
+def test_the_material_table_names_the_glass_and_the_source_of_its_index(
+    tmp_path, material, source, how
+):
+    from fab.package.report import render_markdown, report_blocks
+
+    context = make_context(tmp_path, with_tolerance=False)
+    context["design"]["material"] = {**material, "thickness_mm": 0.5}
+    text = render_markdown(report_blocks(context))
+    assert f"| substrate | {material['name']} |" in text
+    assert f"| source of the index | {source} |" in text
+    assert f"| refractive index at the design wavelength ({how}) |" in text
