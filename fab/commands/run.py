@@ -7,7 +7,7 @@ its exit code.
 
 import sys
 
-from fab.run.stages import MESH_FORMATS, NO_MESH
+from fab.run.stages import MESH_FORMATS, NO_MESH, STAGE_NAMES
 
 
 def register(sub):
@@ -20,11 +20,15 @@ def register(sub):
     p.add_argument("--config", help="design TOML file or preset name (default preset if absent)")
     p.add_argument("--out", required=True, help="run folder")
     p.add_argument("--psf", help="use this psf.npy instead of learning one")
-    p.add_argument(
+    budget = p.add_mutually_exclusive_group()
+    budget.add_argument(
         "--minutes",
         type=float,
         help="train for this wall-clock time instead of the design's [learning] steps "
         "(faster or slower machines then give different results)",
+    )
+    budget.add_argument(
+        "--steps", type=int, help="train this many steps instead of the design's [learning] steps"
     )
     p.add_argument("--seed", type=int, help="seed of every stage (default: the design's)")
     p.add_argument(
@@ -32,7 +36,16 @@ def register(sub):
         default=MESH_FORMATS,
         help=f"mesh formats (default {MESH_FORMATS}); {NO_MESH} skips the mesh stage",
     )
-    p.add_argument("--force", action="store_true", help="redo every stage and overwrite")
+    p.add_argument(
+        "--force",
+        nargs="?",
+        const=True,
+        default=False,
+        choices=STAGE_NAMES,
+        metavar="STAGE",
+        help="redo every stage and overwrite; with a STAGE "
+        f"({', '.join(STAGE_NAMES)}), redo that stage and those after it",
+    )
     p.set_defaults(func=_run)
 
 
@@ -45,6 +58,7 @@ def _run(args):
         config=args.config,
         psf=args.psf,
         minutes=args.minutes,
+        steps=args.steps,
         seed=args.seed,
         formats=args.formats,
         force=args.force,

@@ -2,9 +2,9 @@
 
 Each stage is one ``doefab`` subcommand writing into its own folder of the run
 directory. A stage's key is the SHA-256 of its arguments, the contents of its
-input files and the resolved design it reads; ``run_state.json`` records, per
-finished stage, the key and the SHA-256 of every file it wrote and of the files
-those replaced. A re-run skips a stage whose key and files are unchanged (so an
+input files and the values of the resolved design it reads; ``run_state.json``
+records, per finished stage, the key and the SHA-256 of every file it wrote and
+of the files those replaced. A re-run skips a stage whose key and files are unchanged (so an
 interrupted run resumes at the first unfinished stage), redoes it when an input
 changed, and never overwrites a file that was edited since the run wrote it
 unless ``force``. A lab's own files in a stage's folder (names the run never
@@ -33,9 +33,10 @@ class Stage:
     ``argv`` is the doefab command line without ``--out``/``--force``; paths in it
     that are inside the run folder are written relative to it so that the key
     does not depend on where the run folder lives. ``config`` (``--config FILE``)
-    runs with the stage but does not key it: ``design``, the resolved design as
-    canonical JSON, does, so that a comment in the design file, or the file moved,
-    redoes nothing while any changed value redoes the stage.
+    runs with the stage but does not key it: ``design``, the resolved design's values
+    that the stage reads as canonical JSON, does, so that a comment in the design
+    file, or the file moved, redoes nothing while any changed value it reads redoes
+    the stage.
     """
 
     name: str

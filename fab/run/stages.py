@@ -22,6 +22,8 @@ NO_MESH = "none"  # formats value that leaves the mesh stage out
 STAGE_NAMES = ("learn", "retrieve", "fab", "mesh")  # every stage a run can plan, in order
 # The run's own summaries of its stages: rewritten by every run that redoes a stage.
 SUMMARY_FILES = ("index.html", "manifest.json", "timings.json")
+# The design's fields that learning reads: only they key the learn stage.
+LEARN_DESIGN_KEYS = ("sensor", "kernel_size", "learning")
 
 
 @dataclass(frozen=True)
@@ -36,20 +38,24 @@ class RunOptions:
         A ``psf.npy`` to use instead of learning one.
     minutes : float or None
         Train for this wall-clock time instead of the design's step budget.
+    steps : int or None
+        Train this many steps instead of the design's step budget.
     seed : int or None
         Seed of every stage (None: the design's).
     formats : str
         Comma-separated mesh formats, or ``"none"`` to leave the mesh stage out.
-    force : bool
-        Redo every stage and overwrite edited outputs.
+    force : bool or str
+        True: redo every stage and overwrite edited outputs. A stage name: redo
+        that stage and those after it, overwriting their edited outputs.
     """
 
     config: str | None = None
     psf: str | None = None
     minutes: float | None = None
+    steps: int | None = None
     seed: int | None = None
     formats: str = MESH_FORMATS
-    force: bool = False
+    force: bool | str = False
 
 
 @dataclass(frozen=True)
@@ -95,6 +101,7 @@ def run_pipeline(
     config=None,
     psf=None,
     minutes=None,
+    steps=None,
     seed=None,
     formats=MESH_FORMATS,
     force=False,
@@ -103,6 +110,8 @@ def run_pipeline(
     """Run the whole pipeline into the run folder ``out``; skip what is up to date.
 
     Re-running skips stages whose inputs did not change; an interrupted run resumes.
+    Learn's inputs are its own design keys (:data:`LEARN_DESIGN_KEYS`), images,
+    seed, budget and flags: a change of ``[fabrication]`` alone keeps it.
 
     Parameters
     ----------
@@ -111,7 +120,7 @@ def run_pipeline(
     invoke : callable
         ``invoke(argv) -> exit code`` runs one doefab command, such as
         ``doe.infra.cli.main``.
-    config, psf, minutes, seed, formats, force
+    config, psf, minutes, steps, seed, formats, force
         As :class:`RunOptions`.
     log : callable, optional
         Called with each progress line (``doefab run`` prints them to stderr).
@@ -133,9 +142,10 @@ def run_pipeline(
         config=None if config is None else str(config),
         psf=None if psf is None else str(psf),
         minutes=minutes,
+        steps=steps,
         seed=seed,
         formats=formats,
-        force=force,
+        force=force if isinstance(force, str) else bool(force),
     )
     design = _check_inputs(options)
     run_dir = Path(out)
@@ -159,7 +169,12 @@ def _check_inputs(options):
 
     flags.positive("--minutes", options.minutes)
     flags.at_most("--minutes", options.minutes, flags.MINUTES_MAX, "two years")
+    flags.positive("--steps", options.steps)
+    flags.at_most("--steps", options.steps, flags.STEPS_MAX, "years of training")
+    if options.minutes is not None and options.steps is not None:
+        raise InputError("--minutes", "not with --steps: give one budget")
     flags.seed("--seed", options.seed)
+    _check_force(options.force)
     design = load_design(options.config)
     if options.psf:
         psf = read_psf(options.psf)
@@ -169,6 +184,38 @@ def _check_inputs(options):
     where = f"{options.config or 'default preset'}: [material] thickness_mm"
     check_float32_heights(design.material.thickness * 1e3, formats, where)
     return design
+
+
+def _check_force(force):
+    """Refuse a ``force`` that is neither a bool nor a stage's name (InputError)."""
+    if not isinstance(force, bool) and force not in STAGE_NAMES:
+        raise InputError("--force", f"{force!r} is no stage: one of {', '.join(STAGE_NAMES)}")
+
+
+def _forced(options, names):
+    """Return the planned stages that ``options.force`` redoes (all, or one and those after)."""
+    if options.force is True:
+        return set(names)
+    if not options.force:
+        return set()
+    if options.force not in names:
+        raise InputError(
+            "--force", f"{options.force} is not a stage of this run ({', '.join(names)})"
+        )
+    return set(names[names.index(options.force) :])
+
+
+def learn_design(design):
+    """The design's values that learning reads, as canonical JSON (the learn stage's key).
+
+    Learning reads the sensor, the PSF kernel and the learning section; the optics,
+    material and fabrication shape only the stages after it.
+    """
+    values = {key: getattr(design, key) for key in LEARN_DESIGN_KEYS}
+    return json.dumps(
+        {k: dataclasses.asdict(v) if dataclasses.is_dataclass(v) else v for k, v in values.items()},
+        sort_keys=True,
+    )
 
 
 def _no_mesh(formats):
@@ -182,10 +229,8 @@ def plan_stages(run_dir, design, options):
     from fab.run.pipeline import Stage
 
     # The stages that read the design are keyed on its values, not on the file's bytes.
-    on_design = {
-        "config": ("--config", options.config) if options.config else (),
-        "design": json.dumps(dataclasses.asdict(design), sort_keys=True),
-    }
+    config = ("--config", options.config) if options.config else ()
+    on_design = {"config": config, "design": json.dumps(dataclasses.asdict(design), sort_keys=True)}
     seed = str(options.seed if options.seed is not None else design.learning.seed)
     stages = []
     if options.psf:
@@ -194,14 +239,15 @@ def plan_stages(run_dir, design, options):
         # A step budget keeps the run reproducible; --minutes trades that for a time budget.
         # Reproducible means on the CPU: CUDA's gradients sum in a varying order, so two
         # runs on a GPU learn slightly different PSFs, hence two plates.
+        steps = options.steps if options.steps is not None else design.learning.steps
         budget = (
             ["--minutes", str(options.minutes)]
             if options.minutes is not None
-            else ["--steps", str(design.learning.steps), "--device", "cpu"]
+            else ["--steps", str(steps), "--device", "cpu"]
         )
         # One thread: the thread count changes torch's summation order, hence the bits.
         learn = ("learn", *budget, "--threads", "1", "--seed", seed)
-        stages.append(Stage("learn", learn, **on_design))
+        stages.append(Stage("learn", learn, config=config, design=learn_design(design)))
         psf = run_dir / "learn" / "psf.npy"
     retrieve = run_dir / "retrieve"
     fab = run_dir / "fab"
@@ -245,17 +291,18 @@ def _load_state(run_dir, force):
 def _run_stages(run_dir, design, options, invoke, log):
     from fab.run.pipeline import check_overwrite, discard_unfinished, is_current, run_stage
 
-    state = _load_state(run_dir, options.force)
+    state = _load_state(run_dir, options.force is True)
     stages = plan_stages(run_dir, design, options)
     names = tuple(s.name for s in stages)
+    forced = _forced(options, names)
     # Before any stage runs: an edited output would stop the run half-way.
     for stage in stages:
-        check_overwrite(stage, state, run_dir, options.force)
+        check_overwrite(stage, state, run_dir, stage.name in forced)
     timings, ran, skipped = {}, [], []
     summaries_gone = False
     for i, stage in enumerate(stages, 1):
         # inputs of later stages exist only once earlier ones ran: plan lazily
-        if not options.force and is_current(stage, state, run_dir):
+        if stage.name not in forced and is_current(stage, state, run_dir):
             log(f"[{i}/{len(stages)}] {stage.name}: up to date, skipped")
             discard_unfinished(stage, run_dir)
             skipped.append(stage.name)
@@ -268,7 +315,7 @@ def _run_stages(run_dir, design, options, invoke, log):
             summaries_gone = True
         log(f"[{i}/{len(stages)}] {stage.name}: doefab {' '.join(stage.command)}")
         t0 = time.perf_counter()
-        code = run_stage(stage, run_dir, state, invoke, options.force)
+        code = run_stage(stage, run_dir, state, invoke, stage.name in forced)
         timings[stage.name] = round(time.perf_counter() - t0, 2)
         ran.append(stage.name)
         if code != 0:
