@@ -6,6 +6,7 @@ import re
 
 import numpy as np
 import pytest
+from package_helpers import make_design_dir
 
 from doe.derived import derive, design_summary
 from doe.design import load_design
@@ -27,15 +28,6 @@ EXTRA_KEYS = {
     "tile_size_um", "lattice_pitch_um", "target_psf_file", "resist_tone", "data_polarity",
     "marks_layers", "acceptance",
 }  # fmt: skip
-
-
-def make_design_dir(path, n=35, n_levels=8, seed=0, target=True, k=11):
-    path.mkdir(parents=True, exist_ok=True)
-    levels = np.random.default_rng(seed).integers(0, n_levels, (n, n)).astype(np.uint8)
-    np.save(path / "levels.npy", levels)
-    if target:
-        np.save(path / "target_psf.npy", simulate_levels(levels, n_levels, k)[0])
-    return levels
 
 
 def malitson_step_nm(wavelength_nm=655.0, n_levels=8):

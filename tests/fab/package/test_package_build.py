@@ -4,26 +4,17 @@ import json
 
 import numpy as np
 import pytest
+from package_helpers import make_design_dir
 
-from doe.fraunhofer import simulate_levels
 from doe.infra.errors import InputError
 from doe.records.fab_manifest import MANIFEST_NAME, read_fab_manifest
 from fab.package.build import PackageCheckFailed, PackageResult, build_package
 
 
-def make_design_dir(path, n=21, n_levels=8, seed=0, target=True, k=11):
-    path.mkdir(parents=True, exist_ok=True)
-    levels = np.random.default_rng(seed).integers(0, n_levels, (n, n)).astype(np.uint8)
-    np.save(path / "levels.npy", levels)
-    if target:
-        np.save(path / "target_psf.npy", simulate_levels(levels, n_levels, k)[0])
-    return levels
-
-
 @pytest.fixture(scope="module")
 def built(tmp_path_factory):
     root = tmp_path_factory.mktemp("build")
-    levels = make_design_dir(root / "design", target=False)
+    levels = make_design_dir(root / "design", n=21, target=False)
     result = build_package(root / "design", root / "out", oasis=True, progress=False)
     return root, levels, result
 
