@@ -357,7 +357,10 @@ def _check_consistency(d, source):
     from layouts.marks import check_marks_fit
 
     try:
-        check_marks_fit(der.masks, round(fab.aperture * 1e9) // 2)
+        check_marks_fit(
+            der.masks, round(fab.aperture * 1e9) // 2, round(fab.feature_size * 1e9),
+            round(fab.grid * 1e9),
+        )  # fmt: skip
     except ValueError as e:
         raise InputError(f"{source}: [fabrication] aperture_mm", str(e)) from None
     if d.kernel_size > der.tile_pixels:
