@@ -102,9 +102,9 @@ def build_mask_order(manifest, out_dir, tolerance=None):
         ``fab.plate.tolerance.tolerance_analysis``'s result (the CD budget).
     """
     m = manifest
-    pitch = int(m["pixel_pitch_nm"])
-    cd_nm = pitch  # the tile's narrowest drawn line or space: one mask pixel
-    tol_nm, tol_source = cd_tolerance(pitch, tolerance)
+    # the narrowest line or space drawn: one tile pixel, or a mark at the feature size
+    cd_nm = min(int(m["pixel_pitch_nm"]), int(m["mark_feature_nm"]))
+    tol_nm, tol_source = cd_tolerance(cd_nm, tolerance)
     plate_nm = [int(v) for v in m["plate_size_nm"]]
     dies = m["dies"]
     field_nm = [
@@ -205,7 +205,7 @@ def render_order_markdown(order):
             ("polarity", e["polarity"]),
             ("mirroring", e["mirroring"]),
             ("write grid / address unit", f"{e['write_grid_nm']} nm / {e['address_unit_nm']} nm"),
-            ("CD", f"{e['cd_nm'] / 1000:g} um (one mask pixel)"),
+            ("CD", f"{e['cd_nm'] / 1000:g} um (the narrowest line or space: a pixel or a mark)"),
             ("CD tolerance", f"+-{e['cd_tolerance_nm']:.0f} nm: {e['cd_tolerance_source']}"),
             (
                 "CD structures (lines = spaces)",
