@@ -10,6 +10,7 @@ from layouts import marks as mk_marks
 from layouts.gds import build_library, write_gds
 
 STEP = 179.4e-9
+NAME = "sun2020 &0/%"  # glyphs whose font squares meet only at a corner
 # (levels, aperture mm, feature nm, grid nm, pixel pitch nm): the default design, the
 # default at 10 um, a 4-level 12.7 mm design on a 10 nm grid, a 16-level 6 mm one.
 DESIGNS = [
@@ -26,7 +27,7 @@ def written(tmp_path, n_levels, aperture_mm, feature_nm, grid_nm, pitch_nm):
     masks = masks_from_levels(levels, n_levels, STEP)
     aperture = round(aperture_mm * 1e6)
     lib, info = build_library(
-        masks, pitch_nm, (2, 2), "plate", aperture, grid_nm=grid_nm, feature_nm=feature_nm
+        masks, pitch_nm, (2, 2), NAME, aperture, grid_nm=grid_nm, feature_nm=feature_nm
     )
     path = tmp_path / "plate.gds"
     write_gds(lib, path)
