@@ -80,6 +80,8 @@ class MarkRules:
     ring_nm, margin_nm : int
         Distance of the mark blocks' centres, and of the plate's edge, from the
         aperture's edge.
+    clearance_nm : int
+        Clearance between mark blocks, labels and the aperture frame (at least 2 f).
     """
 
     feature_nm: int
@@ -97,6 +99,7 @@ class MarkRules:
     vernier_offset_nm: int
     ring_nm: int = MARK_RING_NM
     margin_nm: int = PLATE_MARGIN_NM
+    clearance_nm: int = LABEL_GAP_NM
 
     @property
     def comb_half_span_nm(self):
@@ -132,13 +135,14 @@ def mark_rules(feature_nm=DEFAULT_FEATURE_NM, grid_nm=1):
     box_inner = cross_arm + 2 * _up(max(BOX_CLEARANCE_NM, 2 * f), g)
     box_outer = box_inner + 2 * _up(max(BOX_FRAME_NM, 4 * f), g)
     half_span = VERNIER_BARS * (pitch + resolution) + f - _half(f, g)
-    # the x and y combs must not meet (nor the box): a clearance of LABEL_GAP_NM
+    # the x and y combs must not meet (nor the box): a clearance of LABEL_GAP_NM or 2 f
+    clearance = _up(max(LABEL_GAP_NM, 2 * f), g)
     offset = max(
         VERNIER_OFFSET_NM,
-        half_span + bar_length + extra + LABEL_GAP_NM,
-        box_outer // 2 + bar_length + extra + LABEL_GAP_NM,
+        half_span + bar_length + extra + clearance,
+        box_outer // 2 + bar_length + extra + clearance,
     )
-    offset = _up(offset, 10_000)
+    offset = _up(_up(offset, 10_000), g)
     extent = offset + bar_length + extra + max(box_outer // 2, half_span, cross_arm // 2)
     scale = max(1.0, extent / MARK_BLOCK_ROOM_NM)
     return MarkRules(
@@ -147,6 +151,7 @@ def mark_rules(feature_nm=DEFAULT_FEATURE_NM, grid_nm=1):
         cross_arm_nm=cross_arm, cross_width_nm=cross_width, box_inner_nm=box_inner,
         box_outer_nm=box_outer, vernier_offset_nm=offset,
         ring_nm=_up(MARK_RING_NM * scale, g), margin_nm=_up(PLATE_MARGIN_NM * scale, g),
+        clearance_nm=clearance,
     )  # fmt: skip
 
 
@@ -270,16 +275,16 @@ def _block_step(ring, blocks, rules):
 
     A block reaches ``rules.reach_left_nm`` left of its cross and
     ``rules.reach_right_nm`` right of it; the innermost blocks of the two sides must
-    not meet, and neighbours keep ``LABEL_GAP_NM`` between them. Raises ValueError
+    not meet, and neighbours keep ``rules.clearance_nm`` between them. Raises ValueError
     when the blocks of this many masks do not fit beside the aperture.
     """
     left, right = rules.reach_left_nm, rules.reach_right_nm
-    innermost = left + LABEL_GAP_NM // 2  # the cross of the right-hand innermost block
-    nominal = max(BLOCK_STEP_NM, left + right + LABEL_GAP_NM)
+    innermost = left + rules.clearance_nm // 2  # the cross of the right-hand innermost block
+    nominal = max(BLOCK_STEP_NM, left + right + rules.clearance_nm)
     if blocks <= 1:
         return nominal
     step = min(nominal, (ring - innermost) // (blocks - 1))
-    if step < left + right + LABEL_GAP_NM:
+    if step < left + right + rules.clearance_nm:
         raise ValueError(
             f"the alignment marks of {blocks + 1} masks do not fit beside a "
             f"{2 * (ring - rules.ring_nm) / 1e6:g} mm aperture; make the aperture larger "
@@ -297,9 +302,9 @@ def _label_band(a, rules):
     h = plate_half_size_nm(a, rules)
     block_top = a + rules.ring_nm - rules.reach_right_nm
     return (
-        h - OUTLINE_WIDTH_NM - LABEL_GAP_NM,
-        -(a + OUTLINE_WIDTH_NM + LABEL_GAP_NM),
-        -(block_top - LABEL_GAP_NM),
+        h - OUTLINE_WIDTH_NM - rules.clearance_nm,
+        -(a + OUTLINE_WIDTH_NM + rules.clearance_nm),
+        -(block_top - rules.clearance_nm),
     )
 
 
@@ -317,7 +322,7 @@ def _label_layout(texts, a, rules):
     options = []
     for cols in range(1, len(texts) + 1):
         rows = -(-len(texts) // cols)
-        cell_w = (2 * x_half - (cols - 1) * LABEL_GAP_NM) // cols
+        cell_w = (2 * x_half - (cols - 1) * rules.clearance_nm) // cols
         cell_h = (top - bottom) // rows
         # rows keep a fifth of their pitch (and at least one unit) between them
         unit = min(cap, cell_w // cols_px, (4 * cell_h // 5) // rows_px, cell_h // (rows_px + 1))
@@ -356,13 +361,13 @@ def _labels_polygons(masks, design_name, a, rules):
         unit, cols, rows = _label_layout(texts, a, rules)  # raises, naming the problem
     g = rules.grid_nm
     x_half, top, bottom = _label_band(a, rules)
-    cell_w = (2 * x_half - (cols - 1) * LABEL_GAP_NM) // cols
+    cell_w = (2 * x_half - (cols - 1) * rules.clearance_nm) // cols
     cell_h = (top - bottom) // rows
     polys = []
     for j, (mk, text) in enumerate(zip(masks, texts, strict=True)):
         w_px, h_px = _labels.label_size_units(text)
         r, c = divmod(j, cols)
-        cx = -x_half + c * (cell_w + LABEL_GAP_NM) + cell_w // 2
+        cx = -x_half + c * (cell_w + rules.clearance_nm) + cell_w // 2
         cy = top - r * cell_h - cell_h // 2
         x0 = (cx - w_px * unit // 2) // g * g
         y0 = (cy - h_px * unit // 2) // g * g
