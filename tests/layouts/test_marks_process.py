@@ -44,7 +44,7 @@ def marks_region(layout, top, layer, aperture_half):
     return (region - clear).merged()
 
 
-@pytest.mark.parametrize("design", DESIGNS)
+@pytest.mark.parametrize("design", [*DESIGNS, (8, 14.0, 60_000, 1, 59_990)])  # + coarse
 def test_marks_pass_a_euclidean_width_and_space_check_at_the_feature_size(tmp_path, design):
     _, aperture_mm, feature_nm, grid_nm, _ = design
     layout, top, masks, info = written(tmp_path, *design)
