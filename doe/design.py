@@ -354,12 +354,6 @@ def _check_consistency(d, source):
             f"the phase tile ({der.tile_size * 1e3:.6g} mm) is larger than the "
             f"aperture ({fab.aperture * 1e3:.6g} mm); {_TILE_SET_BY}",
         )
-    from layouts.marks import check_marks_fit
-
-    try:
-        check_marks_fit(der.masks, round(fab.aperture * 1e9) // 2)
-    except ValueError as e:
-        raise InputError(f"{source}: [fabrication] aperture_mm", str(e)) from None
     if d.kernel_size > der.tile_pixels:
         raise InputError(
             f"{source}: [psf] kernel_size",
@@ -383,3 +377,12 @@ def _check_consistency(d, source):
             f"the tile needs N = {der.tile_pixels} pixels, more than {MAX_TILE_PIXELS} "
             "(retrieval time and memory grow as N^2)",
         )
+    from layouts.marks import check_marks_fit
+
+    try:  # the marks are sized to the feature size: checked once the tile is sound
+        check_marks_fit(
+            der.masks, round(fab.aperture * 1e9) // 2, round(fab.feature_size * 1e9),
+            round(fab.grid * 1e9),
+        )  # fmt: skip
+    except ValueError as e:
+        raise InputError(f"{source}: [fabrication] aperture_mm", str(e)) from None

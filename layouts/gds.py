@@ -15,7 +15,13 @@ from datetime import datetime
 import gdstk
 import numpy as np
 
-from layouts.marks import marks_and_labels
+from layouts.marks import (
+    DEFAULT_FEATURE_NM,
+    mark_rules,
+    marks_and_labels,
+    monitor_plan,
+    plate_half_size_nm,
+)
 from layouts.rectangles import bitmap_rectangles, rectangle_corners_nm
 
 # Pinned so that the same design gives a byte-identical file.
@@ -38,6 +44,10 @@ class PlateLayout:
     array_origin_nm: tuple[int, int]
     polygon_counts: dict = field(default_factory=dict)  # mask name -> rectangles in the tile
     mark_layers: tuple = ()
+    plate_half_nm: int = 0  # half the plate's outer size (layer 200's outer edge); 0: no marks
+    mark_rules: object = None  # layouts.marks.MarkRules of the marks drawn
+    pads: tuple = ()  # layouts.monitors.Pad: etch-depth monitor pads
+    cd_structures: tuple = ()  # layouts.monitors.CDStructure: CD test gratings
 
 
 def cell_name(design_name, suffix):
@@ -84,8 +94,9 @@ def tile_polygons(masks, pitch_nm):
 
 
 def build_library(
-    masks, pitch_nm, tiles, design_name, aperture_nm=None, marks=True, flat=False, grid_nm=1
-):
+    masks, pitch_nm, tiles, design_name, aperture_nm=None, marks=True, flat=False, grid_nm=1,
+    feature_nm=DEFAULT_FEATURE_NM,
+):  # fmt: skip
     """Build the plate's GDS library.
 
     Parameters
@@ -108,6 +119,9 @@ def build_library(
     grid_nm : int
         The mask writer's grid (a divisor of ``pitch_nm``): the array's origin and
         every mark and label vertex are snapped to it.
+    feature_nm : int
+        The design's feature size: every mark, label stroke and monitor, and every gap
+        between them, is at least this wide.
 
     Returns
     -------
@@ -136,13 +150,21 @@ def build_library(
     if flat:
         top.flatten()  # copies every tile's polygons into the top cell (C++ side)
         lib.remove(tile)
-    mark_layers = ()
+    mark_layers, marks_info = (), {}
     if marks:
         half = max(nx, ny) * n * pitch_nm // 2 + 1
         if aperture_nm is not None:
             half = max(half, int(aperture_nm) // 2)
-        mark_polys, mark_layers = marks_and_labels(masks, half, design_name)
+        mark_polys, mark_layers = marks_and_labels(masks, half, design_name, feature_nm, grid_nm)
         top.add(*(_snapped(p, grid_nm) for p in mark_polys))
+        rules = mark_rules(feature_nm, grid_nm)
+        pads, cds = monitor_plan(masks, half, rules)
+        marks_info = {
+            "plate_half_nm": plate_half_size_nm(half, rules),
+            "mark_rules": rules,
+            "pads": pads,
+            "cd_structures": cds,
+        }
     info = PlateLayout(
         top_cell=top_name,
         tile_cell=tile_name,
@@ -152,6 +174,7 @@ def build_library(
         array_origin_nm=(x0, y0),
         polygon_counts=counts,
         mark_layers=tuple(mark_layers),
+        **marks_info,
     )
     return lib, info
 

@@ -188,6 +188,7 @@ def build_package(design_dir, out, *, config=None, force=False, oasis=False, pro
     from doe.design import load_design
     from doe.infra.files import staged_output
     from fab.package.layer_images import layer_image_names
+    from fab.package.order import ORDER_FILES
 
     design = load_design(config)
     levels, target = load_design_dir(design_dir, design)
@@ -199,6 +200,7 @@ def build_package(design_dir, out, *, config=None, force=False, oasis=False, pro
     known = [GDS_NAME, MANIFEST_NAME, LEVELS_FILE, TARGET_PSF_FILE]
     known += [name for mk in tile.masks for name in layer_image_names(mk.name)]
     known += [OASIS_NAME] if oasis else []
+    known += list(ORDER_FILES)
     stale = previous_package_files(Path(out) / MANIFEST_NAME, layer_image_names)
     with staged_output(out, force, names=known, stale=stale) as stage:
         manifest, report_files = _write_package(
@@ -285,9 +287,9 @@ def _plan(design, der, levels, target, k, pitch_nm):
 def _write_package(stage, tile, design_dir, out, oasis, bar, progress):
     """Write the package's files into ``stage``; return (manifest dict, report files)."""
     from fab.package.layer_images import write_layer_images
-    from fab.package.manifest import file_records
+    from fab.package.manifest import file_records, layout_keys
+    from fab.package.order import ORDER_FILES, write_mask_order
     from layouts.gds import build_library, write_gds, write_oasis
-    from layouts.marks import plate_half_size_nm
     from layouts.readback import check_written_gds
 
     design, der, masks, pitch_nm = tile.design, tile.derived, tile.masks, tile.pitch_nm
@@ -299,6 +301,7 @@ def _write_package(stage, tile, design_dir, out, oasis, bar, progress):
     lib, layout = build_library(
         masks, pitch_nm, tiles, design.name, aperture_nm,
         grid_nm=round(design.fabrication.grid * 1e9),
+        feature_nm=round(design.fabrication.feature_size * 1e9),
     )  # fmt: skip
     write_gds(lib, stage / GDS_NAME)
     try:  # KLayout reads the file back: gdstk truncates it on a full disk without a word
@@ -319,9 +322,7 @@ def _write_package(stage, tile, design_dir, out, oasis, bar, progress):
     bar.set_postfix_str("images")
     half = max(tiles) * n * pitch_nm // 2 + 1
     aperture_half = max(half, aperture_nm // 2)
-    write_layer_images(
-        stage, masks, tiles, pitch_nm, plate_half_size_nm(aperture_half), aperture_half
-    )
+    write_layer_images(stage, masks, tiles, pitch_nm, layout.plate_half_nm, aperture_half)
     bar.update()
     bar.set_postfix_str("tolerance")
     tolerance = _tolerance(tile.levels, n_levels, tile.target, masks, der, design, progress)
@@ -329,7 +330,9 @@ def _write_package(stage, tile, design_dir, out, oasis, bar, progress):
     bar.set_postfix_str("manifest")
     _write_arrays(stage, tile, design_dir)
     acceptance = tolerance.get("acceptance")
+    extra.update(layout_keys(layout, masks, n_levels, der.level_step * 1e9, ORDER_FILES))
     manifest = build_fab_manifest(design, der, layout, masks, acceptance, extra, tile.kernel_size)
+    write_mask_order(stage, manifest, tolerance)
     write_fab_manifest(stage / MANIFEST_NAME, manifest)
     bar.update()
     bar.set_postfix_str("report")

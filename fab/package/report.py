@@ -20,6 +20,7 @@ from doe.goals import CORRELATION_GOAL, RMSE_GOAL, goals_missed
 from doe.infra.files import atomic_write_bytes, write_json
 from doe.materials import TABLE_KEY, index_source
 from fab.package.manifest import file_records
+from fab.package.report_marks import marks_blocks
 from fab.templates import render_page
 
 REPORT_MD = "fab_report.md"
@@ -157,6 +158,7 @@ def report_blocks(context, figures=()):
     b += _design_blocks(d)
     b += _material_blocks(d, context["manifest"])
     b += _process_blocks(context)
+    b += marks_blocks(context["manifest"])
     b.append(("h2", "Orientation"))
     b.append(("p", context.get("orientation") or context["manifest"].get("orientation", "")))
     b.append(("p", CHROME_DOWN))

@@ -270,12 +270,14 @@ def test_marks_and_labels_of_different_masks_never_overlap_and_stay_on_the_plate
 ):
     # Labels sat at a fixed x beside marks that move with the aperture: below ~3.9 mm
     # they were etched over the marks of the next masks, and from 5 masks on they ran
-    # off the plate. Marks of two masks may touch (vernier combs abut), never overlap.
+    # off the plate. Marks of two masks may touch (vernier combs abut), never overlap,
+    # but where an etch-depth pad is etched by both masks (its code has both bits).
     import gdstk
 
     masks = masks_from_levels(random_levels(6, seed=3) % n_levels, n_levels, STEP)
     a = round(aperture_mm * 1e6) // 2
     polys, _ = mk_marks.marks_and_labels(masks, a, "sun2020")
+    pads, _ = mk_marks.monitor_plan(masks, a)
     by_layer = {}
     for p in polys:
         by_layer.setdefault(p.layer, []).append(p)
@@ -284,7 +286,9 @@ def test_marks_and_labels_of_different_masks_never_overlap_and_stay_on_the_plate
     for i, first in enumerate(layers):
         for second in layers[i + 1 :]:
             common = gdstk.boolean(by_layer[first], by_layer[second], "and")
-            assert sum(q.area() for q in common) == 0, (first, second)
+            shared = [p for p in pads if first in p.layers and second in p.layers]
+            expected = sum((p.size_nm / 1000) ** 2 for p in shared)
+            assert sum(q.area() for q in common) == pytest.approx(expected), (first, second)
     points = np.concatenate([p.points for p in polys]) * 1000  # nm
     assert np.abs(points).max() <= mk_marks.plate_half_size_nm(a)
     assert np.abs(points - np.round(points)).max() < 1e-6  # on the 1 nm grid
@@ -326,36 +330,43 @@ def test_marks_of_too_many_masks_for_the_aperture_are_refused():
         mk_marks.marks_and_labels(masks, 1_000_000, "sun2020")
 
 
-def test_vernier_pitches_read_two_tenths_of_a_micron():
-    polys = mk_marks.alignment_block(0, 0, ref_layer=1, layer=2)
+@pytest.mark.parametrize(("feature_nm", "resolution_um"), [(5_000, 0.2), (10_000, 0.4)])
+def test_vernier_reads_the_overlay_in_steps_of_its_resolution(feature_nm, resolution_um):
+    rules = mk_marks.mark_rules(feature_nm)
+    polys = mk_marks.alignment_block(0, 0, ref_layer=1, layer=2, rules=rules)
+    w, below = feature_nm / 1000, rules.box_outer_nm / 2000
 
     def bars(layer, axis):
-        """(centre, length) of the 4 um bars of the x vernier (below the cross) or the y one."""
+        """(centre, length) of the bars of the x vernier (below the cross) or the y one."""
         out = []
         for p in polys:
             (x0, y0), (x1, y1) = p.bounding_box()
-            if p.layer == layer and axis == "x" and y1 < -100 and abs((x1 - x0) - 4.0) < 1e-9:
+            if p.layer == layer and axis == "x" and y1 < -below and abs((x1 - x0) - w) < 1e-9:
                 out.append((round((x0 + x1) / 2, 6), y1 - y0))
-            if p.layer == layer and axis == "y" and x1 < -100 and abs((y1 - y0) - 4.0) < 1e-9:
+            if p.layer == layer and axis == "y" and x1 < -below and abs((y1 - y0) - w) < 1e-9:
                 out.append((round((y0 + y1) / 2, 6), x1 - x0))
         return np.array(sorted(out))
 
+    pitch = 2 * w  # bars and gaps of the later comb both the feature size
     for axis in ("x", "y"):  # x vernier below the cross, y vernier left of it: same reading
         (ref, ref_len), (moving, moving_len) = bars(1, axis).T, bars(2, axis).T
         assert len(ref) == len(moving) == 2 * mk_marks.VERNIER_BARS + 1
-        assert np.allclose(np.diff(ref), 10.0) and np.allclose(np.diff(moving), 9.8)
-        # an overlay error of k * 0.2 um lines up bar k of the two scales
-        k = 3
-        shift = k * 0.2
-        i = np.argmin(np.abs(moving + shift - ref[:, None]).min(axis=0))
-        assert np.isclose(moving[i] + shift, ref[i]) and i - mk_marks.VERNIER_BARS == k
+        assert np.allclose(np.diff(moving), pitch)
+        assert np.allclose(np.diff(ref), pitch + resolution_um)
+        assert np.diff(ref).min() - w >= w  # the reference comb's gaps too
+        # an overlay error of k resolutions lines up bar k of the two scales
+        for k in (-4, 3):
+            shift = k * resolution_um
+            i = np.argmin(np.abs(moving + shift - ref[:, None]).min(axis=0))
+            assert np.isclose(moving[i] + shift, ref[i]) and i - mk_marks.VERNIER_BARS == k
         # the longer zero bars, which find the scale's zero, lie on the cross's axis
         assert ref[np.argmax(ref_len)] == 0 and moving[np.argmax(moving_len)] == 0
-    # cross on the reference mask: a plus of 100 um arms, 10 um wide; box on the later one
+    # cross on the reference mask, box on the later one
     (cross,) = [p for p in polys if len(p.points) == 12]
-    assert cross.layer == 1
-    assert np.allclose(cross.bounding_box(), ((-50, -50), (50, 50)))
-    assert cross.area() == pytest.approx(2 * 100 * 10 - 10 * 10)
+    arm, width = rules.cross_arm_nm / 1000, rules.cross_width_nm / 1000
+    assert cross.layer == 1 and width >= w
+    assert np.allclose(cross.bounding_box(), ((-arm / 2, -arm / 2), (arm / 2, arm / 2)))
+    assert cross.area() == pytest.approx(2 * arm * width - width**2)
 
 
 def test_every_mask_carries_its_own_label_in_exposure_order():
@@ -363,8 +374,9 @@ def test_every_mask_carries_its_own_label_in_exposure_order():
     a = 7_000_000
     polys, _ = mk_marks.marks_and_labels(masks, a, "sun2020")
     # the label band: below the aperture, above the lower mark blocks, which reach at most
-    # 102 um (the x vernier's end bar) above their crosses at y = -(a + 0.75 mm)
-    low = -(a + mk_marks.MARK_RING_NM) + 102_000
+    # 104.5 um (the x vernier's end bar: 10 x 10.2 um + 2.5 um) above their crosses at
+    # y = -(a + 0.75 mm)
+    low = -(a + mk_marks.MARK_RING_NM) + 104_500
     centres = []
     for mk in masks:
         ys = [
@@ -391,7 +403,9 @@ def test_mark_blocks_of_successive_masks_keep_the_label_gap_or_are_refused(apert
     extents = []  # x extent of each later mask's own part of its lower-left block
     for mk in masks[1:]:
         pts = np.concatenate([p.points for p in polys if p.layer == mk.gds_layer]) * 1000
-        block = pts[(pts[:, 0] < 0) & (pts[:, 1] < -ring + 110_000)]  # below the labels
+        # below the labels, above the monitors of the band under the blocks
+        reach = mk_marks.mark_rules().reach_left_nm
+        block = pts[(pts[:, 0] < 0) & (pts[:, 1] < -ring + 110_000) & (pts[:, 1] >= -ring - reach)]
         extents.append((block[:, 0].min(), block[:, 0].max()))
     extents.sort()
     gaps = [lo - hi for (_, hi), (lo, _) in itertools.pairwise(extents)]
