@@ -9,11 +9,11 @@ The surface is assembled from planar polygons with exactly shared vertices:
 one top quad per pixel, one vertical wall per pixel edge whose two cells differ
 (its vertical sides carry a vertex at every level met at that grid corner, so no
 T-junction exists), the outer side walls (the outside counts as level -1, the
-back face) and the back face. Where two higher cells touch only at a corner (a pinched corner,
-``fab.mesh.chamfer``), the lower of the two is chamfered by a prism of legs p / 1000,
-so that every edge has exactly two faces and every vertex one fan even after the
-vertices are merged by position, as every STL reader does: the mesh is a closed
-oriented 2-manifold by index and by position.
+back face) and the back face. Where two higher cells touch only at a corner (a
+pinched corner, ``fab.mesh.chamfer``), the lower of the two is chamfered by a prism
+of legs p / 1000, so that every edge has exactly two faces and every vertex one fan
+even after the vertices are merged by position, as every STL reader does: the mesh
+is a closed oriented 2-manifold by index and by position.
 
 Values are SI metres inside; the mesh itself is in millimetres (a file
 boundary), as every mesh writer expects.
@@ -124,7 +124,8 @@ def relief_surface(levels, progress=True, denom=CHAMFER_DENOM):
         Show a progress bar over the grid corners on a terminal (it takes seconds
         at N = 175).
     denom : int
-        Chamfer leg at pinched corners = 1 / ``denom`` pixel pitches.
+        Chamfer leg at pinched corners = 1 / ``denom`` pixel pitches (the default
+        is the one ``Relief.analytic_volume`` counts with).
 
     Returns
     -------

@@ -43,10 +43,10 @@ def level_map(path, levels, n_levels, pitch):
         interpolation="nearest",
     )
     ticks = range(n_levels) if n_levels <= 16 else None  # 256 labels print as a black bar
-    label = f"level (steps above the floor): 0 = etched by every mask, {n_levels - 1} = unetched"
+    label = f"level (0 = deepest etch, {n_levels - 1} = unetched)"
     fig.colorbar(im, ax=ax, ticks=ticks, label=label)
     ax.set(xlabel="x (um)", ylabel="y (um)", title="Level map, viewed onto the patterned surface")
-    _save(fig, path, f"Level map of one tile; colour bar: {label}.")
+    _save(fig, path, f"Level map of one tile, {label}: l steps of glass above the floor.")
 
 
 def mask_bitmaps(path, bitmaps, names, depths_nm, pitch):

@@ -77,7 +77,7 @@ def test_level_map_colour_bar_names_the_etched_end(tmp_path, saved_figures):
     levels = np.arange(16, dtype=np.uint8).reshape(4, 4) % 8
     figures.level_map(tmp_path / "levels.png", levels, 8, 5e-6)
     labels = [ax.get_ylabel() for ax in saved_figures[-1].axes]
-    assert any("0 = etched by every mask" in t and "7 = unetched" in t for t in labels)
+    assert "level (0 = deepest etch, 7 = unetched)" in labels
 
 
 def test_run_index_captions_each_figure_with_its_description(tmp_path):
