@@ -32,7 +32,7 @@ from doe.records.mesh_report import (
 )
 from fab.mesh import formats as mesh_io
 from fab.mesh import relief as mesh
-from fab.mesh.chamfer import CHAMFER_LEG
+from fab.mesh.chamfer import CHAMFER_LEG, CHAMFER_NOTE
 from fab.mesh.checks import (
     FORMATS,
     INSTANCED,
@@ -236,6 +236,7 @@ def _write_models(stage, relief, info, formats, crop, progress):
             "corners": surface.chamfers,
             "leg_nm": CHAMFER_LEG * relief.pitch * 1e9,
             "volume_mm3": relief.chamfer_volume() * 1e9,
+            "note": CHAMFER_NOTE,
         },
     }
     aperture = {

@@ -24,6 +24,11 @@ import numpy as np
 # the surface triangulate with exact integer predicates.
 CHAMFER_DENOM = 1000
 CHAMFER_LEG = 1 / CHAMFER_DENOM
+CHAMFER_NOTE = (
+    "at each pinched corner (two diagonal pixels above the other two) the lower high "
+    "pixel loses a right prism of legs leg_nm from the higher low pixel's top to its "
+    "own: -leg^2/2 * that height per corner; analytic_volume_mm3 = pixel sum - volume_mm3"
+)
 
 
 def chamfer_quadrant(q):
