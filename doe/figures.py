@@ -68,7 +68,7 @@ def save_retrieval_figure(path, target, psf, levels, n_levels, quality):
     axes[3].set_title(f"level map ({n_levels} levels, {levels.shape[0]} px)")
     axes[3].set_xlabel("column (+x)")
     axes[3].set_ylabel("row (row 0 = top)")
-    fig.colorbar(im, ax=axes[3], fraction=0.046)
+    fig.colorbar(im, ax=axes[3], fraction=0.046, label="level (0 = deepest etch)")
     fig.suptitle(
         f"correlation {correlation_text(quality['correlation'])}   "
         f"rmse {quality['rmse']:.5f}   efficiency {quality['efficiency']:.4f}"

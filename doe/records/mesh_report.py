@@ -27,7 +27,9 @@ class MeshReport:
     ----------
     tile : Mapping
         The tile's mesh: "triangles", "vertices", "size_mm" [x, y, z],
-        "volume_mm3", "analytic_volume_mm3", "volume_rel_err".
+        "volume_mm3", "analytic_volume_mm3" (pixel relief minus chamfers),
+        "volume_rel_err", "chamfers" ("corners", "leg_nm", "volume_mm3", "note": at
+        pinched corners, fab.mesh.chamfer).
     aperture : Mapping
         The instanced aperture: "tiles" [nx, ny], "instances", "origin_mm",
         "pitch_mm", "note".

@@ -9,10 +9,11 @@ The surface is assembled from planar polygons with exactly shared vertices:
 one top quad per pixel, one vertical wall per pixel edge whose two cells differ
 (its vertical sides carry a vertex at every level met at that grid corner, so no
 T-junction exists), the outer side walls (the outside counts as level -1, the
-back face) and the back face. Where two higher cells touch only at a corner
-(a checkerboard corner), the vertical edge and its end vertices are split per
-solid sector, so every edge has exactly two faces and every vertex one fan: the
-mesh is a closed oriented 2-manifold by index, never by a vertex merge.
+back face) and the back face. Where two higher cells touch only at a corner (a
+pinched corner, ``fab.mesh.chamfer``), the lower of the two is chamfered by a prism
+of legs p / 1000, so that every edge has exactly two faces and every vertex one fan
+even after the vertices are merged by position, as every STL reader does: the mesh
+is a closed oriented 2-manifold by index and by position.
 
 Values are SI metres inside; the mesh itself is in millimetres (a file
 boundary), as every mesh writer expects.
@@ -21,6 +22,15 @@ boundary), as every mesh writer expects.
 from dataclasses import dataclass
 
 import numpy as np
+
+from fab.mesh.chamfer import (
+    CHAMFER_DENOM,
+    chamfer_quadrant,
+    chamfer_volume,
+    cut_chamfer,
+    ear_clip,
+    tiled_pinch_count,
+)
 
 # Outer cells (beyond the tile edge) and the back face use this level index.
 BACK = -1
@@ -54,10 +64,18 @@ class Relief:
         """Return the top height of each level, shape (L,), in metres."""
         return self.thickness - (self.n_levels - 1 - np.arange(self.n_levels)) * self.step
 
-    def analytic_volume(self):
-        """Return the solid's volume p^2 * sum of pixel top heights (m^3)."""
+    def pixel_volume(self):
+        """Return the volume of the pixel relief, p^2 * sum of pixel top heights (m^3)."""
         tops = self.level_z()[np.asarray(self.levels, np.int64)]
         return float(self.pitch**2 * tops.sum())
+
+    def chamfer_volume(self):
+        """Return the volume the chamfers at pinched corners remove (m^3, ``fab.mesh.chamfer``)."""
+        return chamfer_volume(self.levels, self.step, self.pitch)
+
+    def analytic_volume(self):
+        """Return the exact volume of the modelled solid: pixel relief minus chamfers (m^3)."""
+        return self.pixel_volume() - self.chamfer_volume()
 
     def tiled(self, nx, ny):
         """Return the relief of ``nx`` x ``ny`` tiles side by side as one level map."""
@@ -73,24 +91,29 @@ class Surface:
     Attributes
     ----------
     grid : ndarray of float64, shape (V, 3)
-        Vertex (x, y, k): x, y in pixel pitches from the lower-left corner, k the
-        level index of its height (``BACK`` = the back face, z = 0).
+        Vertex (x, y, k): x, y in pixel pitches from the lower-left corner (a chamfer
+        vertex lies 1 / denom off a grid corner), k the level index of its height
+        (``BACK`` = the back face, z = 0).
     triangles : ndarray of int64, shape (F, 3)
         Vertex indices, counter-clockwise seen from outside the solid.
     loops : list of ndarray of int64
         The planar faces as vertex loops, counter-clockwise seen from outside:
-        pixel tops, walls, then the back face last.
+        pixel tops, walls, chamfer bottoms and faces, then the back face last.
     loop_normals : ndarray of int8, shape (len(loops), 3)
-        Outward unit normal of each loop.
+        Outward normal of each loop: a unit axis vector, or (+-1, +-1, 0) (not
+        normalised) for a chamfer face.
+    chamfers : int
+        The number of pinched corners chamfered.
     """
 
     grid: np.ndarray
     triangles: np.ndarray
     loops: list
     loop_normals: np.ndarray
+    chamfers: int = 0
 
 
-def relief_surface(levels, progress=True):
+def relief_surface(levels, progress=True, denom=CHAMFER_DENOM):
     """Build the closed surface of a level map (grid units).
 
     Parameters
@@ -100,6 +123,9 @@ def relief_surface(levels, progress=True):
     progress : bool
         Show a progress bar over the grid corners on a terminal (it takes seconds
         at N = 175).
+    denom : int
+        Chamfer leg at pinched corners = 1 / ``denom`` pixel pitches (the default
+        is the one ``Relief.analytic_volume`` counts with).
 
     Returns
     -------
@@ -114,17 +140,16 @@ def relief_surface(levels, progress=True):
     pad[1:-1, 1:-1] = hgt
     pad_list = pad.tolist()
 
-    grid, top_vid, walls, back_vid = _corner_grid(pad_list, rows, cols, progress)
-    # pixel tops: SW, SE, NE, NW is counter-clockwise from above
-    tv = top_vid.reshape(-1, 4)
-    tris = [tv[:, [0, 1, 2]], tv[:, [0, 2, 3]]]
-    loops = list(tv)
-    normals = [(0, 0, 1)] * len(tv)
+    cg = _corner_grid(pad_list, rows, cols, progress, int(denom))
+    grid, top_vid, walls, back_vid = cg.grid, cg.top_vid, cg.walls, cg.back_vid
+    tris, loops = _top_faces(grid, top_vid, cg.tops, denom)
+    normals = [(0, 0, 1)] * len(loops)
 
-    wall_tris, wall_loops, wall_normals = _wall_faces(walls, pad_list)
+    wall_tris, wall_loops, wall_normals = _wall_faces(walls, pad_list, grid, cg.notched, denom)
     tris.append(wall_tris)
-    loops += wall_loops
-    normals += wall_normals
+    loops += wall_loops + [np.array(lp, np.int64) for lp, _ in cg.faces]
+    normals += wall_normals + [n for _, n in cg.faces]
+    tris.append(np.array([t for lp, _ in cg.faces for t in _fan(lp)], np.int64).reshape(-1, 3))
 
     # back face: boundary corners clockwise seen from above = counter-clockwise from below
     ring = [(0, j) for j in range(rows + 1)] + [(i, rows) for i in range(1, cols + 1)]
@@ -141,7 +166,36 @@ def relief_surface(levels, progress=True):
         triangles=np.concatenate(tris),
         loops=loops,
         loop_normals=np.array(normals, np.int8),
+        chamfers=cg.chamfers,
     )
+
+
+def _fan(loop):
+    """Triangulate a convex loop (the chamfer triangle and rectangle) as a fan."""
+    return [(loop[0], loop[m], loop[m + 1]) for m in range(1, len(loop) - 1)]
+
+
+def _top_faces(grid, top_vid, tops, denom):
+    """Return the pixel tops: [triangles (T, 3)] and one loop per pixel, row by row.
+
+    A top quad SW, SE, NE, NW is counter-clockwise from above; a top with chamfer or
+    chamfer-edge vertices (``tops``: (row, col, corner) -> vertices replacing that
+    corner) is triangulated by ear clipping.
+    """
+    tv = top_vid.reshape(-1, 4)
+    loops = list(tv)
+    plain = np.ones(len(tv), bool)
+    extra = []
+    cols = top_vid.shape[1]
+    for r, c in sorted({(r, c) for r, c, _ in tops}):
+        loop = [v for corner in range(4) for v in tops.get((r, c, corner), [top_vid[r, c, corner]])]
+        pts = [(round(grid[v][0] * denom), round(grid[v][1] * denom)) for v in loop]
+        extra += ear_clip(loop, pts)
+        loops[r * cols + c] = np.array(loop, np.int64)
+        plain[r * cols + c] = False
+    tq = tv[plain]
+    tris = [tq[:, [0, 1, 2]], tq[:, [0, 2, 3]], np.array(extra, np.int64).reshape(-1, 3)]
+    return tris, loops
 
 
 # Quadrants around a corner, counter-clockwise: NE, NW, SW, SE. Edge d lies between
@@ -151,28 +205,38 @@ _CELL_CORNER_OF = (0, 1, 2, 3)
 _EDGE_END = (0, 1, 1, 0)  # is the corner the start (0) or end (1) of edge d
 
 
-def _corner_grid(pad_list, rows, cols, progress):
+@dataclass
+class _CornerGrid:
+    """The vertices of every grid corner (see :func:`_corner_grid`)."""
+
+    grid: list
+    top_vid: np.ndarray
+    walls: dict
+    back_vid: dict
+    tops: dict
+    notched: set
+    faces: list
+    chamfers: int
+
+
+def _corner_grid(pad_list, rows, cols, progress, denom):
     """Create the vertices at every grid corner of a padded height map.
 
     Returns
     -------
-    grid : list of (i, j, k)
-        Vertices, x and y in pixel pitches, k the level index.
-    top_vid : ndarray of int64, shape (rows, cols, 4)
-        Vertex of each pixel top's corner 0 SW, 1 SE, 2 NE, 3 NW.
-    walls : dict
-        Key (kind, j, i) with kind 'v' (x = i, y in [j, j+1]) or 'h' (y = j,
-        x in [i, i+1]); value [chain at start corner, chain at end corner], each a
-        list of (k, vid).
-    back_vid : dict
-        Back-face vertex of each boundary corner (i, j).
+    _CornerGrid
+        ``grid``: list of (x, y, k) vertices, x and y in pixel pitches, k the level
+        index. ``top_vid`` (rows, cols, 4): vertex of each pixel top's corner 0 SW,
+        1 SE, 2 NE, 3 NW. ``walls``: key (kind, j, i) with kind 'v' (x = i, y in
+        [j, j+1]) or 'h' (y = j, x in [i, i+1]); value [chain at start corner, chain
+        at end corner], each a list of (k, 0 at the corner or 1 at a chamfer, vid).
+        ``back_vid``: back-face vertex of each boundary corner (i, j). ``tops``,
+        ``notched``, ``faces``, ``chamfers``: what the chamfers add (``chamfer.cut_chamfer``).
     """
     from tqdm import tqdm
 
-    grid = []
-    top_vid = np.full((rows, cols, 4), -1, np.int64)
-    walls = {}
-    back_vid = {}
+    cg = _CornerGrid([], np.full((rows, cols, 4), -1, np.int64), {}, {}, {}, set(), [], 0)
+    grid, top_vid = cg.grid, cg.top_vid
     corner_rows = tqdm(
         range(rows + 1), desc="mesh corners", unit="row", leave=False,
         disable=None if progress else True,
@@ -188,33 +252,51 @@ def _corner_grid(pad_list, rows, cols, progress):
                     top_vid[cells[d][0], cells[d][1], _CELL_CORNER_OF[d]] = vid
                 continue
             edge_keys = (("v", j, i), ("h", j, i - 1), ("v", j - 1, i), ("h", j, i))
-            ks = sorted(set(q))
+            dc = chamfer_quadrant(q)
+            if dc is not None:  # at the corner itself the chamfered cell ends at z_lo
+                z_lo = max(q[(dc + 1) % 4], q[(dc + 3) % 4])
+                qc = tuple(z_lo if d == dc else q[d] for d in range(4))
+            else:
+                qc = q
+            ks = sorted(set(qc))
             for n, k in enumerate(ks):
                 _corner_vertices(
-                    i, j, k, q, ks, n, cells, edge_keys, _EDGE_END,
-                    grid, top_vid, walls, back_vid, _CELL_CORNER_OF,
+                    i, j, k, qc, ks, n, cells, edge_keys, _EDGE_END,
+                    grid, top_vid, cg.walls, cg.back_vid, _CELL_CORNER_OF,
                 )  # fmt: skip
-    return grid, top_vid, walls, back_vid
+            if dc is not None:
+                cut_chamfer(cg, i, j, dc, q, z_lo, cells, edge_keys, 1 / denom, _EDGE_END)
+    return cg
 
 
-def _wall_faces(walls, pad_list):
-    """Return the wall triangles (W, 3), loops and outward normals of every wall."""
+def _wall_faces(walls, pad_list, grid, notched, denom):
+    """Return the wall triangles (W, 3), loops and outward normals of every wall.
+
+    A wall is zipped between its two vertical chains; a wall with a chamfer notch is
+    triangulated by ear clipping in its plane.
+    """
     loops, normals, wall_tris = [], [], []
-    for (kind, j, i), (chain0, chain1) in sorted(walls.items()):
+    for key, (chain0, chain1) in sorted(walls.items()):
+        kind, j, i = key
         if kind == "v":  # from (i, j) to (i, j + 1); left cell (i-1, j)
             low_on_plus_side = pad_list[j + 1][i + 1] < pad_list[j + 1][i]
             plus = (1, 0, 0)
         else:  # from (i, j) to (i + 1, j); below cell (i, j - 1)
             low_on_plus_side = pad_list[j + 1][i + 1] < pad_list[j][i + 1]
             plus = (0, 1, 0)
-        a = [v for _, v in sorted(chain0)]
-        b = [v for _, v in sorted(chain1)]
-        ka = [k for k, _ in sorted(chain0)]
-        kb = [k for k, _ in sorted(chain1)]
+        a = [v for *_, v in sorted(chain0)]
+        b = [v for *_, v in sorted(chain1)]
         # loop a0 -> b0 .. b_top -> a_top .. a0 has normal t x z: +x for 'v', -y for 'h'
         keep = low_on_plus_side if kind == "v" else not low_on_plus_side
         loop = a[:1] + b + a[:0:-1]
-        ladder = _ladder(a, ka, b, kb)
+        if key in notched:
+            axis = 1 if kind == "v" else 0
+            pts = [(round(grid[v][axis] * denom), grid[v][2]) for v in loop]
+            ladder = ear_clip(loop, pts)
+        else:
+            ka = [k for k, *_ in sorted(chain0)]
+            kb = [k for k, *_ in sorted(chain1)]
+            ladder = _ladder(a, ka, b, kb)
         if keep:
             normal = plus if kind == "v" else (0, -1, 0)
         else:
@@ -233,7 +315,8 @@ def _corner_vertices(
 
     Faces meeting there: tops of quadrants at level k, walls of the four edges whose
     level span contains k, and the back face (k = BACK). Faces sharing an edge that
-    ends at this vertex join one fan (union-find); a pinched corner yields two fans.
+    ends at this vertex join one fan (union-find). ``q`` comes with the chamfered cell
+    lowered to z_lo, so no corner is pinched and each level gets one fan.
     """
     lo = [min(q[d], q[(d + 1) % 4]) for d in range(4)]
     hi = [max(q[d], q[(d + 1) % 4]) for d in range(4)]
@@ -289,7 +372,7 @@ def _corner_vertices(
             top_vid[r, c, cell_corner_of[f[1]]] = vid
         else:
             chains = walls.setdefault(edge_keys[f[1]], ([], []))
-            chains[edge_end[f[1]]].append((k, vid))
+            chains[edge_end[f[1]]].append((k, 0, vid))
 
 
 def _ladder(a, ka, b, kb):
@@ -336,7 +419,9 @@ def triangle_upper_bound(levels, tiles=1):
     That of ``relief_surface`` of the tiled level map, counted without building it
     (cheap; checked before building a large merged body): tops, a wall per level
     step between neighbours (within tiles and across their seams), the outer walls
-    and the back.
+    and the back, plus 8 per chamfered corner (a vertex more in its cell's top, in
+    the tops of the two lower neighbours and in the two notched walls; the chamfer
+    face and its triangle at z_lo).
     """
     lev = np.asarray(levels, np.int64)
     rows, cols = lev.shape
@@ -345,7 +430,8 @@ def triangle_upper_bound(levels, tiles=1):
     seams = np.abs(lev[:, 0] - lev[:, -1]).sum() + np.abs(lev[0] - lev[-1]).sum()
     edge = np.concatenate([lev[0], lev[-1], lev[:, 0], lev[:, -1]])
     walls = int(c * c * inside + c * (c - 1) * seams + c * (edge + 1).sum())
-    return 2 * rows * cols * c * c + 2 * walls + 6 * c * (rows + cols)
+    chamfers = 8 * tiled_pinch_count(lev, c)
+    return 2 * rows * cols * c * c + 2 * walls + 6 * c * (rows + cols) + chamfers
 
 
 def mesh_volume(vertices, faces):

@@ -1,8 +1,8 @@
 """STEP (B-rep) model of a relief tile and of the tiled aperture, via build123d / OCCT.
 
 The tile becomes ONE closed solid whose planar faces are exactly the polygons of
-``fab.mesh.relief.relief_surface`` (pixel tops, walls, back face). Their edges are made
-once and shared by both adjacent faces, so the shell is closed by construction:
+``fab.mesh.relief.relief_surface`` (pixel tops, walls, chamfers, back face). Their
+edges are made once and shared by both adjacent faces, so the shell is closed by construction:
 no sewing, no boolean fusion (one box per pixel fused would take hours). The
 aperture is an assembly of located instances of that one solid.
 
@@ -15,6 +15,7 @@ import re
 
 import numpy as np
 
+from fab.mesh.chamfer import pinch_depths
 from fab.mesh.relief import relief_surface, surface_points_mm
 
 STEP_TIMESTAMP = "2000-01-01T00:00:00"
@@ -24,10 +25,15 @@ MAX_STEP_FACES = 250_000
 
 
 def step_face_count(levels):
-    """Return the number of planar faces the STEP solid of ``levels`` will have."""
+    """Return the number of planar faces the STEP solid of ``levels`` will have.
+
+    Pixel tops, walls, outer walls, the back, and two per chamfered corner (the
+    chamfer face and its triangle at z_lo, ``fab.mesh.chamfer``).
+    """
     lev = np.asarray(levels, np.int64)
     walls = int((np.diff(lev, axis=1) != 0).sum() + (np.diff(lev, axis=0) != 0).sum())
-    return lev.size + walls + 2 * (lev.shape[0] + lev.shape[1]) + 1
+    chamfers = 2 * len(pinch_depths(lev))
+    return lev.size + walls + 2 * (lev.shape[0] + lev.shape[1]) + 1 + chamfers
 
 
 def tile_solid(relief, surface=None):

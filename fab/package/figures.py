@@ -9,6 +9,7 @@ sensor sub-pixels.
 import numpy as np
 
 from doe.infra.png import save_png
+from fab.package.polarity import POLARITY, masks_figure_description
 
 _DPI = 100
 
@@ -19,8 +20,8 @@ def _figure(width, height):
     return Figure(figsize=(width, height), dpi=_DPI, layout="constrained")
 
 
-def _save(fig, path):
-    save_png(fig, path, dpi=_DPI)
+def _save(fig, path, description=None):
+    save_png(fig, path, dpi=_DPI, description=description)
 
 
 def _tile_extent(n, pitch):
@@ -42,19 +43,21 @@ def level_map(path, levels, n_levels, pitch):
         interpolation="nearest",
     )
     ticks = range(n_levels) if n_levels <= 16 else None  # 256 labels print as a black bar
-    fig.colorbar(im, ax=ax, ticks=ticks, label="level (steps of glass above the floor)")
+    label = f"level (0 = deepest etch, {n_levels - 1} = unetched)"
+    fig.colorbar(im, ax=ax, ticks=ticks, label=label)
     ax.set(xlabel="x (um)", ylabel="y (um)", title="Level map, viewed onto the patterned surface")
-    _save(fig, path)
+    _save(fig, path, f"Level map of one tile, {label}: l steps of glass above the floor.")
 
 
 def mask_bitmaps(path, bitmaps, names, depths_nm, pitch):
-    """Draw each mask's etched area (black = polygon = etched) side by side."""
+    """Draw each mask's etched area side by side, white = etched (``fab.package.polarity``)."""
     count = len(bitmaps)
     fig = _figure(4.2 * count, 5.0)
+    axes = []
     for i, (bm, name, depth) in enumerate(zip(bitmaps, names, depths_nm, strict=True)):
         ax = fig.add_subplot(1, count, i + 1)
-        ax.imshow(
-            ~np.asarray(bm, bool),
+        im = ax.imshow(
+            np.asarray(bm, bool),
             cmap="gray",
             vmin=0,
             vmax=1,
@@ -64,8 +67,11 @@ def mask_bitmaps(path, bitmaps, names, depths_nm, pitch):
         ax.set(title=f"{name}: etch {depth:.1f} nm", xlabel="x (um)")
         if i == 0:
             ax.set_ylabel("y (um)")
-    fig.suptitle("Masks, viewed onto the patterned surface (black = polygon = etched)")
-    _save(fig, path)
+        axes.append(ax)
+    bar = fig.colorbar(im, ax=axes, ticks=[0.25, 0.75], shrink=0.6)
+    bar.ax.set_yticklabels(["not etched", "etched"])
+    fig.suptitle(f"Masks, viewed onto the patterned surface ({POLARITY})")
+    _save(fig, path, masks_figure_description())
 
 
 def psf_comparison(path, target, simulated):

@@ -1,9 +1,11 @@
 """Raster images of every mask (OpenImageIO): the tile at mask-pixel resolution, a plate preview.
 
-Pixel values: 255 = etched (a drawn polygon), 0 = not etched; row 0 is the
-top edge of the layout, viewed onto the patterned surface (right-reading). In
-the plate preview a pixel is the etched fraction of the mask pixels it covers,
-and the plate edge and the clear-aperture frame are drawn in grey (128).
+Pixel values: 255 (white) = etched (a drawn polygon), 0 (black) = not etched, the
+project's one polarity (``fab.package.polarity``), written into each file's
+``Description``; row 0 is the top edge of the layout, viewed onto the patterned
+surface (right-reading). In the plate preview a pixel is the etched fraction of
+the mask pixels it covers, and the plate edge and the clear-aperture frame are
+drawn in grey (128).
 This module and :func:`read_image` are the only places here that touch image files.
 """
 
@@ -11,6 +13,8 @@ import math
 from pathlib import Path
 
 import numpy as np
+
+from fab.package.polarity import POLARITY, plate_preview_description, tile_image_description
 
 ETCHED = 255
 OUTLINE_GREY = 128
@@ -86,12 +90,13 @@ def _block_counts(length, n, f):
     return np.bincount(r // f * n + r % n, minlength=blocks * n).reshape(blocks, n).astype(float)
 
 
-def write_image(path, image, pixel_nm=None):
+def write_image(path, image, pixel_nm=None, description=None):
     """Write an (H, W, 1) uint8 array as a single-channel TIFF or PNG with pinned metadata.
 
     With ``pixel_nm`` the file records its pixel size as a resolution (TIFF:
     pixels per cm; PNG: pixels per metre, to 1 part in 2e5), so that image viewers
-    show the true scale; ``fab_manifest.json`` stays the exact record.
+    show the true scale; ``fab_manifest.json`` stays the exact record. ``description``
+    goes into the TIFF ImageDescription tag / the PNG ``Description`` text chunk.
     """
     import OpenImageIO as oiio
 
@@ -101,6 +106,8 @@ def write_image(path, image, pixel_nm=None):
     h, w, c = image.shape
     spec = oiio.ImageSpec(w, h, c, "uint8")
     spec.attribute("DateTime", PINNED_DATETIME)
+    if description:
+        spec.attribute("ImageDescription", description)
     if pixel_nm is not None:
         spec.attribute("XResolution", 1e7 / pixel_nm)
         spec.attribute("YResolution", 1e7 / pixel_nm)
@@ -142,9 +149,20 @@ def write_layer_images(out_dir, masks, tiles, pitch_nm, plate_half_nm, aperture_
     names = []
     for mk in masks:
         tif, png = layer_image_names(mk.name)
-        write_image(out_dir / tif, tile_image(mk.bitmap), pixel_nm=pitch_nm)
+        tile = tile_image(mk.bitmap)
+        write_image(out_dir / tif, tile, pitch_nm, tile_image_description(mk.name))
         preview = plate_preview(mk.bitmap, tiles, pitch_nm, plate_half_nm, aperture_half_nm)
         f = preview_factor(pitch_nm, plate_half_nm)
-        write_image(out_dir / png, preview, pixel_nm=f * pitch_nm)
+        write_image(out_dir / png, preview, f * pitch_nm, plate_preview_description(mk.name))
         names += [tif, png]
     return names
+
+
+def layer_image_blocks(mask_names):
+    """Return report blocks listing each mask's layer images with what they show."""
+    items = []
+    for name in mask_names:
+        tif, png = layer_image_names(name)
+        items.append(f"{tif}: {tile_image_description(name)}.")
+        items.append(f"{png}: {plate_preview_description(name)}.")
+    return [("p", f"Layer images ({POLARITY} in each):"), ("ul", items)]

@@ -19,7 +19,9 @@ from doe.fraunhofer import correlation, level_phase, rmse
 from doe.goals import CORRELATION_GOAL, RMSE_GOAL, goals_missed
 from doe.infra.files import atomic_write_bytes, write_json
 from doe.materials import TABLE_KEY, index_source
+from fab.package.layer_images import layer_image_blocks
 from fab.package.manifest import file_records
+from fab.package.polarity import masks_figure_description
 from fab.package.report_marks import marks_blocks
 from fab.templates import render_page
 
@@ -164,6 +166,7 @@ def report_blocks(context, figures=()):
     b.append(("p", CHROME_DOWN))
     b.append(("h2", "Figures"))
     b += [("fig", name, FIGURE_CAPTIONS[name]) for name in figures if name in FIGURE_CAPTIONS]
+    b += layer_image_blocks(m["name"] for m in _sorted_masks(context))
     b.append(("h2", "Tolerances"))
     if tol is None:
         b.append(("p", "No tolerance analysis in this build."))
@@ -183,7 +186,7 @@ def report_blocks(context, figures=()):
 
 FIGURE_CAPTIONS = {
     FIGURES["levels"]: "Level map of one tile (level l = l steps of glass above the floor).",
-    FIGURES["masks"]: "Mask bitmaps: black pixels are polygons, i.e. etched.",
+    FIGURES["masks"]: masks_figure_description(),
     FIGURES["psf"]: "Target and simulated PSF (nominal levels) and their difference.",
     FIGURES["lattice"]: "Simulated dot lattice on the sensor: SPAD pixels (white), "
     "active areas (cyan), sub-pixel grid (faint); zero order on the "

@@ -9,6 +9,7 @@ from doe.figures import value_and_limit
 from doe.goals import CORRELATION_GOAL, RMSE_GOAL
 from doe.infra.errors import InputError
 from doe.infra.files import atomic_write_bytes, sha256_file, write_json
+from doe.infra.png import png_text
 from doe.records.fab_manifest import MANIFEST_NAME, read_fab_manifest
 from doe.records.learn import LEARN_JSON, read_learn
 from doe.records.retrieval import RETRIEVAL_JSON, read_retrieval
@@ -192,8 +193,16 @@ def _stage_sections(run_dir, stages):
             {
                 "name": stage,
                 "reports": [str(p.relative_to(run_dir)) for p in files if p.suffix == ".html"],
-                "figures": [str(p.relative_to(run_dir)) for p in files if p.suffix == ".png"],
+                "figures": [_figure(run_dir, p) for p in files if p.suffix == ".png"],
                 "files": [(str(p.relative_to(run_dir)), f"{p.stat().st_size:,}") for p in files],
             }
         )
     return sections
+
+
+def _figure(run_dir, path):
+    """Return (path from the run folder, caption): the PNG's ``Description``, else its name.
+
+    The caption states what the image shows, e.g. a mask image's polarity.
+    """
+    return str(path.relative_to(run_dir)), png_text(path).get("Description", path.name)

@@ -10,8 +10,10 @@ import pytest
 import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from mesh_helpers import exact_volume_mm3, pinches
 
 from doe.infra.cli import main
+from fab.mesh.chamfer import CHAMFER_LEG
 from fab.mesh.checks import (
     BYTES_PER_TRIANGLE,
     MERGED_MEMORY_LIMIT_BYTES,
@@ -163,8 +165,7 @@ def test_relief_surface_refuses_a_map_that_is_not_a_level_map(levels):
 def test_volume_matches_analytic_formula():
     levels = random_levels(20, seed=2)
     v, f = tile_mesh(relief_of(levels))
-    tops = THICK - (L - 1 - levels.astype(float)) * STEP
-    analytic_mm3 = (PITCH**2 * tops.sum()) * 1e9
+    analytic_mm3 = exact_volume_mm3(levels, L, STEP, PITCH, THICK)  # pixels minus chamfers
     assert mesh_volume(v, f) == pytest.approx(analytic_mm3, rel=1e-12)
     assert trimesh.Trimesh(v, f, process=False).volume == pytest.approx(analytic_mm3, rel=1e-12)
 
@@ -195,6 +196,8 @@ def test_faces_are_terraces_and_vertical_walls_with_exact_top_areas():
     assert np.allclose(p[up][..., 2], zl[lev][:, None], atol=1e-12)
     got = np.bincount(lev, weights=area[up], minlength=L)
     want = np.bincount(levels.ravel(), minlength=L) * (PITCH * 1e3) ** 2
+    for top, low in pinches(levels):  # a chamfer moves its triangle from top to low
+        want[[top, low]] += np.array([-1, 1]) * (CHAMFER_LEG * PITCH * 1e3) ** 2 / 2
     assert np.allclose(got, want, rtol=1e-10, atol=1e-18)
     down = np.isclose(nz, -1)
     assert np.allclose(p[down][..., 2], 0) and area[down].sum() == pytest.approx(
@@ -206,14 +209,15 @@ def test_surface_loops_match_triangles_and_are_planar():
     surface = relief_surface(random_levels(6, seed=4))
     tri_area = 0.0
     g = surface.grid
+    assert surface.chamfers == len(pinches(random_levels(6, seed=4))) > 0
     for loop, normal in zip(surface.loops, surface.loop_normals, strict=True):
-        pts = g[loop] * [1, 1, 0.5]  # any z scale: loops are axis-aligned planes
-        axis = int(np.flatnonzero(normal)[0])
-        assert np.ptp(pts[:, axis]) == 0
+        pts = g[loop] * [1, 1, 0.5]  # any z scale: loops are vertical or horizontal planes
+        unit = normal / np.linalg.norm(normal)
+        assert np.ptp(pts @ unit) < 1e-12
         # Newell normal of the loop points along the declared outward normal
         newell = np.cross(pts, np.roll(pts, -1, axis=0)).sum(0) / 2
-        assert newell[axis] * normal[axis] > 0
-        tri_area += abs(newell[axis])
+        assert newell @ unit > 0 and np.allclose(np.cross(newell, unit), 0, atol=1e-15)
+        tri_area += newell @ unit
     pts = g[surface.triangles] * [1, 1, 0.5]
     cross = np.cross(pts[:, 1] - pts[:, 0], pts[:, 2] - pts[:, 0])
     assert np.linalg.norm(cross, axis=1).sum() / 2 == pytest.approx(tri_area, rel=1e-12)
@@ -563,10 +567,13 @@ def test_every_pixel_top_lies_over_its_pixel_at_its_level():
     col = np.floor(centre[:, 0] / p_mm).astype(int)
     row = levels.shape[0] - 1 - np.floor(centre[:, 1] / p_mm).astype(int)
     level_of_z = np.rint((centre[:, 2] - THICK * 1e3) / (STEP * 1e3) + L - 1).astype(int)
-    assert np.array_equal(level_of_z, levels[row, col])
-    hit = np.zeros(levels.shape, int)
-    np.add.at(hit, (row, col), 1)
-    assert np.all(hit == 2), "two top triangles per pixel"
+    area = np.linalg.norm(n[up], axis=1) / 2 / p_mm**2
+    top = area > 1e-5  # not a chamfer's triangle at z_lo (1e-3 p legs), which is
+    assert len(pinches(levels)) == (~top).sum()
+    assert np.array_equal(level_of_z[top], levels[row, col][top])
+    hit = np.zeros(levels.shape)
+    np.add.at(hit, (row[top], col[top]), area[top])
+    assert np.all(np.abs(hit - 1) < 2e-6), "the top triangles of a pixel cover it"
 
 
 MESH_L, MESH_STEP, MESH_PITCH, MESH_THICK = 8, 179.4e-9, 4990e-9, 0.5e-3

@@ -8,6 +8,8 @@ import pytest
 
 pytest.importorskip("build123d")
 
+from mesh_helpers import exact_volume_mm3
+
 from doe.infra.cli import main
 from fab.mesh import step
 from fab.mesh.relief import Relief, instance_offsets_mm
@@ -21,8 +23,7 @@ def relief_of(n, seed):
 
 
 def analytic_mm3(relief):
-    tops = THICK - (L - 1 - relief.levels.astype(float)) * STEP_M
-    return PITCH**2 * tops.sum() * 1e9
+    return exact_volume_mm3(relief.levels, L, STEP_M, PITCH, THICK)  # pixels minus chamfers
 
 
 def test_step_tile_reimports_as_one_closed_solid_with_exact_volume(tmp_path):

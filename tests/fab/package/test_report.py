@@ -10,6 +10,7 @@ from doe.derived import derive, design_summary
 from doe.design import load_design
 from doe.fraunhofer import simulate_levels
 from fab.package.masks import masks_from_levels
+from fab.package.polarity import POLARITY
 from fab.package.report import FIGURES, REPORT_HTML, REPORT_MD, TOLERANCE_JSON, write_fab_report
 from fab.plate.tolerance import tolerance_analysis
 
@@ -278,8 +279,8 @@ def test_tile_figures_show_row_0_at_the_top_and_column_0_at_the_left(
     assert lit(ax, corners, colour_at(ax, lo, lo)) == ["top right"]  # against level 0
     figures.mask_bitmaps(tmp_path / "masks.png", [levels > 0], ["M"], [1.0], pitch)
     ax = saved_figures[-1].axes[0]
-    assert colour_at(ax, hi, hi).max() < 64  # a polygon: etched, drawn black
-    assert lit(ax, corners, np.full(3, 255)) == ["top right"]
+    assert colour_at(ax, hi, hi).min() > 190  # a polygon: etched, drawn white
+    assert lit(ax, corners, np.zeros(3)) == ["top right"]
     # the PSF: row 0 at y = +K//2 (rows grow to -y), column 0 at x = -K//2
     psf = np.full((5, 5), 1.0)
     psf[0, 4] = 20.0
@@ -361,6 +362,12 @@ def test_html_report_escapes_the_design_and_carries_the_shared_stylesheet(tmp_pa
     assert f"<style>\n{css}</style>" in page
     for name in (FIGURES["levels"], FIGURES["psf"]):
         assert f'<img src="{name}" alt="' in page
+    # every mask image shown or listed states its polarity (fab.package.polarity)
+    caption = page.split(f'<img src="{FIGURES["masks"]}"')[1].split("</figcaption>")[0]
+    assert POLARITY in caption
+    for m in context["masks"]:
+        for name in (f"{m['name']}_tile.tif", f"{m['name']}_plate.png"):
+            assert POLARITY in page.split(f"<li>{name}: ")[1].split("</li>")[0], name
 
 
 @pytest.mark.parametrize(
