@@ -104,6 +104,7 @@ def retrieve_phase(
     cd_weights=CD_WEIGHTS,
     cap=CAP,
     progress=False,
+    allow_corner_contacts=False,
 ):
     """Design an L-level phase tile whose K x K window of orders forms ``target``.
 
@@ -148,6 +149,10 @@ def retrieve_phase(
         :func:`doe.refinement.objective`, 1 = a goal just met) the design aims at.
     progress : bool
         Show a tqdm progress bar of the stages on stderr (when it is a terminal).
+    allow_corner_contacts : bool
+        Leave the level map's corner contacts (:mod:`doe.mask_rules`) as the
+        search finds them; by default each descent ends with the rule-aware
+        finish, and no mask has any (periodic).
 
     Returns
     -------
@@ -166,8 +171,9 @@ def retrieve_phase(
     best = None
     for phase, gains in designs[:finishes]:
         key, levels = quantised_finish(
-            phase, gains, target, n_levels, rng, cd_weights, cap, quantised_iterations, bar
-        )
+            phase, gains, target, n_levels, rng, cd_weights, cap, quantised_iterations, bar,
+            no_corners=not allow_corner_contacts,
+        )  # fmt: skip
         if best is None or key < best[0]:
             best = (key, levels, phase)
     _, levels, phase = best
