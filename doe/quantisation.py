@@ -221,8 +221,8 @@ def _descend(levels, target, goal, n_levels, rng, cd_weights, cap, bar, no_corne
     """Return (levels, efficiency, exact fidelity) after :func:`quantised_finish`'s sweeps.
 
     With ``no_corners`` the level map the sweeps end on has its corner contacts
-    repaired (:func:`doe.rule_finish.repair_corners`), and the exact-figure
-    sweeps run again with moves that make none.
+    repaired (:func:`doe.rule_finish.repair_corners`), and where there were any
+    the exact-figure sweeps run again with moves that make none.
     """
 
     def figures(levels):
@@ -248,10 +248,12 @@ def _descend(levels, target, goal, n_levels, rng, cd_weights, cap, bar, no_corne
     levels, eff, fid = _settle(levels, eff, fid, sweep, figures, cap, cd_weights[-1])
     if no_corners:
         bar.set_description("corner contacts")
-        levels = repair_corners(levels, target, goal, n_levels, CLIMB_WEIGHT, cap)
-        eff, fid = figures(levels)
+        repaired = repair_corners(levels, target, goal, n_levels, CLIMB_WEIGHT, cap)
+        if np.array_equal(repaired, levels):
+            return levels, eff, fid  # none to repair: the map is final as it is
+        eff, fid = figures(repaired)
         rules = lambda lv, w, mode: sweep(lv, w, mode, rules=True)  # noqa: E731
-        levels, eff, fid = _settle(levels, eff, fid, rules, figures, cap, cd_weights[-1])
+        levels, eff, fid = _settle(repaired, eff, fid, rules, figures, cap, cd_weights[-1])
     return levels, eff, fid
 
 
