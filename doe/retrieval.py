@@ -150,9 +150,8 @@ def retrieve_phase(
     progress : bool
         Show a tqdm progress bar of the stages on stderr (when it is a terminal).
     allow_corner_contacts : bool
-        Leave the level map's corner contacts (:mod:`doe.mask_rules`) as the
-        search finds them; by default each descent ends with the rule-aware
-        finish, and no mask has any (periodic).
+        Leave corner contacts (:mod:`doe.mask_rules`) as the search finds them;
+        by default each descent's rule-aware finish leaves none in any mask.
 
     Returns
     -------
