@@ -5,7 +5,8 @@ best global offset, each start a :func:`coordinate_descent` on the level map:
 a direct search over the discrete levels on the real quantised figures. With
 the fidelity capped it climbs efficiency while both figures stay within budget;
 this is what closes the gap left by rounding. :func:`quantised_finish` runs
-both and keeps the better level map.
+both and keeps the better level map; by default each descent ends without
+corner contacts (:mod:`doe.rule_finish`).
 """
 
 import numpy as np

@@ -20,8 +20,11 @@ against the goals of :mod:`doe.goals`:
    discrete levels on the real quantised figures; with the fidelity capped it
    climbs efficiency while both figures stay within budget. This is what closes
    the gap left by rounding.
+5. Unless the design allows them, the rule-aware finish
+   (:mod:`doe.rule_finish`): each descent's map loses its corner contacts
+   (:mod:`doe.mask_rules`) and climbs back with moves that make none.
 
-:func:`retrieve_phase` runs all four and reports the quality figures of
+:func:`retrieve_phase` runs them all and reports the quality figures of
 :func:`doe.fraunhofer.quality` for the continuous and the quantised design.
 The loops use numpy element-wise work, small dot products and pocketfft, none
 of it threaded, so a seed gives bit-identical level maps on a given machine
