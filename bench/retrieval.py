@@ -25,6 +25,8 @@ How it was run (the figures quoted in docs/retrieve.md)::
     python bench/retrieval.py            # N = 175, L = 8, seed 0
     python bench/retrieval.py --drawn 20261122   # targets drawn afresh (docs/retrieve.md)
     python bench/retrieval.py --shapes           # shapes of other kinds (docs/retrieve.md)
+    python bench/retrieval.py --corners --psf learn/psf.npy   # corner contacts allowed or not
+    python bench/retrieval.py --corners --config bk7.toml     # N, L of another design
 
 on the shared 2-core development machine, idle (load below 1), 2 min 30 s in
 all; under load the seconds grow with it.
@@ -44,6 +46,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from doe import fraunhofer, retrieval, targets
 from doe.gerchberg_saxton import gerchberg_saxton
+from doe.goals import missed_goals
 from doe.infra import flags
 
 
@@ -86,6 +89,43 @@ def robustness(n, n_levels, seed, title="robustness set", target_set=None):
         f"{'median':16s} {'':4s} {'':12s} {'':9s} {statistics.median(effs):10.4f} {'':8s} "
         f"{statistics.median(secs):8.2f}  {len(rows) - fails}/{len(rows)} PASS"
     )
+
+
+def corners(target_set, n, n_levels, seed, title):
+    """Print doefab's figures with corner contacts allowed, then forbidden (the default).
+
+    Each pair of columns is allowed, forbidden; the seconds are the process's CPU time.
+    """
+    from doe.mask_rules import corner_contacts
+
+    print(
+        f"\n== corner contacts ({title}), N = {n}, L = {n_levels}, seed {seed}\n"
+        f"{'target':16s} {'contacts allowed (per mask)':>28s} {'correlation':>21s} "
+        f"{'rmse':>17s} {'efficiency':>15s} {'d eff':>7s} {'CPU s':>11s}  goals"
+    )
+    for name, target in target_set.items():
+        runs, cpu = [], []
+        for allow in (True, False):
+            t0 = time.process_time()  # CPU seconds: the shared machine's load leaves them be
+            runs.append(
+                retrieval.retrieve_phase(
+                    target, n, n_levels, seed=seed, allow_corner_contacts=allow
+                )
+            )
+            cpu.append(time.process_time() - t0)
+        q = [r.quality_quantised for r in runs]
+        left = sum(corner_contacts(runs[1].levels, n_levels))
+        goals = ["met" if not missed_goals(x) else "MISSED" for x in q]
+        print(
+            f"{name:16s} {'/'.join(map(str, corner_contacts(runs[0].levels, n_levels))):>28s} "
+            f"{q[0]['correlation']:10.6f} {q[1]['correlation']:10.6f} "
+            f"{q[0]['rmse']:8.5f} {q[1]['rmse']:8.5f} "
+            f"{q[0]['efficiency']:7.4f} {q[1]['efficiency']:7.4f} "
+            f"{q[1]['efficiency'] - q[0]['efficiency']:+7.4f} "
+            f"{cpu[0]:5.1f} {cpu[1]:5.1f}  {goals[0]} -> {goals[1]}"
+            + ("" if left == 0 else f"  ({left} contacts left!)"),
+            flush=True,
+        )
 
 
 def doefab(target, n, n_levels, seed):
@@ -160,7 +200,18 @@ def main(argv=None):
         action="store_true",
         help="only run doefab on doe.targets.shape_set: 19 shapes of other kinds",
     )
+    unseen.add_argument(
+        "--corners",
+        action="store_true",
+        help="only compare doefab with corner contacts allowed (before -> after: forbidden)",
+    )
+    ap.add_argument("--config", help="with --corners: take N and L from this design file or preset")
+    ap.add_argument(
+        "--psf", nargs="*", default=[], help="with --corners: PSF files (.npy) to add as targets"
+    )
     args = ap.parse_args(argv)
+    if args.corners:
+        return _corners(args)
     if args.tile_pixels < 11:
         ap.error(f"--tile-pixels must be at least the targets' 11 orders, got {args.tile_pixels}")
     if args.shapes or args.drawn is not None:
@@ -230,6 +281,21 @@ def main(argv=None):
             print(f"{name:16s} {'PASS' if not bad else 'FAIL: ' + ', '.join(bad)}")
     if args.robustness == "yes":
         robustness(n, n_levels, args.seed)
+    return 0
+
+
+def _corners(args):
+    n, n_levels, title = args.tile_pixels, args.levels, "bench targets"
+    if args.config:
+        from doe.derived import derive
+        from doe.design import load_design
+
+        design = load_design(args.config)
+        n, n_levels = derive(design).tile_pixels, design.fabrication.levels
+        title = f"design {design.name}"
+    chosen = {name: targets.make_target(name, 11) for name in args.targets}
+    chosen.update({Path(p).stem: np.load(p) for p in args.psf})
+    corners(chosen, n, n_levels, args.seed, title)
     return 0
 
 

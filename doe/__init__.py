@@ -8,7 +8,8 @@
 - ``goals``: the quality goals and the fidelity figures measured against them
 - ``retrieval``: phase retrieval, from a target PSF to an L-level tile, in stages:
   ``gerchberg_saxton`` (GS, MRAF), ``refinement`` (nlopt L-BFGS),
-  ``quantisation`` (the discrete finish)
+  ``quantisation`` (the discrete finish), ``rule_finish`` (no corner contacts)
+- ``mask_rules``: corner contacts of a level map's binary masks, counted and checked
 - ``retrieve``: the retrieve stage as a library (a PSF file in, a folder out)
 - ``targets``: named target PSFs for tests, benchmarks and demonstrations
 - ``figures``: the retrieval figure

@@ -169,6 +169,7 @@ def design_summary(d, tile_pixels=None):
             "feature_size_um": as_typed(d.fabrication.feature_size, 1e6),
             "aperture_mm": as_typed(d.fabrication.aperture, 1e3),
             "grid_nm": round(d.fabrication.grid * 1e9),
+            "allow_corner_contacts": d.fabrication.allow_corner_contacts,
         },
         "learning": asdict(d.learning),
         "derived": {

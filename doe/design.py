@@ -50,10 +50,14 @@ class Material:
 
 @dataclass(frozen=True)
 class Fabrication:
+    """``allow_corner_contacts``: the process accepts etched pixels of one mask that touch
+    only at a corner (the retrieval then leaves them; the design-rule check lists them)."""
+
     levels: int
     feature_size: float
     aperture: float
     grid: float
+    allow_corner_contacts: bool = False
 
 
 @dataclass(frozen=True)
@@ -132,6 +136,9 @@ _SCHEMA = {
 
 # Keys a table may hold beside its _SCHEMA keys; their checks are the section's own.
 _OPTIONAL = {"material": CUSTOM_KEYS}
+
+# Optional true/false keys: (section, key) -> the value when the file leaves it out.
+_SWITCHES = {("fabrication", "allow_corner_contacts"): False}
 
 
 def preset_names():
@@ -215,7 +222,8 @@ def parse_design(raw, source="design"):
             raise InputError(source, f"missing table [{section}]")
         if not isinstance(table, dict):  # [[optics]] or optics = 5
             raise InputError(source, f"[{section}] must be a table of keys, got {table!r}")
-        known = {*fields, *_OPTIONAL.get(section, ())}
+        switches = [key for sec, key in _SWITCHES if sec == section]
+        known = {*fields, *_OPTIONAL.get(section, ()), *switches}
         unknown = set(table) - known
         if unknown:
             raise InputError(
@@ -226,6 +234,13 @@ def parse_design(raw, source="design"):
             if key not in table:
                 raise InputError(where, "missing")
             si[section, key] = _check_value(where, table[key], typ, scale, ok, why)
+        for key in switches:
+            value = table.get(key, _SWITCHES[section, key])
+            if not isinstance(value, bool):
+                raise InputError(
+                    f"{source}: [{section}] {key}", f"must be true or false, got {value!r}"
+                )
+            si[section, key] = value
     for key in ("name", "description"):
         if not isinstance(raw.get(key, ""), str):
             raise InputError(f"{source}: {key}", "must be a string")
@@ -252,6 +267,7 @@ def parse_design(raw, source="design"):
             s("fabrication", "feature_size_um"),
             s("fabrication", "aperture_mm"),
             s("fabrication", "grid_nm"),
+            s("fabrication", "allow_corner_contacts"),
         ),
         learning=Learning(
             s("learning", "seed"),

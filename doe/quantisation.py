@@ -5,7 +5,8 @@ best global offset, each start a :func:`coordinate_descent` on the level map:
 a direct search over the discrete levels on the real quantised figures. With
 the fidelity capped it climbs efficiency while both figures stay within budget;
 this is what closes the gap left by rounding. :func:`quantised_finish` runs
-both and keeps the better level map.
+both and keeps the better level map; by default each descent ends without
+corner contacts (:mod:`doe.rule_finish`).
 """
 
 import numpy as np
@@ -14,7 +15,9 @@ from doe import fraunhofer
 from doe.fraunhofer import level_step, round_levels
 from doe.gerchberg_saxton import gerchberg_saxton
 from doe.goals import Goal, goal_values, window_value
+from doe.mask_rules import contacts_at, pixel_is_clean
 from doe.refinement import DEFAULT_WEIGHT, window_fft, window_matrix
+from doe.rule_finish import repair_corners
 
 CD_WEIGHTS = (100.0, 60.0, 40.0, 30.0, 20.0, 15.0, 10.0, 5.0, 2.0)
 """Efficiency weights of the coordinate-descent sweeps, most efficient first."""
@@ -43,6 +46,7 @@ def coordinate_descent(
     shifts=(1, -1),
     cap=0.0,
     mode="exact",
+    no_corners=False,
 ):
     """Return a level map improved by greedy single-pixel level changes.
 
@@ -79,6 +83,9 @@ def coordinate_descent(
         Peak normalisation of the rmse term: the simulated peak (the exact
         figure) or the mean over the target's peak orders (smoother, so the
         greedy search progresses faster on flat-topped targets).
+    no_corners : bool
+        Make no move that leaves the moved pixel in a corner contact
+        (:mod:`doe.mask_rules`, periodic): a map without one keeps none.
 
     Returns
     -------
@@ -105,11 +112,16 @@ def coordinate_descent(
             basis = a[:, r].T[:, :, None] * a[:, c].T[:, None, :]  # (B, K, K)
             trial = w + delta[:, :, None, None] * basis[:, None]  # (B, L-1, K, K)
             vals = goal_values(trial.real**2 + trial.imag**2, goal, weight, cap, mode)
+            if no_corners:
+                made = contacts_at(q, r, c, cand, n_levels).any(axis=-1)
+                vals = np.where(made, np.inf, vals)
             best = np.argmin(vals, axis=1)
             gain = vals[np.arange(pix.size), best] - value
             ranked = np.argsort(gain, kind="stable")
             ranked = ranked[gain[ranked] < 0]
             for i in ranked:
+                if no_corners and not pixel_is_clean(q, r[i], c[i], cand[i, best[i]], n_levels):
+                    continue  # a move before it in this chunk changed a neighbour
                 new_w = w + delta[i, best[i]] * basis[i]
                 new_value = window_value(new_w, goal, weight, cap, mode)
                 if new_value < value:
@@ -122,7 +134,16 @@ def coordinate_descent(
 
 
 def quantised_finish(
-    phase, gains, target, n_levels, rng, cd_weights, cap, quantised_iterations, bar
+    phase,
+    gains,
+    target,
+    n_levels,
+    rng,
+    cd_weights,
+    cap,
+    quantised_iterations,
+    bar,
+    no_corners=False,
 ):
     """Return (rank, levels): the discrete stages of :func:`doe.retrieval.retrieve_phase`.
 
@@ -148,6 +169,10 @@ def quantised_finish(
         Iterations of the quantised GS.
     bar : tqdm
         Progress bar the stages advance.
+    no_corners : bool
+        Leave no corner contact in any mask (:mod:`doe.mask_rules`, periodic):
+        each descent ends with :func:`doe.rule_finish.repair_corners` and sweeps
+        that make none.
 
     Returns
     -------
@@ -180,7 +205,9 @@ def quantised_finish(
     ]
     ranked = []
     for start in (round_levels(soft, n_levels), roundings[int(np.argmin(scores))]):
-        levels, eff, fid = _descend(start, target, goal, n_levels, rng, cd_weights, cap, bar)
+        levels, eff, fid = _descend(
+            start, target, goal, n_levels, rng, cd_weights, cap, bar, no_corners
+        )
         ranked.append((_rank(eff, fid, cap), len(ranked), levels))
     key, _, levels = min(ranked, key=lambda r: r[:2])
     return key, levels
@@ -191,18 +218,24 @@ def _rank(eff, fid, cap):
     return (0, -eff) if fid <= cap else (1, fid)
 
 
-def _descend(levels, target, goal, n_levels, rng, cd_weights, cap, bar):
-    """Return (levels, efficiency, exact fidelity) after :func:`quantised_finish`'s sweeps."""
+def _descend(levels, target, goal, n_levels, rng, cd_weights, cap, bar, no_corners=False):
+    """Return (levels, efficiency, exact fidelity) after :func:`quantised_finish`'s sweeps.
+
+    With ``no_corners`` the level map the sweeps end on has its corner contacts
+    repaired (:func:`doe.rule_finish.repair_corners`), and where there were any
+    the exact-figure sweeps run again with moves that make none.
+    """
 
     def figures(levels):
         """(efficiency, exact fidelity) of a level map."""
         power = fraunhofer.window_power(fraunhofer.level_phase(levels, n_levels), target.shape[0])
         return float(power.sum()), float(goal_values(power, goal, 0.0))
 
-    def sweep(levels, weight, mode):
+    def sweep(levels, weight, mode, rules=False):
         return coordinate_descent(
-            levels, target, n_levels, weight, sweeps=1, rng=rng, cap=cap, mode=mode
-        )
+            levels, target, n_levels, weight, sweeps=1, rng=rng, cap=cap, mode=mode,
+            no_corners=rules,
+        )  # fmt: skip
 
     eff, fid = figures(levels)
     bar.set_description("coordinate descent")
@@ -213,6 +246,20 @@ def _descend(levels, target, goal, n_levels, rng, cd_weights, cap, bar):
         gain, eff = new_eff - eff, new_eff
         if fid <= cap and gain < MIN_GAIN:
             break
+    levels, eff, fid = _settle(levels, eff, fid, sweep, figures, cap, cd_weights[-1])
+    if no_corners:
+        bar.set_description("corner contacts")
+        repaired = repair_corners(levels, target, goal, n_levels, CLIMB_WEIGHT, cap)
+        if np.array_equal(repaired, levels):
+            return levels, eff, fid  # none to repair: the map is final as it is
+        eff, fid = figures(repaired)
+        rules = lambda lv, w, mode: sweep(lv, w, mode, rules=True)  # noqa: E731
+        levels, eff, fid = _settle(repaired, eff, fid, rules, figures, cap, cd_weights[-1])
+    return levels, eff, fid
+
+
+def _settle(levels, eff, fid, sweep, figures, cap, polish_weight):
+    """Return (levels, efficiency, fidelity) after the exact-figure sweeps of :func:`_descend`."""
     # The smooth stand-in for the peak normalisation can disagree with the exact
     # rmse on flat-topped targets, either way: the last sweeps use the exact figures.
     for _ in range(POLISH_SWEEPS):
@@ -220,7 +267,7 @@ def _descend(levels, target, goal, n_levels, rng, cd_weights, cap, bar):
             break
         # over the cap: polish, sweep by sweep, still weighing efficiency (with
         # weight 0 the slack below the cap would trade efficiency for needless fidelity)
-        levels = sweep(levels, cd_weights[-1], "exact")
+        levels = sweep(levels, polish_weight, "exact")
         eff, fid = figures(levels)
     for _ in range(CLIMB_SWEEPS if fid <= cap else 0):
         # within the cap: climb into the budget the stand-in left unused (it reads

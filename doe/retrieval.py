@@ -20,8 +20,11 @@ against the goals of :mod:`doe.goals`:
    discrete levels on the real quantised figures; with the fidelity capped it
    climbs efficiency while both figures stay within budget. This is what closes
    the gap left by rounding.
+5. Unless the design allows them, the rule-aware finish
+   (:mod:`doe.rule_finish`): each descent's map loses its corner contacts
+   (:mod:`doe.mask_rules`) and climbs back with moves that make none.
 
-:func:`retrieve_phase` runs all four and reports the quality figures of
+:func:`retrieve_phase` runs them all and reports the quality figures of
 :func:`doe.fraunhofer.quality` for the continuous and the quantised design.
 The loops use numpy element-wise work, small dot products and pocketfft, none
 of it threaded, so a seed gives bit-identical level maps on a given machine
@@ -104,6 +107,7 @@ def retrieve_phase(
     cd_weights=CD_WEIGHTS,
     cap=CAP,
     progress=False,
+    allow_corner_contacts=False,
 ):
     """Design an L-level phase tile whose K x K window of orders forms ``target``.
 
@@ -148,6 +152,9 @@ def retrieve_phase(
         :func:`doe.refinement.objective`, 1 = a goal just met) the design aims at.
     progress : bool
         Show a tqdm progress bar of the stages on stderr (when it is a terminal).
+    allow_corner_contacts : bool
+        Leave corner contacts (:mod:`doe.mask_rules`) as the search finds them;
+        by default each descent's rule-aware finish leaves none in any mask.
 
     Returns
     -------
@@ -166,8 +173,9 @@ def retrieve_phase(
     best = None
     for phase, gains in designs[:finishes]:
         key, levels = quantised_finish(
-            phase, gains, target, n_levels, rng, cd_weights, cap, quantised_iterations, bar
-        )
+            phase, gains, target, n_levels, rng, cd_weights, cap, quantised_iterations, bar,
+            no_corners=not allow_corner_contacts,
+        )  # fmt: skip
         if best is None or key < best[0]:
             best = (key, levels, phase)
     _, levels, phase = best

@@ -27,6 +27,7 @@ from doe.infra.files import (
     sha256_file,
     staged_output,
 )
+from doe.mask_rules import corner_contacts
 from doe.records.psf_source import check_psf_grid
 from doe.records.retrieval import RETRIEVAL_JSON, RetrievalRecord, write_retrieval
 from doe.retrieval import Retrieval, retrieve_phase
@@ -132,7 +133,10 @@ def retrieve(
             "use a smaller PSF or a larger --tile-pixels",
         )
     with staged_output(out, force, names=OUTPUTS) as stage:
-        result = retrieve_phase(target, n, n_levels, seed=seed, progress=progress)
+        allowed = design.fabrication.allow_corner_contacts
+        result = retrieve_phase(
+            target, n, n_levels, seed=seed, progress=progress, allow_corner_contacts=allowed
+        )
         simulated, _ = fraunhofer.simulate_levels(result.levels, n_levels, k)
         record = _record(result, psf, target, _with_levels(design, n_levels), n)
         save_npy(stage / "levels.npy", result.levels)
@@ -172,6 +176,10 @@ def _record(result, psf, target, design, n):
         # the quantised design as fabricated: square pixels, whose sinc^2
         # envelope the contract's figures leave out
         square_pixels={**plate, "goals_met": not plate_missed, "missed": plate_missed},
+        corner_contacts={
+            "allowed": design.fabrication.allow_corner_contacts,
+            "per_mask": list(corner_contacts(result.levels, n_levels)),
+        },
         seconds=round(result.seconds, 3),
         seed=result.seed,
         levels=n_levels,

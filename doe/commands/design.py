@@ -42,6 +42,8 @@ def _show(args):
 
 
 def _fmt(v):
+    if isinstance(v, bool):  # as a design file spells it
+        return "true" if v else "false"
     if isinstance(v, float):
         return f"{v:.6g}"
     if isinstance(v, list):

@@ -13,6 +13,9 @@ The file is a JSON object (indented, keys sorted) with
   them and the ``missed`` ones, one phrase each;
 - ``square_pixels``: the level map's figures as a plate of square pixels (their
   sinc^2 envelope), with ``goals_met`` and ``missed``;
+- ``corner_contacts``: whether the design ``allowed`` them (``[fabrication]
+  allow_corner_contacts``) and their count ``per_mask``, M1 (deepest) first,
+  periodic (:func:`doe.mask_rules.corner_contacts`);
 - ``seconds``, ``seed``, ``levels`` (L), ``tile_pixels`` (N), ``kernel_size`` (K);
 - ``target_psf``, ``target_psf_sha256``: the input PSF's file name and digest;
 - ``design``: :func:`doe.derived.design_summary` of the design as the tile
@@ -31,7 +34,15 @@ RETRIEVAL_JSON = "retrieval.json"
 
 _WHOLE_NUMBERS = ("levels", "tile_pixels", "kernel_size", "seed")
 _NUMBERS = ("seconds",)
-_OBJECTS = ("continuous", "quantised", "goals", "square_pixels", "design", "versions")
+_OBJECTS = (
+    "continuous",
+    "quantised",
+    "goals",
+    "square_pixels",
+    "corner_contacts",
+    "design",
+    "versions",
+)
 _TEXTS = ("target_psf", "target_psf_sha256")
 
 
@@ -48,6 +59,7 @@ class RetrievalRecord:
     quantised: dict | None = None
     goals: dict | None = None
     square_pixels: dict | None = None
+    corner_contacts: dict | None = None
     seconds: float | None = None
     seed: int | None = None
     levels: int | None = None

@@ -287,6 +287,8 @@ def _table_value(text):
     """A value of the ``config show`` table: a number, a list of numbers or a word."""
     if text.startswith("["):
         return [float(x) for x in text.strip("[]").split(", ")]
+    if text in ("true", "false"):
+        return text == "true"
     try:
         return float(text)
     except ValueError:
@@ -312,7 +314,9 @@ def test_config_show_table_lists_every_value_of_the_json_under_its_section(capsy
         assert table[name].keys() == part.keys()
         for key, value in part.items():  # six significant digits, enough to check a plate
             shown = table[name][key]
-            assert shown == (value if isinstance(value, str) else pytest.approx(value, rel=1e-5))
+            assert shown == (
+                value if isinstance(value, str | bool) else pytest.approx(value, rel=1e-5)
+            )
 
 
 @pytest.mark.parametrize(

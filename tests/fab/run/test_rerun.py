@@ -71,6 +71,16 @@ def test_a_change_of_levels_keeps_learn_and_redoes_the_rest(tmp_path):
     assert result.skipped == ("learn",) and result.ran == ("retrieve", "fab", "mesh")
 
 
+def test_allowing_corner_contacts_keeps_learn_and_redoes_the_rest(tmp_path):
+    out, stages, config = tmp_path / "run", Stages(), design(tmp_path)
+    rerun(out, config, stages)
+    config.write_text(
+        config.read_text().replace("[fabrication]", "[fabrication]\nallow_corner_contacts = true")
+    )
+    result = rerun(out, config, stages)
+    assert result.skipped == ("learn",) and result.ran == ("retrieve", "fab", "mesh")
+
+
 def test_a_change_of_a_learning_key_redoes_learn_and_everything_after(tmp_path):
     out, stages = tmp_path / "run", Stages()
     rerun(out, design(tmp_path), stages)
