@@ -86,8 +86,9 @@ class CameraResult:
 def camera_optics(design, n_pixels, *, f_number=None, defocus=0.0, rotation=0.0):
     """Return the :class:`CameraOptics` of ``design``'s tile of N = ``n_pixels`` in a lens.
 
-    ``f_number`` None leaves the plate's square clear aperture as the stop; a
-    round stop of f / N larger than the aperture's diagonal changes nothing.
+    ``f_number`` None leaves the plate's square clear aperture as the stop; a round
+    stop of f / N is no larger than the clear aperture (a wider one is capped at its
+    side, the disc inscribed in the square).
     """
     der = derive(design, tile_pixels=n_pixels)
     f = design.optics.focal_length
@@ -98,9 +99,7 @@ def camera_optics(design, n_pixels, *, f_number=None, defocus=0.0, rotation=0.0)
     if not math.isfinite(rotation):
         raise InputError("--rotation-deg", "must be finite")
     aperture = design.fabrication.aperture
-    diameter = None if f_number is None else f / f_number
-    if diameter is not None and diameter >= aperture * math.sqrt(2):
-        diameter = None
+    diameter = None if f_number is None else min(f / f_number, aperture)
     return CameraOptics(f, der.tile_size, aperture, diameter, defocus, rotation, der.tiles)
 
 
@@ -151,8 +150,8 @@ def effective_psf(
     spectrum : doe.spectrum.Spectrum or None
         Any spectrum instead (``doe.spectrum.read_spectrum``).
     f_number : float or None
-        A round stop of diameter f / N (clipped by the square clear aperture);
-        None: the clear aperture alone.
+        A round stop of diameter f / N, no larger than the square clear aperture's
+        side; None: the square clear aperture.
     defocus_um : float
         Sensor distance behind the image plane (um; > 0 further from the lens).
     rotation_deg : float
@@ -209,6 +208,16 @@ def effective_psf(
     )
 
 
+def plate_orders(design, heights, supersample, wavelength):
+    """Return the plate's Fourier coefficients (N S, N S) at ``wavelength`` (m).
+
+    A cell of glass height h delays 2 pi (n(lambda) - 1) h / lambda, n from the
+    design's glass; :func:`doe.camera_optics.tile_coefficients` gives the orders.
+    """
+    index = design.material.dispersion.index(wavelength)
+    return tile_coefficients(heights, supersample, 2 * np.pi * (index - 1) / wavelength)
+
+
 def default_margin(design, optics):
     """Return the margin (sub-pixel pitches) that keeps the model within ~1e-3 of the peak."""
     sensor = design.sensor
@@ -245,8 +254,7 @@ def _collected(design, heights, supersample, optics, spectrum, k, margin_subpixe
     origin = ((-optics.tiles / 2) % 1.0, (-optics.tiles / 2) % 1.0)
     total = np.zeros((grid.n, grid.n))
     for wl, weight in zip(spectrum.wavelengths, spectrum.weights, strict=True):
-        phase_per_height = 2 * np.pi * (design.material.dispersion.index(wl) - 1) / wl
-        coeffs = tile_coefficients(heights, supersample, phase_per_height)
+        coeffs = plate_orders(design, heights, supersample, wl)
         intensity, _ = sensor_intensity(coeffs, origin, optics, grid, wl, reach + margin)
         total += weight * intensity
     angle = -math.radians(optics.rotation)

@@ -9,17 +9,19 @@ the plate's square clear aperture turns with it.
 
 The pupil field is t(u) S(u) exp(-i pi Z |u|^2 / (lambda f f')), t the periodic
 plate (the tile's Fourier series, :func:`tile_coefficients`, each mask pixel a
-square), S the stop (the plate's square clear aperture, clipped by a round stop),
+square), S the stop (the plate's square clear aperture, or a round stop within it),
 Z the sensor's distance behind the image plane (Z > 0 further from the lens) and
 f' = f + Z. The sensor field is U(X) = FT[pupil](X / (lambda f')) / (lambda f')
 (Fresnel propagation over f', the quadratic phase outside the integral dropped).
 Because t holds only the orders near the window, U = sum_mn c_mn h(X - x_mn) with h
 the stop's (defocused) amplitude PSF: the dots interfere where their tails overlap.
 
-Sampling (:func:`plan_grid`): the pupil is sampled at du = lambda f' / L, so the
-sensor field is the exact field made periodic over L (Poisson summation: the
-stop's hard edge is exact, its far tails wrap around); L holds the window, the
-orders within ``margin`` sub-pixel pitches of it and as much again as guard. The
+Sampling (:func:`plan_grid`): the square stop's field is separable and computed
+exactly (:func:`slit_field`: a sinc, or Fresnel integrals out of focus). A round
+stop's pupil is sampled at du = lambda f' / L, so its sensor field is the exact
+field made periodic over L (Poisson summation: the stop's hard edge is exact, its
+far tails wrap around); L holds the window, the orders within ``margin`` of it and
+as much again as guard. The
 sensor step dx < lambda_min f' / (2 D) keeps |U|^2 free of aliasing on the grid,
 so the intensity integrated over an active area is an exact Fourier sum
 (:func:`integrate_areas`), wherever the area's centre lies.
@@ -68,23 +70,14 @@ def tile_coefficients(heights, supersample, phase_per_height):
 
 
 def stop_area(aperture, diameter):
-    """Return the area (m^2) of the square clear aperture (side ``aperture``) within
-    a centred round stop of ``diameter`` (None: no round stop)."""
-    h = aperture / 2
-    if diameter is None:
-        return aperture**2
-    r = diameter / 2
-    if r <= h:
-        return math.pi * r**2
-    if r >= h * math.sqrt(2):
-        return aperture**2
-    segment = r**2 * math.acos(h / r) - h * math.sqrt(r**2 - h**2)
-    return math.pi * r**2 - 4 * segment
+    """Return the area (m^2) of the stop: the square clear aperture (side ``aperture``)
+    when ``diameter`` is None, else the round stop (no larger than the square)."""
+    return aperture**2 if diameter is None else math.pi * diameter**2 / 4
 
 
 def stop_extent(aperture, diameter):
     """Return the stop's width along x (or y) (m)."""
-    return aperture if diameter is None else min(aperture, diameter)
+    return aperture if diameter is None else diameter
 
 
 def plan_grid(reach, margin, wavelength_min, focal, extent):
@@ -139,16 +132,22 @@ def sensor_intensity(coeffs, origin_phase, optics, grid, wavelength, reach):
         field = by.astype(np.complex64) @ (c @ bx.T).astype(np.complex64)
         return field.real**2 + field.imag**2, half
     du = wavelength * f_image / grid.period
-    u = _axis(grid.n, du)
+    # the pupil is zero outside the disc: build it on the disc's central block only
+    half_block = min(grid.n // 2 - 1, int(optics.stop_diameter / 2 / du) + 1)
+    u = np.arange(-half_block, half_block + 1) * du
     ex = np.exp(2j * np.pi * np.outer(u, orders) / period)  # (n, orders): x; y is conj(ex)
-    side = _side(u, optics.aperture)
+    block = (np.conj(ex) @ c @ ex.T) * _disc(u, optics.stop_diameter)
     if z != 0:
-        side = side * np.exp(-1j * np.pi * z * u**2 / (wavelength * f * f_image))
-    pupil = (np.conj(ex) @ c @ ex.T) * np.outer(side, side) * _disc(u, optics.stop_diameter)
+        defocus = np.exp(-1j * np.pi * z * u**2 / (wavelength * f * f_image))
+        block *= defocus[:, None] * defocus[None, :]
+    pupil = np.zeros((grid.n, grid.n), np.complex64)
+    centre = grid.n // 2
+    pupil[
+        centre - half_block : centre + half_block + 1, centre - half_block : centre + half_block + 1
+    ] = block
     field = scipy.fft.fftshift(scipy.fft.fft2(scipy.fft.ifftshift(pupil)))
-    scale = du**2 / (wavelength * f_image)
-    field *= scale / math.sqrt(area)
-    return field.real**2 + field.imag**2, half
+    field *= du**2 / (wavelength * f_image) / math.sqrt(area)
+    return field.real.astype(float) ** 2 + field.imag.astype(float) ** 2, half
 
 
 def slit_field(x, width, alpha, wavelength, f_image):
@@ -167,13 +166,6 @@ def slit_field(x, width, alpha, wavelength, f_image):
     s2, c2 = scipy.special.fresnel(gamma * (a - centre))
     s1, c1 = scipy.special.fresnel(gamma * (-a - centre))
     return ((c2 - c1) + 1j * sign * (s2 - s1)) / gamma * np.exp(-1j * beta * centre / 2)
-
-
-def _side(u, aperture):
-    """The square aperture along one axis: 1 inside, 1/2 on an edge (Poisson's convention)."""
-    side = np.where(np.abs(u) < aperture / 2, 1.0, 0.0)
-    side[np.abs(u) == aperture / 2] = 0.5
-    return side
 
 
 def _disc(u, diameter):
