@@ -47,7 +47,7 @@ MARGIN_SUBPIXELS = 6.0
 MARGIN_DOTS = 200.0
 # A band is sampled so that the window's outermost dot moves at most this fraction
 # of the dot's radius (lambda N) between two wavelengths.
-SPECTRAL_STEP_DOTS = 0.5
+SPECTRAL_STEP_DOTS = 1.0
 
 
 @dataclass(frozen=True)
@@ -87,8 +87,8 @@ def camera_optics(design, n_pixels, *, f_number=None, defocus=0.0, rotation=0.0)
     """Return the :class:`CameraOptics` of ``design``'s tile of N = ``n_pixels`` in a lens.
 
     ``f_number`` None leaves the plate's square clear aperture as the stop; a round
-    stop of f / N is no larger than the clear aperture (a wider one is capped at its
-    side, the disc inscribed in the square).
+    stop of f / N lets through what lies within it and the clear aperture (the
+    square alone when the disc holds it, at f / N >= the aperture's diagonal).
     """
     der = derive(design, tile_pixels=n_pixels)
     f = design.optics.focal_length
@@ -99,7 +99,9 @@ def camera_optics(design, n_pixels, *, f_number=None, defocus=0.0, rotation=0.0)
     if not math.isfinite(rotation):
         raise InputError("--rotation-deg", "must be finite")
     aperture = design.fabrication.aperture
-    diameter = None if f_number is None else min(f / f_number, aperture)
+    diameter = None if f_number is None else f / f_number
+    if diameter is not None and diameter >= aperture * math.sqrt(2):
+        diameter = None  # the square clear aperture lies within the round stop
     return CameraOptics(f, der.tile_size, aperture, diameter, defocus, rotation, der.tiles)
 
 
@@ -150,8 +152,8 @@ def effective_psf(
     spectrum : doe.spectrum.Spectrum or None
         Any spectrum instead (``doe.spectrum.read_spectrum``).
     f_number : float or None
-        A round stop of diameter f / N, no larger than the square clear aperture's
-        side; None: the square clear aperture.
+        A round stop of diameter f / N; the light passes within it and the plate's
+        square clear aperture. None: the square clear aperture.
     defocus_um : float
         Sensor distance behind the image plane (um; > 0 further from the lens).
     rotation_deg : float
@@ -181,13 +183,14 @@ def effective_psf(
         heights, supersample = design_heights(design, levels), 1
     if margin_subpixels is None:
         margin_subpixels = default_margin(design, optics)
-    collected, sensor, dx = _collected(design, heights, supersample, optics, spectrum, k,
-                                       margin_subpixels)  # fmt: skip
+    ((collected, sensor, dx),) = collect(
+        design, heights, supersample, optics, [spectrum], k, margin_subpixels
+    )
     settings = {
         "bandwidth_nm": float(bandwidth_nm),
         "spectrum": spectrum.as_dict(),
         "f_number": None if f_number is None else float(f_number),
-        "stop": "square clear aperture" if optics.stop_diameter is None else "round",
+        "stop": _stop_name(optics),
         "stop_diameter_mm": None if optics.stop_diameter is None else optics.stop_diameter * 1e3,
         "aperture_mm": optics.aperture * 1e3,
         "defocus_um": float(defocus_um),
@@ -228,6 +231,14 @@ def default_margin(design, optics):
     return max(MARGIN_SUBPIXELS, MARGIN_DOTS * dot / subpixel)
 
 
+def _stop_name(optics):
+    if optics.stop_diameter is None:
+        return "square clear aperture"
+    if optics.stop_diameter > optics.aperture:
+        return "round, clipped by the square clear aperture"
+    return "round"
+
+
 def window_centres(kernel, subpixel, rotation_deg):
     """Return the K*K active-area centres (x, y) in the plate's frame, row-major.
 
@@ -240,8 +251,14 @@ def window_centres(kernel, subpixel, rotation_deg):
     return rotate(np.stack([x, y], axis=-1), -math.radians(rotation_deg))
 
 
-def _collected(design, heights, supersample, optics, spectrum, k, margin_subpixels):
-    """Return (E (K, K), the averaged sensor intensity, its grid step)."""
+def collect(design, heights, supersample, optics, spectra, k, margin_subpixels):
+    """Return [(E (K, K), the averaged sensor intensity, its grid step)] for each spectrum.
+
+    The spectra share the sensor grid (planned for the shortest wavelength of all)
+    and each wavelength's intensity is computed once, whichever spectra hold it: a
+    set of band-passes sampled on one wavelength grid (:func:`band_spectrum`) costs
+    the widest alone.
+    """
     sensor = design.sensor
     subpixel = sensor.pixel_pitch / sensor.superres_factor
     centres = window_centres(k, subpixel, optics.rotation)
@@ -250,18 +267,25 @@ def _collected(design, heights, supersample, optics, spectrum, k, margin_subpixe
     margin = margin_subpixels * subpixel
     f_image = optics.focal_length + optics.defocus
     extent = stop_extent(optics.aperture, optics.stop_diameter)
-    grid = plan_grid(reach, margin, min(spectrum.wavelengths), f_image, extent)
+    shortest = min(min(s.wavelengths) for s in spectra)
+    grid = plan_grid(reach, margin, shortest, f_image, extent)
     origin = ((-optics.tiles / 2) % 1.0, (-optics.tiles / 2) % 1.0)
-    total = np.zeros((grid.n, grid.n))
-    for wl, weight in zip(spectrum.wavelengths, spectrum.weights, strict=True):
+    weights = [dict(zip(s.wavelengths, s.weights, strict=True)) for s in spectra]
+    totals = [np.zeros((grid.n, grid.n)) for _ in spectra]
+    for wl in sorted({w for s in spectra for w in s.wavelengths}):
         coeffs = plate_orders(design, heights, supersample, wl)
         intensity, _ = sensor_intensity(coeffs, origin, optics, grid, wl, reach + margin)
-        total += weight * intensity
+        for total, weight in zip(totals, weights, strict=True):
+            if wl in weight:
+                total += weight[wl] * intensity
     angle = -math.radians(optics.rotation)
-    e = integrate_areas(
-        total, grid, centres, sensor.active_area_shape, sensor.active_area, angle
-    ).reshape(k, k)
-    return np.clip(e, 0.0, None), _crop(total, grid, reach), grid.dx
+    out = []
+    for total in totals:
+        e = integrate_areas(
+            total, grid, centres, sensor.active_area_shape, sensor.active_area, angle
+        )
+        out.append((np.clip(e.reshape(k, k), 0.0, None), _crop(total, grid, reach), grid.dx))
+    return out
 
 
 def _crop(intensity, grid, reach):

@@ -9,7 +9,7 @@ the plate's square clear aperture turns with it.
 
 The pupil field is t(u) S(u) exp(-i pi Z |u|^2 / (lambda f f')), t the periodic
 plate (the tile's Fourier series, :func:`tile_coefficients`, each mask pixel a
-square), S the stop (the plate's square clear aperture, or a round stop within it),
+square), S the stop (the plate's square clear aperture, within a round stop),
 Z the sensor's distance behind the image plane (Z > 0 further from the lens) and
 f' = f + Z. The sensor field is U(X) = FT[pupil](X / (lambda f')) / (lambda f')
 (Fresnel propagation over f', the quadratic phase outside the integral dropped).
@@ -70,14 +70,23 @@ def tile_coefficients(heights, supersample, phase_per_height):
 
 
 def stop_area(aperture, diameter):
-    """Return the area (m^2) of the stop: the square clear aperture (side ``aperture``)
-    when ``diameter`` is None, else the round stop (no larger than the square)."""
-    return aperture**2 if diameter is None else math.pi * diameter**2 / 4
+    """Return the area (m^2) of the square clear aperture (side ``aperture``) within
+    a centred round stop of ``diameter`` (None: no round stop)."""
+    h = aperture / 2
+    if diameter is None:
+        return aperture**2
+    r = diameter / 2
+    if r <= h:
+        return math.pi * r**2
+    if r >= h * math.sqrt(2):
+        return aperture**2
+    segment = r**2 * math.acos(h / r) - h * math.sqrt(r**2 - h**2)  # beyond one side
+    return math.pi * r**2 - 4 * segment
 
 
 def stop_extent(aperture, diameter):
     """Return the stop's width along x (or y) (m)."""
-    return aperture if diameter is None else diameter
+    return aperture if diameter is None else min(aperture, diameter)
 
 
 def plan_grid(reach, margin, wavelength_min, focal, extent):
@@ -122,32 +131,56 @@ def sensor_intensity(coeffs, origin_phase, optics, grid, wavelength, reach):
     # The tile's corner at (x0, y0): exp(2 pi i (n (x - x0) - m (y - y0)) / T).
     c = c * np.exp(2j * np.pi * (orders[:, None] * y0 - orders[None, :] * x0))
     area = stop_area(optics.aperture, optics.stop_diameter)
-    if optics.stop_diameter is None:  # separable, and exact: no wrapped tails
-        alpha = -np.pi * z / (wavelength * f * f_image)
-        x = _axis(grid.n, grid.dx)
-        bx = slit_field(x[:, None] - orders * pitch, optics.aperture, alpha, wavelength, f_image)
-        by = slit_field(x[:, None] + orders * pitch, optics.aperture, alpha, wavelength, f_image)
-        c = c / (wavelength * f_image * math.sqrt(area))
-        # single precision: the sum of a few hundred terms keeps ~1e-7 of the peak
-        field = by.astype(np.complex64) @ (c @ bx.T).astype(np.complex64)
-        return field.real**2 + field.imag**2, half
+    clipped = optics.stop_diameter is not None and optics.stop_diameter > optics.aperture
+    if optics.stop_diameter is None or clipped:
+        field = _square_field(c, orders * pitch, optics, grid, wavelength)
+        if clipped:  # the square less its corners outside the disc (short straight edges)
+            field -= _pupil_field(c, orders, optics, grid, wavelength, corners=True)
+    else:
+        field = _pupil_field(c, orders, optics, grid, wavelength, corners=False)
+    field /= math.sqrt(area)
+    return field.real.astype(float) ** 2 + field.imag.astype(float) ** 2, half
+
+
+def _square_field(c, positions, optics, grid, wavelength):
+    """The square stop's field on the grid: separable, exact (no wrapped tails)."""
+    f, z = optics.focal_length, optics.defocus
+    f_image = f + z
+    alpha = -np.pi * z / (wavelength * f * f_image)
+    x = _axis(grid.n, grid.dx)
+    bx = slit_field(x[:, None] - positions, optics.aperture, alpha, wavelength, f_image)
+    by = slit_field(x[:, None] + positions, optics.aperture, alpha, wavelength, f_image)
+    c = c / (wavelength * f_image)
+    # single precision: the sum of a few hundred terms keeps ~1e-7 of the peak
+    return by.astype(np.complex64) @ (c @ bx.T).astype(np.complex64)
+
+
+def _pupil_field(c, orders, optics, grid, wavelength, corners):
+    """The field of the pupil sampled at lambda f' / L, made periodic over L by the FFT.
+
+    The stop is the disc within the square, or with ``corners`` the square's corners
+    outside the disc. Built on the central block that holds it only.
+    """
+    f, z = optics.focal_length, optics.defocus
+    f_image = f + z
     du = wavelength * f_image / grid.period
-    # the pupil is zero outside the disc: build it on the disc's central block only
-    half_block = min(grid.n // 2 - 1, int(optics.stop_diameter / 2 / du) + 1)
+    extent = stop_extent(optics.aperture, None if corners else optics.stop_diameter)
+    half_block = min(grid.n // 2 - 1, int(extent / 2 / du) + 1)
     u = np.arange(-half_block, half_block + 1) * du
-    ex = np.exp(2j * np.pi * np.outer(u, orders) / period)  # (n, orders): x; y is conj(ex)
-    block = (np.conj(ex) @ c @ ex.T) * _disc(u, optics.stop_diameter)
+    ex = np.exp(2j * np.pi * np.outer(u, orders) / optics.tile_period)  # x; y is conj(ex)
+    side = np.where(np.abs(u) < optics.aperture / 2, 1.0, 0.0)
+    side[np.abs(u) == optics.aperture / 2] = 0.5  # Poisson's convention on an edge
+    disc = _disc(u, optics.stop_diameter)
+    stop = np.outer(side, side) * (1 - disc if corners else disc)
+    block = (np.conj(ex) @ c @ ex.T) * stop
     if z != 0:
         defocus = np.exp(-1j * np.pi * z * u**2 / (wavelength * f * f_image))
         block *= defocus[:, None] * defocus[None, :]
     pupil = np.zeros((grid.n, grid.n), np.complex64)
-    centre = grid.n // 2
-    pupil[
-        centre - half_block : centre + half_block + 1, centre - half_block : centre + half_block + 1
-    ] = block
+    lo, hi = grid.n // 2 - half_block, grid.n // 2 + half_block + 1
+    pupil[lo:hi, lo:hi] = block
     field = scipy.fft.fftshift(scipy.fft.fft2(scipy.fft.ifftshift(pupil)))
-    field *= du**2 / (wavelength * f_image) / math.sqrt(area)
-    return field.real.astype(float) ** 2 + field.imag.astype(float) ** 2, half
+    return field * np.complex64(du**2 / (wavelength * f_image))
 
 
 def slit_field(x, width, alpha, wavelength, f_image):

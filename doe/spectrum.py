@@ -46,10 +46,10 @@ def monochromatic(wavelength):
 def gaussian_band(centre, fwhm, step):
     """Return a Gaussian band-pass of full width ``fwhm`` (m) centred on ``centre`` (m).
 
-    Sampled every ``step`` (m) or finer, on an odd number of wavelengths
-    symmetric about the centre over +-3 sigma; the trapezoid rule on a grid that
-    resolves the integrand converges exponentially for a Gaussian weight, and
-    bench/camera.py measures the step the camera model needs. ``fwhm`` 0 is
+    Sampled every ``step`` (m), on the odd number of wavelengths centre + k step
+    that covers +-3 sigma (so that bands of one step share their wavelengths); the
+    trapezoid rule on a grid that resolves the integrand converges exponentially for
+    a Gaussian weight, and bench/camera.py measures the step the camera model needs. ``fwhm`` 0 is
     :func:`monochromatic`.
     """
     if fwhm < 0 or not math.isfinite(fwhm):
@@ -63,13 +63,15 @@ def gaussian_band(centre, fwhm, step):
     half = max(1, math.ceil(reach / step))
     if 2 * half + 1 > MAX_WAVELENGTHS:
         half = (MAX_WAVELENGTHS - 1) // 2
-    offsets = np.linspace(-reach, reach, 2 * half + 1)
+        step = reach / half
+    offsets = np.arange(-half, half + 1) * step  # one grid for every band of this step
     weights = np.exp(-0.5 * (offsets / sigma) ** 2)
     return Spectrum(
         tuple(float(centre + o) for o in offsets),
         tuple(float(w) for w in weights / weights.sum()),
         f"Gaussian band-pass {fwhm * 1e9:g} nm FWHM at {centre * 1e9:g} nm, "
-        f"{2 * half + 1} wavelengths over +-{GAUSSIAN_REACH_SIGMAS:g} sigma",
+        f"{2 * half + 1} wavelengths {step * 1e9:.3g} nm apart over +-{GAUSSIAN_REACH_SIGMAS:g} "
+        "sigma",
     )
 
 

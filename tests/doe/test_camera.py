@@ -57,7 +57,7 @@ def hcipy_psf(d, levels, spectrum, f_number=None, defocus=0.0, rotation_deg=0.0,
     n = levels.shape[0]
     der = derive(d, n)
     f, q, a_side = d.optics.focal_length, der.mask_pixel_pitch, d.fabrication.aperture
-    diameter = 2 * a_side if f_number is None else min(f / f_number, a_side)
+    diameter = 2 * a_side if f_number is None else f / f_number
     du = q / samples
     turn = math.radians(rotation_deg)  # the plate turned counter-clockwise
     reach = a_side * (abs(math.cos(turn)) + abs(math.sin(turn)))  # the turned square's width
@@ -103,7 +103,7 @@ def hcipy_psf(d, levels, spectrum, f_number=None, defocus=0.0, rotation_deg=0.0,
     [
         ("fs655", {"f_number": 16, "defocus": 200e-6, "band": (-6, 6)}),
         ("fs655", {"defocus": 100e-6}),
-        ("bk7532", {"f_number": 12, "rotation_deg": 4.0}),
+        ("bk7532", {"f_number": 12, "rotation_deg": 4.0}),  # a disc the square clips
         ("bk7532", {"band": (-5, 0, 5)}),
     ],
 )
@@ -188,7 +188,7 @@ def test_the_lattice_pitch_grows_with_the_wavelength(tmp_path):
 def test_rotation_turns_the_lattice_counter_clockwise(tmp_path):
     d = design(tmp_path, "bk7532")
     levels = window_tile(d, seed=3)
-    for f_number in (None, 12.0):
+    for f_number in (None, 20.0):
         still = effective_psf(d, levels, f_number=f_number).collected
         turned = effective_psf(d, levels, f_number=f_number, rotation_deg=90.0).collected
         # rows grow towards -y: the array as printed is the sensor as viewed
