@@ -130,16 +130,19 @@ def sensor_intensity(coeffs, origin_phase, optics, grid, wavelength, reach):
     c = coeffs[np.ix_(orders % coeffs.shape[0], orders % coeffs.shape[0])]
     # The tile's corner at (x0, y0): exp(2 pi i (n (x - x0) - m (y - y0)) / T).
     c = c * np.exp(2j * np.pi * (orders[:, None] * y0 - orders[None, :] * x0))
-    area = stop_area(optics.aperture, optics.stop_diameter)
+    c = c / math.sqrt(stop_area(optics.aperture, optics.stop_diameter))
     clipped = optics.stop_diameter is not None and optics.stop_diameter > optics.aperture
     if optics.stop_diameter is None or clipped:
         field = _square_field(c, orders * pitch, optics, grid, wavelength)
         if clipped:  # the square less its corners outside the disc (short straight edges)
+            if np.isrealobj(field):
+                field = field[0] + 1j * field[1]
             field -= _pupil_field(c, orders, optics, grid, wavelength, corners=True)
     else:
         field = _pupil_field(c, orders, optics, grid, wavelength, corners=False)
-    field /= math.sqrt(area)
-    return field.real.astype(float) ** 2 + field.imag.astype(float) ** 2, half
+    if np.isrealobj(field):  # a pair of real fields: the real and imaginary parts
+        return field[0] ** 2 + field[1] ** 2, half
+    return field.real**2 + field.imag**2, half
 
 
 def _square_field(c, positions, optics, grid, wavelength):
@@ -152,7 +155,11 @@ def _square_field(c, positions, optics, grid, wavelength):
     by = slit_field(x[:, None] + positions, optics.aperture, alpha, wavelength, f_image)
     c = c / (wavelength * f_image)
     # single precision: the sum of a few hundred terms keeps ~1e-7 of the peak
-    return by.astype(np.complex64) @ (c @ bx.T).astype(np.complex64)
+    right = (c @ bx.T).astype(np.complex64)
+    if alpha == 0:  # in focus the slit's field is real: two real products, not a complex one
+        both = by.real.astype(np.float32) @ np.concatenate([right.real, right.imag], axis=1)
+        return np.stack(np.split(both, 2, axis=1))
+    return by.astype(np.complex64) @ right
 
 
 def _pupil_field(c, orders, optics, grid, wavelength, corners):
