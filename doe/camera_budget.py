@@ -5,7 +5,8 @@ camera settings and returns, for each, the correlation and rmse against the
 design's PSF and the collected fraction. Settings that differ only in their
 band-pass share the wavelengths of one grid (:func:`doe.camera.band_spectrum`), so
 a band-pass curve costs about its widest band. :data:`BUDGET_AXES` holds the
-curves a budget plots (each setting varied alone from the default camera).
+curves a budget plots (each setting varied alone from the default camera), and
+:func:`camera_budget` computes them with the range of each that keeps the goals.
 """
 
 import time
@@ -89,3 +90,53 @@ def camera_figures(design, levels, target, settings, *, heights=None, supersampl
                 "seconds": seconds,
             }
     return out
+
+
+def camera_budget(design, levels, target, axes=None, *, heights=None, supersample=1):
+    """Return the budget curves: per axis its values, figures and the range within the goals.
+
+    ``axes`` maps a setting (``bandwidth_nm``, ``f_number``, ``defocus_um``,
+    ``rotation_deg``) to its values (default :data:`BUDGET_AXES`), each varied alone
+    from the default camera. ``within_goals`` is [lo, hi], the values of the curve's
+    contiguous run around its default (0, or the square clear aperture for the
+    f-number: its widest stop) where correlation >= CORRELATION_GOAL and rmse <=
+    RMSE_GOAL; None when the default itself misses them.
+    """
+    axes = BUDGET_AXES if axes is None else axes
+    points = budget_settings(axes)
+    figures = camera_figures(
+        design, levels, target, [s for _, s in points], heights=heights, supersample=supersample
+    )
+    out = {}
+    for axis, values in axes.items():
+        mine = [f for (a, _), f in zip(points, figures, strict=True) if a == axis]
+        out[axis] = {
+            "values": list(values),
+            "correlation": [f["correlation"] for f in mine],
+            "rmse": [f["rmse"] for f in mine],
+            "collected_fraction": [f["collected_fraction"] for f in mine],
+            "within_goals": _goal_range(axis, list(values), mine),
+        }
+    return out
+
+
+def _goal_range(axis, values, figures):
+    """The run of values around the default that meets the goals, as [lo, hi], or None."""
+    from doe.goals import CORRELATION_GOAL, RMSE_GOAL
+
+    ok = [
+        not (f["correlation"] < CORRELATION_GOAL) and f["rmse"] <= RMSE_GOAL for f in figures
+    ]  # a uniform target's correlation is NaN: its rmse decides
+    order = np.argsort(values)
+    values = [values[i] for i in order]
+    ok = [ok[i] for i in order]
+    # the default camera: no band, in focus, unrotated, the widest stop (smallest N)
+    start = 0 if axis == "f_number" else int(np.argmin(np.abs(values)))
+    if not ok[start]:
+        return None
+    lo = hi = start
+    while lo > 0 and ok[lo - 1]:
+        lo -= 1
+    while hi < len(values) - 1 and ok[hi + 1]:
+        hi += 1
+    return [values[lo], values[hi]]

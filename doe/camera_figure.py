@@ -1,4 +1,5 @@
-"""The figure of ``doefab camera``: the sensor plane, its active areas, the effective PSF."""
+"""The figures of ``doefab camera``: the sensor plane with its active areas and the
+effective PSF; the camera budget's curves."""
 
 import math
 
@@ -79,4 +80,51 @@ def save_camera_figure(path, result, design, target, figures):
     )
     fig.tight_layout()
     save_png(fig, path, dpi=80)
+    plt.close(fig)
+
+
+AXIS_LABELS = {
+    "bandwidth_nm": "band-pass FWHM (nm)",
+    "f_number": "f-number of a round stop",
+    "defocus_um": "defocus (um, + = sensor behind the image plane)",
+    "rotation_deg": "plate rotation (deg, + = counter-clockwise)",
+}
+
+
+def save_budget_figure(path, budget):
+    """Write the camera budget: correlation, rmse and collected fraction against each
+    setting, the goals dashed, the range that keeps them shaded."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from doe.goals import CORRELATION_GOAL, RMSE_GOAL
+
+    axes_names = list(budget)
+    fig, axes = plt.subplots(3, len(axes_names), figsize=(4.2 * len(axes_names), 9), squeeze=False)
+    rows = (
+        ("correlation", CORRELATION_GOAL, "correlation (goal >= {:g})"),
+        ("rmse", RMSE_GOAL, "rmse (goal <= {:g})"),
+        ("collected_fraction", None, "collected fraction"),
+    )
+    for col, name in enumerate(axes_names):
+        curve = budget[name]
+        order = np.argsort(curve["values"])
+        x = np.asarray(curve["values"], float)[order]
+        for row, (key, goal, label) in enumerate(rows):
+            ax = axes[row][col]
+            y = np.asarray([np.nan if v is None else v for v in curve[key]], float)[order]
+            ax.plot(x, y, "o-", ms=3)
+            if goal is not None:
+                ax.axhline(goal, ls="--", color="k", lw=0.8)
+            if curve["within_goals"] is not None:
+                lo, hi = curve["within_goals"]
+                ax.axvspan(lo, hi, color="tab:green", alpha=0.12, lw=0)
+            ax.ticklabel_format(axis="y", useOffset=False)
+            ax.set_ylabel(label.format(goal) if goal is not None else label)
+            ax.set_xlabel(AXIS_LABELS.get(name, name))
+    fig.suptitle("The plate in the camera: each setting varied alone (green: within the goals)")
+    fig.tight_layout()
+    save_png(fig, path, dpi=70)
     plt.close(fig)

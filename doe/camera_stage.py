@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import scipy
 
 from doe.infra.errors import InputError
 
@@ -111,13 +112,16 @@ def run_camera(
     f_number=None,
     defocus_um=0.0,
     rotation_deg=0.0,
+    budget=False,
     force=False,
 ):
     """Write the effective PSF of DESIGN_DIR's plate in a camera into ``out``.
 
     Parameters are those of :func:`doe.camera.effective_psf` (``spectrum_file`` a
     two-column text file, :func:`doe.spectrum.read_spectrum`); ``config`` the design
-    (file or preset, default the default preset), ``force`` overwrites.
+    (file or preset, default the default preset); ``budget`` adds the camera budget
+    (:func:`doe.camera_budget.camera_budget`) to camera.json and its figure;
+    ``force`` overwrites.
 
     Raises
     ------
@@ -125,12 +129,19 @@ def run_camera(
         Unusable input (exit 2); nothing is written.
     """
     from doe.camera import effective_psf, psf_figures
-    from doe.camera_figure import save_camera_figure
+    from doe.camera_budget import camera_budget
+    from doe.camera_figure import save_budget_figure, save_camera_figure
     from doe.derived import design_summary
     from doe.design import load_design
     from doe.fraunhofer import level_phase, plate_quality, simulate_levels
     from doe.infra.files import save_npy, staged_output
-    from doe.records.camera import CAMERA_FIGURE, CAMERA_JSON, EFFECTIVE_PSF, write_camera
+    from doe.records.camera import (
+        BUDGET_FIGURE,
+        CAMERA_FIGURE,
+        CAMERA_JSON,
+        EFFECTIVE_PSF,
+        write_camera,
+    )
     from doe.spectrum import read_spectrum
 
     start = time.perf_counter()
@@ -165,11 +176,15 @@ def run_camera(
         "psf": EFFECTIVE_PSF,
         "seconds": time.perf_counter() - start,
         "design": design_summary(design, tile_pixels=levels.shape[0]),
-        "versions": {"numpy": np.__version__},
+        "versions": {"numpy": np.__version__, "scipy": scipy.__version__},
     }
-    names = [EFFECTIVE_PSF, CAMERA_JSON, CAMERA_FIGURE]
+    names = [EFFECTIVE_PSF, CAMERA_JSON, CAMERA_FIGURE] + ([BUDGET_FIGURE] if budget else [])
+    if budget:
+        record["budget"] = camera_budget(design, levels, target)
     with staged_output(out, force, names=names) as stage:
         save_npy(stage / EFFECTIVE_PSF, result.psf)
         write_camera(stage / CAMERA_JSON, record)
         save_camera_figure(stage / CAMERA_FIGURE, result, design, target, figures)
+        if budget:
+            save_budget_figure(stage / BUDGET_FIGURE, record["budget"])
     return CameraStageResult(Path(out), tuple(names), result, record)

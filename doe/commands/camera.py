@@ -36,6 +36,12 @@ def register(sub):
         default=0.0,
         help="plate rotation about the axis (deg; > 0 counter-clockwise as the PSF is viewed)",
     )
+    p.add_argument(
+        "--budget",
+        action="store_true",
+        help="also the camera budget: the figures against band-pass, f-number, defocus and "
+        "rotation, each varied alone (camera.json's budget, camera_budget.png)",
+    )
     p.add_argument("--config", help="design TOML file or preset name (default: the default preset)")
     p.add_argument("--force", action="store_true", help="overwrite existing output files")
     p.set_defaults(func=run)
@@ -54,6 +60,7 @@ def run(args):
         f_number=args.f_number,
         defocus_um=args.defocus_um,
         rotation_deg=args.rotation_deg,
+        budget=args.budget,
         force=args.force,
     )
     rec = result.record
@@ -62,4 +69,8 @@ def run(args):
         f"{correlation_text(rec['correlation'])}, rmse {rec['rmse']:.4f} against the design's "
         f"PSF ({rec['settings']['spectrum']['description']}) -> {args.out}"
     )
+    for axis, curve in rec.get("budget", {}).items():
+        within = curve["within_goals"]
+        shown = "none" if within is None else f"{within[0]:g} .. {within[1]:g}"
+        print(f"  within the goals: {axis} {shown}")
     return 0

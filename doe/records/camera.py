@@ -17,6 +17,10 @@ an effective PSF sampled for another sub-pixel grid. The file is a JSON object
   (``target_psf``, CONVENTIONS.md's figures; correlation null for a uniform one);
 - ``window``: the same figures and ``efficiency`` of the monochromatic plate of
   square pixels at the design wavelength (the design's own window powers);
+- ``budget`` (with ``--budget``): per setting (``bandwidth_nm``, ``f_number``,
+  ``defocus_um``, ``rotation_deg``) its ``values`` and the ``correlation``,
+  ``rmse`` and ``collected_fraction`` of each, varied alone from the default camera,
+  and ``within_goals`` ([lo, hi] that keeps the design goals, or null);
 - ``design_dir``, ``kind`` (``fab`` or ``retrieve``), ``target_psf``, ``psf``
   (``effective_psf.npy``), ``seconds``, ``design`` (:func:`doe.derived.design_summary`
   for the tile's N), ``versions``.
@@ -30,6 +34,7 @@ from doe.infra.files import read_json, write_json
 CAMERA_JSON = "camera.json"
 EFFECTIVE_PSF = "effective_psf.npy"
 CAMERA_FIGURE = "camera.png"
+BUDGET_FIGURE = "camera_budget.png"
 
 
 @dataclass(frozen=True)

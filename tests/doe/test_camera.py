@@ -214,3 +214,25 @@ def test_the_effective_psf_tends_to_the_window_powers_as_the_stop_grows(tmp_path
     # error halves with each doubling of the stop
     assert errors[1] == pytest.approx(errors[0] / 2, rel=0.15)
     assert errors[2] == pytest.approx(errors[1] / 2, rel=0.15)
+
+
+def test_the_budget_curves_are_the_effective_psfs_and_mark_the_goals(tmp_path):
+    from doe.camera_budget import camera_budget
+
+    d = design(tmp_path, "bk7532")
+    levels = window_tile(d, seed=2)
+    target = effective_psf(d, levels).psf  # the default camera meets its own PSF exactly
+    axes = {"bandwidth_nm": (0.0, 10.0, 40.0), "defocus_um": (-300.0, 0.0, 20.0, 300.0)}
+    budget = camera_budget(d, levels, target, axes)
+    for axis, values in axes.items():
+        curve = budget[axis]
+        figures = zip(values, curve["correlation"], curve["collected_fraction"], strict=True)
+        for value, corr, cf in figures:
+            alone = effective_psf(d, levels, **{axis: value})
+            assert cf == pytest.approx(alone.collected_fraction, abs=1e-5)
+            assert corr == pytest.approx(np.corrcoef(alone.psf.ravel(), target.ravel())[0, 1])
+        lo, hi = curve["within_goals"]
+        rows = zip(values, curve["correlation"], curve["rmse"], strict=True)
+        assert all(c >= 0.9999 and r <= 0.005 for v, c, r in rows if lo <= v <= hi)
+        assert lo <= 0 <= hi
+    assert budget["defocus_um"]["within_goals"][0] > -300  # 300 um defocus misses the goals

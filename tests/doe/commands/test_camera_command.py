@@ -155,3 +155,19 @@ def test_faults_reach_the_camera_through_the_plate_heights(folder):
     assert faulty.collected == pytest.approx(scaled.collected, abs=1e-6 * top)  # float32 FFTs
     plain = effective_psf(d, levels, f_number=20)
     assert not np.allclose(faulty.collected, plain.collected, atol=1e-3)
+
+
+def test_the_budget_goes_into_camera_json_and_its_figure(folder, tmp_path, monkeypatch, capsys):
+    import doe.camera_budget
+
+    monkeypatch.setattr(doe.camera_budget, "BUDGET_AXES", {"rotation_deg": (0.0, 3.0)})
+    config, where, d, levels = folder(SMALL)
+    out = tmp_path / "cam"
+    argv = ["camera", str(where), "--out", str(out), "--config", str(config), "--budget"]
+    assert main(argv) == 0
+    assert "within the goals: rotation_deg" in capsys.readouterr().out
+    curve = read_camera(out / "camera.json").data["budget"]["rotation_deg"]
+    assert curve["values"] == [0.0, 3.0] and set(curve) >= {"rmse", "within_goals"}
+    turned = effective_psf(d, levels, rotation_deg=3.0).collected_fraction
+    assert curve["collected_fraction"][1] == pytest.approx(turned, abs=1e-5)
+    assert (out / "camera_budget.png").stat().st_size > 0
