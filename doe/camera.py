@@ -183,9 +183,7 @@ def effective_psf(
         heights, supersample = design_heights(design, levels), 1
     if margin_subpixels is None:
         margin_subpixels = default_margin(design, optics)
-    ((collected, sensor, dx),) = collect(
-        design, heights, supersample, optics, [spectrum], k, margin_subpixels
-    )
+    ((collected, sensor, dx),) = collect(design, heights, optics, [spectrum], k, margin_subpixels)
     settings = {
         "bandwidth_nm": float(bandwidth_nm),
         "spectrum": spectrum.as_dict(),
@@ -211,14 +209,17 @@ def effective_psf(
     )
 
 
-def plate_orders(design, heights, supersample, wavelength):
-    """Return the plate's Fourier coefficients (N S, N S) at ``wavelength`` (m).
+def plate_orders(design, heights, wavelength):
+    """Return the plate's Fourier coefficients (M, M) at ``wavelength`` (m).
+
+    ``heights`` (M, M) are the glass heights of the tile's cells (M = N S for S x S
+    cells per mask pixel), each cell a square.
 
     A cell of glass height h delays 2 pi (n(lambda) - 1) h / lambda, n from the
     design's glass; :func:`doe.camera_optics.tile_coefficients` gives the orders.
     """
     index = design.material.dispersion.index(wavelength)
-    return tile_coefficients(heights, supersample, 2 * np.pi * (index - 1) / wavelength)
+    return tile_coefficients(heights, 2 * np.pi * (index - 1) / wavelength)
 
 
 def default_margin(design, optics):
@@ -251,7 +252,7 @@ def window_centres(kernel, subpixel, rotation_deg):
     return rotate(np.stack([x, y], axis=-1), -math.radians(rotation_deg))
 
 
-def collect(design, heights, supersample, optics, spectra, k, margin_subpixels):
+def collect(design, heights, optics, spectra, k, margin_subpixels):
     """Return [(E (K, K), the averaged sensor intensity, its grid step)] for each spectrum.
 
     The spectra share the sensor grid (planned for the shortest wavelength of all)
@@ -273,7 +274,7 @@ def collect(design, heights, supersample, optics, spectra, k, margin_subpixels):
     weights = [dict(zip(s.wavelengths, s.weights, strict=True)) for s in spectra]
     totals = [np.zeros((grid.n, grid.n)) for _ in spectra]
     for wl in sorted({w for s in spectra for w in s.wavelengths}):
-        coeffs = plate_orders(design, heights, supersample, wl)
+        coeffs = plate_orders(design, heights, wl)
         intensity, _ = sensor_intensity(coeffs, origin, optics, grid, wl, reach + margin)
         for total, weight in zip(totals, weights, strict=True):
             if wl in weight:

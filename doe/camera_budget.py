@@ -33,7 +33,7 @@ def budget_settings(axes=None):
     return [(axis, {axis: value}) for axis, values in axes.items() for value in values]
 
 
-def camera_figures(design, levels, target, settings, *, heights=None, supersample=1):
+def camera_figures(design, levels, target, settings, *, heights=None):
     """Return one dict per camera setting: the figures of its effective PSF.
 
     Parameters
@@ -45,8 +45,8 @@ def camera_figures(design, levels, target, settings, *, heights=None, supersampl
     settings : list of dict
         Keys among ``bandwidth_nm``, ``f_number``, ``defocus_um``, ``rotation_deg``
         (as :func:`doe.camera.effective_psf`; absent: the default).
-    heights, supersample :
-        A faulty plate, as :func:`doe.camera.effective_psf` takes it.
+    heights : (N S, N S) array or None
+        A faulty plate's glass heights, as :func:`doe.camera.effective_psf` takes them.
 
     Returns
     -------
@@ -57,7 +57,7 @@ def camera_figures(design, levels, target, settings, *, heights=None, supersampl
     levels = np.asarray(levels)
     k = target.shape[0]
     if heights is None:
-        heights, supersample = design_heights(design, levels), 1
+        heights = design_heights(design, levels)
     groups = {}
     for i, s in enumerate(settings):
         groups.setdefault(tuple(s.get(key) for key in _LENS_KEYS), []).append(i)
@@ -77,7 +77,7 @@ def camera_figures(design, levels, target, settings, *, heights=None, supersampl
             for i in members
         ]
         margin = default_margin(design, optics)
-        results = collect(design, heights, supersample, optics, spectra, k, margin)
+        results = collect(design, heights, optics, spectra, k, margin)
         seconds = time.perf_counter() - start
         for i, (e, _, _) in zip(members, results, strict=True):
             total = float(e.sum())
@@ -92,7 +92,7 @@ def camera_figures(design, levels, target, settings, *, heights=None, supersampl
     return out
 
 
-def camera_budget(design, levels, target, axes=None, *, heights=None, supersample=1):
+def camera_budget(design, levels, target, axes=None, *, heights=None):
     """Return the budget curves: per axis its values, figures and the range within the goals.
 
     ``axes`` maps a setting (``bandwidth_nm``, ``f_number``, ``defocus_um``,
@@ -104,9 +104,7 @@ def camera_budget(design, levels, target, axes=None, *, heights=None, supersampl
     """
     axes = BUDGET_AXES if axes is None else axes
     points = budget_settings(axes)
-    figures = camera_figures(
-        design, levels, target, [s for _, s in points], heights=heights, supersample=supersample
-    )
+    figures = camera_figures(design, levels, target, [s for _, s in points], heights=heights)
     out = {}
     for axis, values in axes.items():
         mine = [f for (a, _), f in zip(points, figures, strict=True) if a == axis]

@@ -50,7 +50,7 @@ class Grid:
         return self.n * self.dx
 
 
-def tile_coefficients(heights, supersample, phase_per_height):
+def tile_coefficients(heights, phase_per_height):
     """Return the Fourier coefficients (M, M) of a tile of square cells, M = N S.
 
     ``heights`` is the glass height (m) of each of the S x S cells of every mask
@@ -65,7 +65,6 @@ def tile_coefficients(heights, supersample, phase_per_height):
     coeffs = scipy.fft.fft2(field) / field.size
     k = np.fft.fftfreq(m, 1.0 / m)  # the signed order of each index
     cell = np.sinc(k / m) * np.exp(-1j * np.pi * k / m)
-    del supersample  # the cells are the samples: S only sets M = N S
     return coeffs * cell[:, None] * cell[None, :]
 
 
