@@ -171,3 +171,23 @@ def test_the_budget_goes_into_camera_json_and_its_figure(folder, tmp_path, monke
     turned = effective_psf(d, levels, rotation_deg=3.0).collected_fraction
     assert curve["collected_fraction"][1] == pytest.approx(turned, abs=1e-5)
     assert (out / "camera_budget.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize(
+    "flags, named",
+    [
+        (["--f-number", "0"], "--f-number"),
+        (["--defocus-um", "nan"], "--defocus-um"),
+        (["--bandwidth-nm", "-1"], "--bandwidth-nm"),
+        (["--rotation-deg", "inf"], "--rotation-deg"),
+    ],
+)
+def test_unusable_camera_settings_are_exit_2_naming_the_flag(
+    folder, tmp_path, capsys, flags, named
+):
+    config, where, _, _ = folder(SMALL)
+    argv = ["camera", str(where), "--out", str(tmp_path / "o"), "--config", str(config)]
+    assert main([*argv, *flags]) == 2
+    err = capsys.readouterr().err
+    assert named in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "o").exists()
