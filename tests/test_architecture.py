@@ -49,11 +49,12 @@ STAGE_FILES = (
     "fab_manifest.json",
     "verify.json",
     "mesh_report.json",
+    "camera.json",
 )
 RECORDS = "doe.records"
-# doe's rooms that are not the optics core (doe.retrieve: the retrieve stage's library,
-# which reads and writes its files through doe.records)
-NOT_OPTICS = ("doe.infra", "doe.records", "doe.commands", "doe.retrieve")
+# doe's rooms that are not the optics core (doe.retrieve and doe.camera_stage: the
+# retrieve and camera stages' libraries, which read and write their files through doe.records)
+NOT_OPTICS = ("doe.infra", "doe.records", "doe.commands", "doe.retrieve", "doe.camera_stage")
 # Calls whose first argument, a string, names a module (or an attribute of one).
 MODULE_NAMING_CALLS = {"import_module", "__import__", "importorskip", "patch", "setattr", "delattr"}
 IMPORT_ERRORS = {"ImportError", "ModuleNotFoundError", "Exception", "BaseException"}

@@ -28,6 +28,7 @@ PAGES = (
     "mesh.md",
     "verify.md",
     "depth.md",
+    "camera.md",
 )
 FENCE = re.compile(r"^```(\w*)[^\n]*\n(.*?)^```", re.M | re.S)
 SKIP = re.compile(r"<!--\s*doc-test:\s*skip\b[^>]*-->\s*$")

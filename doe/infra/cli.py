@@ -18,6 +18,7 @@ from doe.infra.errors import InputError
 COMMAND_MODULES = (
     "doe.commands.design",  # presets, config
     "doe.commands.retrieve",  # retrieve
+    "doe.commands.camera",  # camera
     "psf_learn.commands.learn",  # learn, evaluate, sr
     "fab.commands.fab",  # fab
     "fab.commands.mesh",  # mesh

@@ -1,7 +1,8 @@
-"""Where a PSF file comes from: the learn.json or verify.json written beside it.
+"""Where a PSF file comes from: the learn.json, verify.json or camera.json written beside it.
 
 A learned ``psf.npy`` has ``learn.json`` beside it, a measured
-``measured_psf.npy`` has ``verify.json``; these checks read them to refuse a PSF
+``measured_psf.npy`` has ``verify.json``, a camera's ``effective_psf.npy`` has
+``camera.json``; these checks read them to refuse a PSF
 sampled on another sub-pixel grid than the design's, or one measured from a
 capture that verify could not judge. The optics modules of :mod:`doe` read no
 other stage's files; this module does it for them.
@@ -13,6 +14,7 @@ from pathlib import Path
 from doe.derived import design_summary
 from doe.design_match import PSF_GRID_KEYS, is_number, summary_differences, summary_field
 from doe.infra.errors import InputError
+from doe.records.camera import CAMERA_JSON, read_camera
 from doe.records.learn import LEARN_JSON, read_learn
 from doe.records.verify import VERIFY_JSON, read_verify
 
@@ -58,10 +60,10 @@ def psf_grid_problem(psf_path, summary, whose):
     """Return (report file, reason) when a PSF is sampled on another grid than ``summary``'s.
 
     The grid is read from the report written beside the PSF: ``learn.json`` (a
-    learned psf.npy) or ``verify.json`` (a measured_psf.npy: the design's dot
-    lattice pitch, which its sub-pixels must match). ``summary`` is a
-    :func:`design_summary` dict; ``whose`` names it in the reason. None when
-    neither report says otherwise.
+    learned psf.npy), ``camera.json`` (an effective_psf.npy) or ``verify.json`` (a
+    measured_psf.npy: the design's dot lattice pitch, which its sub-pixels must
+    match). ``summary`` is a :func:`design_summary` dict; ``whose`` names it in the
+    reason. None when no report says otherwise.
     """
     learned = Path(psf_path).with_name(LEARN_JSON)
     if learned.is_file():
@@ -70,6 +72,14 @@ def psf_grid_problem(psf_path, summary, whose):
         if differences:
             return learned, (
                 f"the PSF was learned for another sub-pixel grid than {whose} "
+                f"({'; '.join(differences)})"
+            )
+    camera = Path(psf_path).with_name(CAMERA_JSON)
+    if camera.is_file():
+        differences = summary_differences(read_camera(camera).design, summary, PSF_GRID_KEYS)
+        if differences:
+            return camera, (
+                f"the effective PSF was computed for another sub-pixel grid than {whose} "
                 f"({'; '.join(differences)})"
             )
     verified = Path(psf_path).with_name(VERIFY_JSON)

@@ -28,6 +28,11 @@ def register(sub):
     p.add_argument("--config", help="design TOML file or preset name (default preset if absent)")
     p.add_argument("--force", action="store_true", help="overwrite existing files in --out")
     p.add_argument("--oasis", action="store_true", help="also write mask.oas (KLayout)")
+    p.add_argument(
+        "--camera-budget",
+        action="store_true",
+        help="add the report's 'In the camera' budget: band-pass, f-number, defocus, rotation",
+    )
     p.set_defaults(func=_fab)
 
 
@@ -36,8 +41,9 @@ def _fab(args):
 
     try:
         result = build_package(
-            args.design_dir, args.out, config=args.config, force=args.force, oasis=args.oasis
-        )
+            args.design_dir, args.out, config=args.config, force=args.force, oasis=args.oasis,
+            camera_budget=args.camera_budget,
+        )  # fmt: skip
     except PackageCheckFailed as e:
         print(f"doefab fab: FAIL {e}; nothing written", file=sys.stderr)
         return 1

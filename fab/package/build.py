@@ -152,7 +152,9 @@ def mask_table(masks, counts, pitch_nm):
     ]
 
 
-def build_package(design_dir, out, *, config=None, force=False, oasis=False, progress=True):
+def build_package(
+    design_dir, out, *, config=None, force=False, oasis=False, progress=True, camera_budget=False
+):
     """Write the fabrication package of DESIGN_DIR's tile into ``out``.
 
     Parameters
@@ -170,6 +172,8 @@ def build_package(design_dir, out, *, config=None, force=False, oasis=False, pro
         Also write mask.oas.
     progress : bool
         Show progress bars on a terminal.
+    camera_budget : bool
+        Add the report's "In the camera" budget (doe.camera_budget; ~2 s of CPU).
 
     Returns
     -------
@@ -204,7 +208,7 @@ def build_package(design_dir, out, *, config=None, force=False, oasis=False, pro
     stale = previous_package_files(Path(out) / MANIFEST_NAME, layer_image_names)
     with staged_output(out, force, names=known, stale=stale) as stage:
         manifest, report_files = _write_package(
-            stage, tile, Path(design_dir), Path(out), oasis, bar, progress
+            stage, tile, Path(design_dir), Path(out), oasis, bar, progress, camera_budget
         )
         all_files = sorted(str(p.relative_to(stage)) for p in stage.rglob("*") if p.is_file())
     return PackageResult(
@@ -284,7 +288,7 @@ def _plan(design, der, levels, target, k, pitch_nm):
     return tile, warnings
 
 
-def _write_package(stage, tile, design_dir, out, oasis, bar, progress):
+def _write_package(stage, tile, design_dir, out, oasis, bar, progress, camera=False):
     """Write the package's files into ``stage``; return (manifest dict, report files)."""
     from fab.package.layer_images import write_layer_images
     from fab.package.manifest import file_records, layout_keys
@@ -349,6 +353,10 @@ def _write_package(stage, tile, design_dir, out, oasis, bar, progress):
         "orientation": ORIENTATION,
         "files": file_records(stage, written),
     }
+    if camera:
+        from doe.camera_budget import camera_budget
+
+        context["camera_budget"] = camera_budget(design, tile.levels, tile.target)
     report_files = _report(stage, context)
     bar.update()
     bar.close()

@@ -22,6 +22,7 @@ from doe.materials import TABLE_KEY, index_source
 from fab.package.layer_images import layer_image_blocks
 from fab.package.manifest import file_records
 from fab.package.polarity import masks_figure_description
+from fab.package.report_camera import camera_blocks, camera_figures
 from fab.package.report_marks import marks_blocks
 from fab.templates import render_page
 
@@ -112,7 +113,7 @@ def _write_figures(out_dir, context):
     if context.get("tolerance") is not None:
         figures.tolerance_curves(out_dir / FIGURES["tolerance"], context["tolerance"])
         written.append(FIGURES["tolerance"])
-    return written
+    return written + camera_figures(out_dir, context)
 
 
 def _mask_bitmaps(levels, n_levels, manifest):
@@ -172,6 +173,7 @@ def report_blocks(context, figures=()):
         b.append(("p", "No tolerance analysis in this build."))
     else:
         b.extend(_tolerance_blocks(tol))
+    b += camera_blocks(context)
     b.append(("h2", "Files"))
     b.append(("p", f"Every file of the package but {REPORT_MD} and {REPORT_HTML} themselves."))
     b.append(

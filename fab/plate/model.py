@@ -12,7 +12,8 @@ edges). Its far field:
   (the tolerance analysis; verify's fits precompute its parts, ``fab.plate.basis``);
 * :func:`tile_phase` / :func:`plate_phase`: the same tile sampled S x S per mask
   pixel, whose FFT (:func:`plate_far_field`) gives every order at once (the capture
-  simulator, verify's fitted plates across the frame).
+  simulator, verify's fitted plates across the frame); :func:`tile_height`, its glass
+  heights, for the camera model at any wavelength (``doe.camera``).
 
 Axes, stated once for every module: x to the right and y up, as viewed onto the
 patterned surface (CONVENTIONS.md): row 0 of a level map or bitmap is the top edge,
@@ -330,6 +331,16 @@ def tile_phase(model, faults=PlateFaults()):
         for (c, d, _), code in zip(tile.cols, _row_codes(tile, r_off), strict=True):
             out[:, rows, :, round(c * s) : round(d * s)] = tile.code_phase[code][:, None, :, None]
     return out.reshape(n * s, n * s)
+
+
+def tile_height(model, faults=PlateFaults()):
+    """Return the glass height of the fabricated tile above its deepest floor, S x S per pixel.
+
+    In the unit of the model's depths (level steps for :func:`level_plate_model`:
+    multiply by the step in metres for ``doe.camera.effective_psf``'s ``heights``);
+    the phase at any wavelength follows from it, which the camera model needs.
+    """
+    return tile_phase(model, faults) / model.phase_per_depth
 
 
 def plate_phase(levels, n_levels, faults=PlateFaults(), mask_pixel_pitch=None, supersample=1):

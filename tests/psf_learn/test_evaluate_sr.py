@@ -178,6 +178,7 @@ def test_evaluate_refuses_a_psf_made_for_another_grid(trained, tmp_path, capsys)
     reports = {
         "learn.json": {"design": design_summary(factor2)},
         "verify.json": {"lattice_pitch_um": derive(factor2).lattice_pitch * 1e6},
+        "camera.json": {"design": design_summary(factor2)},
     }
     for name, report in reports.items():
         folder = tmp_path / name.split(".")[0]

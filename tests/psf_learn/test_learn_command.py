@@ -119,6 +119,26 @@ def test_fine_tuning_starts_from_the_model_and_a_frozen_psf_stays(trained, tmp_p
         np.testing.assert_allclose(weights, before[name], rtol=0, atol=1e-9, err_msg=name)
 
 
+def test_a_cameras_effective_psf_tunes_a_model_with_its_psf_frozen(trained, tmp_path):
+    # doefab camera's effective_psf.npy (camera.json beside it) is a PSF like any other
+    from pathlib import Path
+
+    out, images = trained
+    plate = tmp_path / "plate"
+    plate.mkdir()
+    levels = np.load(Path(__file__).parents[1] / "data" / "default_levels.npy")
+    np.save(plate / "levels.npy", levels)
+    camera = tmp_path / "camera"
+    assert main(["camera", str(plate), "--out", str(camera), "--f-number", "8"]) == 0
+    psf = camera / "effective_psf.npy"
+    tuned = tmp_path / "tuned"
+    argv = ["learn", "--out", str(tuned), "--images", str(images), "--init", str(out)]
+    argv += ["--psf", str(psf), "--freeze-psf", "--steps", "1", "--batch", "2", "--patch", "16"]
+    assert main(argv) == 0
+    np.testing.assert_allclose(np.load(tuned / "psf.npy"), np.load(psf), rtol=1e-12)
+    assert main(["evaluate", str(tuned), "--images", str(images), "--psf-file", str(psf)]) == 0
+
+
 def test_a_named_baseline_psf_is_trained_with_as_given(trained, tmp_path):
     _, images = trained
     out = tmp_path / "m"
