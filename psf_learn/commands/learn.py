@@ -72,7 +72,10 @@ def register(sub):
     p.add_argument("--force", action="store_true", help="overwrite existing outputs")
     p.set_defaults(func=_learn)
 
-    p = sub.add_parser("evaluate", help="PSNR/SSIM of a learned model on an image folder")
+    p = sub.add_parser(
+        "evaluate",
+        help="PSNR/SSIM of a learned model on an image folder (grey, and the SR papers' Y)",
+    )
     p.add_argument("model_dir", help="folder written by `doefab learn`")
     p.add_argument("--images", required=True, help="folder of grayscale test images")
     p.add_argument("--psf-file", help="evaluate with this PSF (e.g. the realised plate's)")
@@ -122,9 +125,14 @@ def _evaluate(args):
         seed=args.seed,
         progress=sys.stderr.isatty(),
     )
-    for name, v in result.images.items():
-        print(f"{name:32s} PSNR {v['psnr']:6.2f} dB  SSIM {v['ssim']:.4f}")
-    print(f"{'mean':32s} PSNR {result.psnr:6.2f} dB  SSIM {result.ssim:.4f}")
+    # full-range grey, then the SR papers' MATLAB Y (16-235) of the 8-bit estimate
+    print(f"{'':32s} {'grey (full range)':>26s}  {'Y (SR papers)':>26s}")
+    rows = [*result.images.items(), ("mean", vars(result))]
+    for name, v in rows:
+        print(
+            f"{name:32s} PSNR {v['psnr']:6.2f} dB  SSIM {v['ssim']:.4f}  "
+            f"PSNR {v['psnr_y']:6.2f} dB  SSIM {v['ssim_y']:.4f}"
+        )
     if out is not None:
         write_evaluation(out, result)
     return 0
