@@ -22,7 +22,8 @@ cores / parallel CPU threads (default: one after another on all cores). The
 budget is wall-clock minutes per model, or ``--steps``: a step budget gives
 the same models whatever else the machine is doing (45000 steps take 14 min
 with 2 threads on the idle 2-core machine). A short budget proves the script
-(minutes for all rows on 2 cores; the figures then mean little):
+(``--steps 300``: half an hour for the 13 models on the loaded 2-core machine;
+the figures then mean little):
 
     python bench/table2.py --steps 200 --sigmas 0.5 1 2 -- --features 8 --stages 2
     python bench/table2.py --minutes 6
