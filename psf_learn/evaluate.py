@@ -1,11 +1,13 @@
-"""Evaluation of a learned camera on whole images: PSNR and SSIM.
+"""Evaluation of a learned camera on whole images: PSNR and SSIM in two conventions.
 
 Each grayscale image is cropped to a multiple of the factor f, captured through
 the PSF with the sensor model (mirror padding at the borders, photon noise
 from a fixed seed per image, so evaluation is deterministic), super-resolved,
 clipped to [0, 1] and compared after cropping ``border`` = f pixels on every
-side (the usual SR-benchmark border crop). SSIM is scikit-image's default
-(7 x 7 uniform window), not the Gaussian window of Wang et al. 2004.
+side (the usual SR-benchmark border crop). ``psnr`` / ``ssim`` score full-range
+grey (SSIM: scikit-image's default 7 x 7 uniform window); ``psnr_y`` /
+``ssim_y`` score the SR papers' MATLAB Y of the estimate stored as 8 bits, as
+BasicSR does (:mod:`psf_learn.scores`): 1.32 dB higher on the same images.
 
 :func:`evaluate_folder` is the library of ``doefab evaluate``: a model folder
 scored on a folder of images, optionally with another PSF, written as JSON.
@@ -14,7 +16,7 @@ Example
 -------
 >>> from psf_learn.evaluate import evaluate_folder
 >>> scores = evaluate_folder("model", "set5/", out="set5.json")
->>> scores.psnr, scores.images["baby.png"]["ssim"]
+>>> scores.psnr, scores.psnr_y, scores.images["baby.png"]["ssim_y"]
 """
 
 import math
@@ -23,9 +25,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from skimage.metrics import structural_similarity
 
 from doe.infra.errors import InputError
+from psf_learn.scores import image_scores, mean_scores
 from psf_learn.sensor import simulate_capture
 
 EVAL_SEED = 20200714
@@ -33,6 +35,12 @@ EVAL_SEED = 20200714
 
 def evaluate_image(model, image, psf=None, seed=EVAL_SEED, index=0, border=None):
     """Return (psnr_db, ssim, estimate) for one float (H, W) image in [0, 1]."""
+    scores, estimate = score_image(model, image, psf, seed, index, border)
+    return scores["psnr"], scores["ssim"], estimate
+
+
+def score_image(model, image, psf=None, seed=EVAL_SEED, index=0, border=None):
+    """Return ({"psnr", "ssim", "psnr_y", "ssim_y"}, estimate) for one (H, W) image in [0, 1]."""
     f = model.sensor.factor
     border = f if border is None else border
     psf = model.psf if psf is None else psf
@@ -47,16 +55,11 @@ def evaluate_image(model, image, psf=None, seed=EVAL_SEED, index=0, border=None)
             seeds=[(seed, index)],
         )
         estimate = model.net(frame).clamp(0, 1)[0, 0].double().numpy()
-    ref = scene[0, 0].double().numpy()
-    crop = (slice(border, h - border), slice(border, w - border))
-    mse = float(np.mean((estimate[crop] - ref[crop]) ** 2))
-    psnr = 10 * np.log10(1.0 / max(mse, 1e-12))
-    ssim = float(structural_similarity(estimate[crop], ref[crop], data_range=1.0))
-    return float(psnr), ssim, estimate
+    return image_scores(estimate, scene[0, 0].double().numpy(), border), estimate
 
 
 def evaluate(model, names, images, psf=None, seed=EVAL_SEED, progress=False):
-    """Return {"psnr", "ssim", "images": {name: {"psnr", "ssim"}}} averaged over images.
+    """Return {"psnr", "ssim", "psnr_y", "ssim_y", "images": {name: {the four}}}, means first.
 
     ``progress`` shows a tqdm bar of images on stderr.
     """
@@ -69,15 +72,8 @@ def evaluate(model, names, images, psf=None, seed=EVAL_SEED, progress=False):
         unit="image",
         disable=not progress,
     )
-    per = {}
-    for i, (name, img) in enumerate(pairs):
-        p, s, _ = evaluate_image(model, img, psf, seed, i)
-        per[name] = {"psnr": p, "ssim": s}
-    return {
-        "psnr": float(np.mean([v["psnr"] for v in per.values()])),
-        "ssim": float(np.mean([v["ssim"] for v in per.values()])),
-        "images": per,
-    }
+    per = {name: score_image(model, img, psf, seed, i)[0] for i, (name, img) in enumerate(pairs)}
+    return {**mean_scores(per), "images": per}
 
 
 @dataclass(frozen=True)
@@ -87,9 +83,12 @@ class Evaluation:
     Attributes
     ----------
     psnr, ssim : float
-        Means over the images.
+        Means over the images, full-range grey.
+    psnr_y, ssim_y : float
+        Means over the images, MATLAB Y (16-235) of the 8-bit estimate, as SR papers
+        and BasicSR score (:mod:`psf_learn.scores`).
     images : dict
-        ``{name: {"psnr": float, "ssim": float}}`` in the folder's order.
+        ``{name: {"psnr", "ssim", "psnr_y", "ssim_y"}}`` in the folder's order.
     model_dir : path
         The model folder evaluated.
     images_folder : path
@@ -104,12 +103,16 @@ class Evaluation:
     model_dir: object
     images_folder: object
     psf_file: object
+    psnr_y: float = float("nan")
+    ssim_y: float = float("nan")
 
     def to_dict(self):
         """Return the JSON object written for the evaluation."""
         return {
             "psnr": self.psnr,
             "ssim": self.ssim,
+            "psnr_y": self.psnr_y,
+            "ssim_y": self.ssim_y,
             "images": self.images,
             "model": str(self.model_dir),
             "images_folder": self.images_folder,
@@ -169,7 +172,16 @@ def evaluate_folder(
     )
     if not math.isfinite(res["psnr"]):  # images in [0, 1]: only weights past float32 give this
         raise InputError(Path(model_dir) / "model.pt", "gives non-finite estimates")
-    result = Evaluation(res["psnr"], res["ssim"], res["images"], model_dir, images, psf_file)
+    result = Evaluation(
+        res["psnr"],
+        res["ssim"],
+        res["images"],
+        model_dir,
+        images,
+        psf_file,
+        psnr_y=res["psnr_y"],
+        ssim_y=res["ssim_y"],
+    )
     if out is not None:
         write_evaluation(out, result)
     return result

@@ -17,12 +17,9 @@ from doe.infra.errors import InputError
 from doe.infra.image_pages import check_file_kind, png_bit_depth, stored_codes
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
-# natural photographs shipped inside scikit-image (no download on demand)
+# natural photographs shipped inside scikit-image (no download on demand): trained on
 _SKIMAGE_BUNDLED = (
-    "camera",
-    "astronaut",
     "coffee",
-    "chelsea",
     "rocket",
     "motorcycle_left",
     "brick",
@@ -31,6 +28,8 @@ _SKIMAGE_BUNDLED = (
     "coins",
     "moon",
 )
+# and held out: the images ``doefab learn`` scores its model on, never trained on
+_SKIMAGE_HELD_OUT = ("camera", "astronaut", "chelsea")
 
 
 def to_gray(image, source):
@@ -267,21 +266,36 @@ def default_images(seed=0, n_dead_leaves=8, size=256):
     """Return (names, images): natural photos bundled with scikit-image plus dead leaves.
 
     Needs no download: only images whose files ship inside scikit-image are used.
+    The held-out photos (:func:`held_out_images`) are not among them.
     """
+    names, images = _skimage_photos(_SKIMAGE_BUNDLED)
+    rng = np.random.default_rng(seed)
+    for i in range(n_dead_leaves):
+        names.append(f"dead_leaves:{i}")
+        images.append(dead_leaves(size, rng))
+    return names, images
+
+
+def held_out_images():
+    """Return (names, images) of the embedded photos held out of training, to score on.
+
+    Photographs (camera man, astronaut, cat) bundled with scikit-image, as grey.
+    """
+    return _skimage_photos(_SKIMAGE_HELD_OUT)
+
+
+def _skimage_photos(which):
+    """Return (names, images) of the named photos that ship inside scikit-image."""
     import skimage
 
     folder = Path(skimage.__file__).parent / "data"
     names, images = [], []
-    for name in _SKIMAGE_BUNDLED:
+    for name in which:
         files = sorted(folder.glob(f"{name}.*"))
         if not files:
             continue  # not bundled with this scikit-image version; never download
         names.append(f"skimage:{name}")
         images.append(read_image(files[0]))
-    rng = np.random.default_rng(seed)
-    for i in range(n_dead_leaves):
-        names.append(f"dead_leaves:{i}")
-        images.append(dead_leaves(size, rng))
     return names, images
 
 

@@ -4,7 +4,7 @@ Example
 -------
 >>> from psf_learn.learn import learn
 >>> result = learn("model", steps=200, threads=1, seed=0)   # writes model/psf.npy, ...
->>> result.final_psnr_db, result.record.files["psf.npy"]
+>>> result.heldout["plate_gain_db"], result.record.files["psf.npy"]
 
 Each keyword argument is the ``doefab learn`` flag of that name (``--psf-lr`` is
 ``psf_lr``, see :class:`LearnOptions`), and bad input raises
@@ -22,7 +22,8 @@ import torch
 from doe.derived import design_summary
 from doe.infra.files import save_npy, sha256_file, staged_output
 from doe.records.learn import LEARN_JSON, LearnRecord, write_learn
-from psf_learn import store
+from psf_learn import heldout, store
+from psf_learn.heldout import wants_baseline
 from psf_learn.learn_plan import OUTPUTS, LearnOptions, plan_learning
 from psf_learn.store import doefab_version
 from psf_learn.train import device_name, train
@@ -53,6 +54,9 @@ class LearnResult:
         which trains but writes nothing.
     notes : tuple of str
         What the command prints on stderr before training (a GPU run's note).
+    heldout : dict
+        learn.json's ``heldout``: the model and the no-plate model scored on held-back
+        images, and the difference (:mod:`psf_learn.heldout`).
     """
 
     out: Path
@@ -65,10 +69,14 @@ class LearnResult:
     device: str
     record: LearnRecord | None
     notes: tuple
+    heldout: dict | None = None
 
 
 def learn(out, *, config=None, progress=None, on_note=None, **options):
     """Train a PSF and a super-resolution network; write psf.npy, model.pt and learn.json.
+
+    Unless ``no_baseline``, the no-plate (``delta``) model is trained the same way too,
+    and both are scored on held-back images (learn.json's ``heldout``).
 
     Parameters
     ----------
@@ -101,13 +109,20 @@ def learn(out, *, config=None, progress=None, on_note=None, **options):
     for note in notes if on_note is not None else ():
         on_note(note)
     result = _train(plan, progress)
+    baseline = _train(plan, progress, heldout.train_baseline) if wants_baseline(opts) else None
     # A fixed PSF is written as given (a round trip through float32 logits moves it by ~4e-7).
     learned = plan.config.learn_psf
     psf = result.camera.psf.numpy() if learned else np.asarray(plan.psf0, dtype=np.float64)
+    scores = heldout.heldout_record(
+        plan,
+        heldout.score(result.camera, psf, plan),
+        heldout.score(baseline.camera, baseline.camera.psf.numpy(), plan) if baseline else None,
+    )
     record = None
     if _leave_process_group():
-        record = _write_outputs(plan, psf, result)
+        record = _write_outputs(plan, psf, result, scores)
         plan.checkpoint.unlink(missing_ok=True)
+        plan.checkpoint.with_name(heldout.BASELINE_CHECKPOINT).unlink(missing_ok=True)
     return LearnResult(
         out=plan.out,
         psf_spec=opts.psf,
@@ -119,6 +134,7 @@ def learn(out, *, config=None, progress=None, on_note=None, **options):
         device=device_name(plan.device),
         record=record,
         notes=tuple(notes),
+        heldout=scores,
     )
 
 
@@ -133,19 +149,24 @@ def _notes(opts, device):
     return []
 
 
-def _train(plan, progress):
-    """Run :func:`psf_learn.train.train`; a first run that fails leaves no empty folder."""
+def _train_model(plan, progress):
+    """Train the plan's own model: :func:`psf_learn.train.train` of its PSF."""
+    return train(
+        plan.config,
+        plan.scenes,
+        plan.sensor,
+        plan.psf0,
+        init_state=plan.init_state,
+        checkpoint=plan.checkpoint,
+        progress=progress,
+        device=plan.device,
+    )
+
+
+def _train(plan, progress, how=_train_model):
+    """Run a training (``how(plan, progress)``); a first run that fails leaves no empty folder."""
     try:
-        return train(
-            plan.config,
-            plan.scenes,
-            plan.sensor,
-            plan.psf0,
-            init_state=plan.init_state,
-            checkpoint=plan.checkpoint,
-            progress=progress,
-            device=plan.device,
-        )
+        return how(plan, progress)
     except BaseException:
         if plan.created and not any(plan.out.iterdir()):
             plan.out.rmdir()
@@ -165,7 +186,7 @@ def _leave_process_group():
     return True
 
 
-def _record(plan, psf, result):
+def _record(plan, psf, result, scores):
     """Return the learn.json dict of a training, without the files' hashes."""
     opts, config, sensor = plan.opts, plan.config, plan.sensor
     return {
@@ -186,6 +207,7 @@ def _record(plan, psf, result):
         "final_loss": result.loss,
         "final_psnr_db": result.psnr,
         "seed": config.seed,
+        "heldout": scores,
         "device": device_name(plan.device),
         "versions": {
             "torch": torch.__version__,
@@ -196,9 +218,9 @@ def _record(plan, psf, result):
     }
 
 
-def _write_outputs(plan, psf, result):
+def _write_outputs(plan, psf, result, scores):
     """Write psf.npy, model.pt and learn.json together; return the LearnRecord written."""
-    info = _record(plan, psf, result)
+    info = _record(plan, psf, result, scores)
     with staged_output(plan.out, force=plan.opts.force, names=OUTPUTS) as stage:
         save_npy(stage / "psf.npy", psf)
         model = store.model_record(result.camera.net, result.camera.net_config, plan.sensor)

@@ -72,6 +72,11 @@ class LearnOptions:
         Where to train; only CPU runs repeat bit for bit.
     restart, force : bool
         Ignore an existing checkpoint; overwrite existing outputs.
+    eval_images : path, optional
+        Folder of held-back images the model and the no-plate model are scored on
+        (default: the embedded set's held-out photos).
+    no_baseline : bool
+        Leave out the no-plate (``delta``) model trained the same way for comparison.
     """
 
     images: object = None
@@ -94,6 +99,8 @@ class LearnOptions:
     device: str = "auto"
     restart: bool = False
     force: bool = False
+    eval_images: object = None
+    no_baseline: bool = False
 
 
 @dataclass(frozen=True)
@@ -121,6 +128,10 @@ class LearnPlan:
         Whether ``out`` was made by this run (a run that fails removes it if empty).
     device : torch.device
         Where it trains.
+    eval_names, eval_scenes : tuple
+        The held-back images scored after the training (:mod:`psf_learn.heldout`).
+    eval_source : str
+        Where they came from.
     """
 
     out: Path
@@ -135,6 +146,9 @@ class LearnPlan:
     source: str
     created: bool
     device: torch.device
+    eval_names: tuple = ()
+    eval_scenes: tuple = ()
+    eval_source: str = ""
 
     @property
     def checkpoint(self):
@@ -172,11 +186,13 @@ def plan_learning(out, design_config, opts):
     psf0, learn_psf = _starting_psf(opts, design, sensor, init_psf)
     config = with_overrides(config, learn_psf=learn_psf)
     names, scenes, source = _training_images(opts, config, psf0, sensor.factor)
+    held_out = _held_out_images(opts, psf0.shape[0], sensor.factor)
     created = _ready_out(out, opts)
     device = torch.device("cpu") if opts.device == "cpu" else pick_device()
     return LearnPlan(
-        out, opts, design, sensor, config, init_state, psf0, names, scenes, source, created, device
-    )
+        out, opts, design, sensor, config, init_state, psf0, names, scenes, source, created, device,
+        *held_out,
+    )  # fmt: skip
 
 
 def _check_numbers(opts):
@@ -306,6 +322,20 @@ def _training_images(opts, config, psf0, factor):
     return names, augment_scales(images, config.patch + margin), source
 
 
+def _held_out_images(opts, k, factor):
+    """Return (names, images, source) of the held-back images the models are scored on.
+
+    The capture mirrors each image by K // 2 at its borders: narrower ones cannot be.
+    """
+    if not opts.eval_images:
+        names, images = imgio.held_out_images()
+        return tuple(names), tuple(images), "embedded held-out photos (scikit-image)"
+    need = max(4 * factor, k)
+    why = "--eval-images: the capture mirrors each image by K // 2"
+    names, images = imgio.read_folder(opts.eval_images, min_size=need, why=why)
+    return tuple(names), tuple(images), str(opts.eval_images)
+
+
 def _ready_out(out, opts):
     """Make the output folder, refusing one it cannot write to; return whether it was made.
 
@@ -324,6 +354,7 @@ def _ready_out(out, opts):
         raise InputError(out, f"cannot write here ({e.strerror})") from None
     if opts.restart:  # every rank of a torchrun job gets here before any reads it
         (out / "checkpoint.pt").unlink(missing_ok=True)
+        (out / "checkpoint_delta.pt").unlink(missing_ok=True)  # the no-plate model's
     return created
 
 

@@ -1,5 +1,6 @@
 """Shared test helpers."""
 
+import functools
 import json
 
 import numpy as np
@@ -12,6 +13,33 @@ from hypothesis import settings
 # explores afresh.
 settings.register_profile("doefab", derandomize=True, deadline=None)
 settings.load_profile("doefab")
+
+
+@pytest.fixture(autouse=True, scope="session")
+def small_held_out_images():
+    """Score every ``learn`` of the tests on one 48 x 48 held-back image, not the three photos.
+
+    ``learn`` scores its model and the no-plate model on the embedded held-out photos
+    (about 0.2 s a model, SSIM of 0.6 Mpx); the tests train dozens of tiny models.
+    tests/psf_learn/test_heldout.py scores the photos themselves.
+    """
+    import psf_learn.images as imgio
+
+    with pytest.MonkeyPatch.context() as mp:  # for the module-scoped trainings too
+        mp.setattr(imgio, "held_out_images", _small_held_out)
+        yield
+
+
+@functools.cache
+def _small_held_out_image():
+    from psf_learn.images import dead_leaves
+
+    return dead_leaves(48, np.random.default_rng(1), n_disks=60)
+
+
+def _small_held_out():
+    """(names, images) of one small held-back image (made once)."""
+    return ["dead_leaves:held"], [_small_held_out_image()]
 
 
 def _refuse(token):

@@ -18,6 +18,14 @@ readers then skip what they would compare):
     out and leaves null).
 ``final_loss``, ``final_psnr_db``
     the mean L1 loss and PSNR (dB) over the last 50 steps (null where undefined).
+``heldout``
+    what the plate buys: ``{"images": {"source", "names"}, "model", "no_plate",
+    "plate_gain_db"}``. ``model`` and ``no_plate`` are the scores of the trained
+    model and of the no-plate (``delta`` PSF) model trained the same way on
+    held-back images, ``{"psnr", "ssim", "psnr_y", "ssim_y", "images": {name:
+    the four}}`` (``psnr_y``: the SR papers' MATLAB Y convention);
+    ``plate_gain_db`` is ``{"psnr", "psnr_y"}``, model minus no-plate. ``no_plate``
+    and ``plate_gain_db`` are null when ``--no-baseline`` left that model out.
 ``seed``, ``device``, ``versions``
     what the run repeats with.
 ``files``
@@ -75,6 +83,9 @@ class LearnRecord:
         Versions of torch, numpy, Python and doefab.
     files : dict or None
         ``{"model.pt": sha256, "psf.npy": sha256}`` of the files written with it.
+    heldout : dict or None
+        The model and the no-plate model scored on held-back images, and the
+        difference (see the module's ``heldout``).
     data : dict
         The whole JSON object, as read or given: what :func:`write_learn` writes.
     """
@@ -91,6 +102,7 @@ class LearnRecord:
     versions: dict | None
     files: dict | None
     data: dict = field(repr=False)
+    heldout: dict | None = None
 
     @classmethod
     def from_dict(cls, data):
@@ -110,11 +122,22 @@ class LearnRecord:
             versions=_table(data.get("versions")),
             files=_table(data.get("files")),
             data=data,
+            heldout=_table(data.get("heldout")),
         )
 
     def to_dict(self):
         """Return the JSON object of the record (a copy)."""
         return copy.deepcopy(self.data)
+
+    def plate_gain(self):
+        """Return (model, no-plate model, gain) dicts of the held-back scores, or None.
+
+        None when the record holds no no-plate model's scores (``--no-baseline``, an
+        older record).
+        """
+        held = self.heldout or {}
+        parts = [_table(held.get(k)) for k in ("model", "no_plate", "plate_gain_db")]
+        return None if None in parts else tuple(parts)
 
 
 def read_learn(path):

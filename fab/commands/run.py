@@ -32,6 +32,12 @@ def register(sub):
     )
     p.add_argument("--seed", type=int, help="seed of every stage (default: the design's)")
     p.add_argument(
+        "--no-baseline",
+        action="store_true",
+        help="learn without the no-plate model that the front page compares the plate "
+        "with (halves the training time)",
+    )
+    p.add_argument(
         "--formats",
         default=MESH_FORMATS,
         help=f"mesh formats (default {MESH_FORMATS}); {NO_MESH} skips the mesh stage",
@@ -63,6 +69,7 @@ def _run(args):
         formats=args.formats,
         force=args.force,
         log=_say,
+        no_baseline=args.no_baseline,
     )
     if result.exit_code == 0:
         print(f"doefab run: done, open {result.index}", file=sys.stderr)

@@ -44,6 +44,9 @@ class RunOptions:
         Seed of every stage (None: the design's).
     formats : str
         Comma-separated mesh formats, or ``"none"`` to leave the mesh stage out.
+    no_baseline : bool
+        Learn without the no-plate model the front page compares with (half the
+        training time; the front page then shows the plate's model alone).
     force : bool or str
         True: redo every stage and overwrite edited outputs. A stage name: redo
         that stage and those after it, overwriting their edited outputs.
@@ -56,6 +59,7 @@ class RunOptions:
     seed: int | None = None
     formats: str = MESH_FORMATS
     force: bool | str = False
+    no_baseline: bool = False
 
 
 @dataclass(frozen=True)
@@ -106,6 +110,7 @@ def run_pipeline(
     formats=MESH_FORMATS,
     force=False,
     log=None,
+    no_baseline=False,
 ):
     """Run the whole pipeline into the run folder ``out``; skip what is up to date.
 
@@ -120,7 +125,7 @@ def run_pipeline(
     invoke : callable
         ``invoke(argv) -> exit code`` runs one doefab command, such as
         ``doe.infra.cli.main``.
-    config, psf, minutes, steps, seed, formats, force
+    config, psf, minutes, steps, seed, formats, force, no_baseline
         As :class:`RunOptions`.
     log : callable, optional
         Called with each progress line (``doefab run`` prints them to stderr).
@@ -146,6 +151,7 @@ def run_pipeline(
         seed=seed,
         formats=formats,
         force=force if isinstance(force, str) else bool(force),
+        no_baseline=bool(no_baseline),
     )
     design = _check_inputs(options)
     run_dir = Path(out)
@@ -247,6 +253,7 @@ def plan_stages(run_dir, design, options):
         )
         # One thread: the thread count changes torch's summation order, hence the bits.
         learn = ("learn", *budget, "--threads", "1", "--seed", seed)
+        learn += ("--no-baseline",) if options.no_baseline else ()  # keys the stage too
         stages.append(Stage("learn", learn, config=config, design=learn_design(design)))
         psf = run_dir / "learn" / "psf.npy"
     retrieve = run_dir / "retrieve"

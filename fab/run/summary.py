@@ -13,6 +13,7 @@ from doe.infra.png import png_text
 from doe.records.fab_manifest import MANIFEST_NAME, read_fab_manifest
 from doe.records.learn import LEARN_JSON, read_learn
 from doe.records.retrieval import RETRIEVAL_JSON, read_retrieval
+from fab.run.learn_headlines import learn_rows
 from fab.templates import render_page
 
 PACKAGES = (
@@ -34,7 +35,6 @@ PACKAGES = (
 # Headline numbers shown on the front page: (stage, file, key path, label, goal). A
 # figure with a goal is shown with the digits that tell it from the goal.
 HEADLINES = (
-    ("learn", LEARN_JSON, ("final_psnr_db",), "training PSNR (dB)", None),
     (
         "retrieve",
         RETRIEVAL_JSON,
@@ -165,7 +165,7 @@ def _headline_rows(run_dir, stages):
     """Return the front page's Summary as (label, value shown) rows, from the stages' files."""
     levels = _lookup(run_dir, "retrieve", RETRIEVAL_JSON, ("levels",))
     quantised = f"{levels} levels" if levels else "quantised"
-    rows = []
+    rows = learn_rows(run_dir) if "learn" in stages else []
     for stage, name, path, label, goal in HEADLINES:
         value = _lookup(run_dir, stage, name, path) if stage in stages else None
         if value is None:

@@ -68,11 +68,26 @@ def register(sub):
         help="where to train (default auto: the GPU if torch sees one); "
         "only CPU runs repeat bit for bit",
     )
+    p.add_argument(
+        "--eval-images",
+        metavar="DIR",
+        help="held-back images to score the model and the no-plate model on "
+        "(default: the embedded set's held-out photos)",
+    )
+    p.add_argument(
+        "--no-baseline",
+        action="store_true",
+        help="do not train the no-plate (delta PSF) model the same way to compare with "
+        "(it doubles the training time)",
+    )
     p.add_argument("--restart", action="store_true", help="ignore an existing checkpoint")
     p.add_argument("--force", action="store_true", help="overwrite existing outputs")
     p.set_defaults(func=_learn)
 
-    p = sub.add_parser("evaluate", help="PSNR/SSIM of a learned model on an image folder")
+    p = sub.add_parser(
+        "evaluate",
+        help="PSNR/SSIM of a learned model on an image folder (grey, and the SR papers' Y)",
+    )
     p.add_argument("model_dir", help="folder written by `doefab learn`")
     p.add_argument("--images", required=True, help="folder of grayscale test images")
     p.add_argument("--psf-file", help="evaluate with this PSF (e.g. the realised plate's)")
@@ -103,9 +118,27 @@ def _learn(args):
         return 0
     print(
         f"trained the model for PSF {result.psf_spec}: {result.steps} steps in "
-        f"{result.seconds:.0f} s, training PSNR {result.final_psnr_db:.2f} dB -> {result.out}"
+        f"{result.seconds:.0f} s, training-batch PSNR {result.final_psnr_db:.2f} dB "
+        f"-> {result.out}"
     )
+    print(heldout_line(result.heldout))
     return 0
+
+
+def heldout_line(held):
+    """Return the line that says what the plate buys on the held-back images."""
+    n, model, base = len(held["images"]["names"]), held["model"], held["no_plate"]
+    line = (
+        f"held-back images ({n}): PSNR {model['psnr']:.2f} dB "
+        f"(PSNR-Y {model['psnr_y']:.2f} dB, the SR papers' convention)"
+    )
+    if base is None:
+        return line + "; no no-plate model (--no-baseline)"
+    gain = held["plate_gain_db"]
+    return (
+        f"{line}; no plate (delta PSF) {base['psnr']:.2f} dB (PSNR-Y {base['psnr_y']:.2f}): "
+        f"the plate buys {gain['psnr']:+.2f} dB (PSNR-Y {gain['psnr_y']:+.2f})"
+    )
 
 
 def _evaluate(args):
@@ -122,9 +155,14 @@ def _evaluate(args):
         seed=args.seed,
         progress=sys.stderr.isatty(),
     )
-    for name, v in result.images.items():
-        print(f"{name:32s} PSNR {v['psnr']:6.2f} dB  SSIM {v['ssim']:.4f}")
-    print(f"{'mean':32s} PSNR {result.psnr:6.2f} dB  SSIM {result.ssim:.4f}")
+    # full-range grey, then the SR papers' MATLAB Y (16-235) of the 8-bit estimate
+    print(f"{'':32s} {'grey (full range)':>26s}  {'Y (SR papers)':>26s}")
+    rows = [*result.images.items(), ("mean", vars(result))]
+    for name, v in rows:
+        print(
+            f"{name:32s} PSNR {v['psnr']:6.2f} dB  SSIM {v['ssim']:.4f}  "
+            f"PSNR {v['psnr_y']:6.2f} dB  SSIM {v['ssim_y']:.4f}"
+        )
     if out is not None:
         write_evaluation(out, result)
     return 0

@@ -50,7 +50,7 @@ def test_learn_returns_what_it_wrote(trained, tmp_path):
 def test_learn_takes_the_flags_as_keyword_arguments(tmp_path):
     flags = {"images", "psf", "minutes", "steps", "seed", "init", "freeze_psf", "features"}
     flags |= {"stages", "arch", "batch", "patch", "lr", "psf_lr", "photons", "dark_counts"}
-    flags |= {"threads", "device", "restart", "force"}
+    flags |= {"threads", "device", "restart", "force", "eval_images", "no_baseline"}
     assert set(LearnOptions.__dataclass_fields__) == flags  # each `doefab learn` flag
     with pytest.raises(TypeError, match="stpes"):
         learn(tmp_path / "m", stpes=3)
@@ -134,6 +134,8 @@ def test_evaluate_folder_returns_and_writes_what_the_command_prints(trained, tmp
     assert json.loads((tmp_path / "e.json").read_text()) == {
         "psnr": result.psnr,
         "ssim": result.ssim,
+        "psnr_y": result.psnr_y,
+        "ssim_y": result.ssim_y,
         "images": result.images,
         "model": str(out),
         "images_folder": str(images),
@@ -142,7 +144,11 @@ def test_evaluate_folder_returns_and_writes_what_the_command_prints(trained, tmp
     capsys.readouterr()
     assert main(["evaluate", str(out), "--images", str(images)]) == 0
     printed = capsys.readouterr().out.splitlines()
-    assert printed[-1] == f"{'mean':32s} PSNR {result.psnr:6.2f} dB  SSIM {result.ssim:.4f}"
+    assert printed[-1] == (
+        f"{'mean':32s} PSNR {result.psnr:6.2f} dB  SSIM {result.ssim:.4f}  "
+        f"PSNR {result.psnr_y:6.2f} dB  SSIM {result.ssim_y:.4f}"
+    )
+    assert set(result.images["img0.png"]) == {"psnr", "ssim", "psnr_y", "ssim_y"}
     with pytest.raises(InputError, match="exists; use --force"):  # before evaluating
         evaluate_folder(out, images, out=tmp_path / "e.json")
 

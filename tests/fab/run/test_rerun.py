@@ -145,6 +145,8 @@ def test_the_command_line_takes_force_stage_and_steps(tmp_path, monkeypatch, cap
     ):
         assert main([*argv, *extra]) == 1
         assert (given[-1]["force"], given[-1]["steps"]) == (force, steps)
+    assert not any(options["no_baseline"] for options in given)
+    assert main([*argv, "--no-baseline"]) == 1 and given[-1]["no_baseline"] is True
     for extra, why in (
         (("--force", "etch"), "invalid choice: 'etch'"),
         (("--steps", "2", "--minutes", "1"), "not allowed with argument"),
@@ -182,3 +184,14 @@ def test_levels_change_keeps_the_learned_files_and_steps_are_recorded(tmp_path, 
     err = capsys.readouterr().err
     assert "learn: up to date" in err and "retrieve: up to date" in err
     assert "[3/4] fab: doefab fab" in err and "[4/4] mesh: doefab mesh" in err
+
+
+def test_no_baseline_is_a_learn_input(tmp_path):
+    # learn without the no-plate model writes another learn.json: the stage is redone
+    out, stages = tmp_path / "run", Stages()
+    config = design(tmp_path)
+    rerun(out, config, stages)
+    assert "--no-baseline" not in stages.argv["learn"]
+    result = rerun(out, config, stages, no_baseline=True)
+    assert result.ran[0] == "learn" and "--no-baseline" in stages.argv["learn"]
+    assert rerun(out, config, stages, no_baseline=True).ran == ()

@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -70,6 +71,12 @@ def test_run_writes_the_whole_package(finished):
     met = json.loads((finished / "retrieve/retrieval.json").read_text())["goals"]["met"]
     verdict = "yes" if met else "NO: see retrieve/retrieval.json"
     assert f"<td>correlation and rmse goals met</td><td>{verdict}</td>" in index
+    # what the plate buys, in both conventions; the training batch's PSNR is not a headline
+    held = json.loads((finished / "learn/learn.json").read_text())["heldout"]
+    model, base, gain = held["model"], held["no_plate"], held["plate_gain_db"]
+    shown = f"{model['psnr_y']:.2f} / {base['psnr_y']:.2f} / {gain['psnr_y']:+.2f}</td>"
+    assert "PSNR-Y (MATLAB Y 16-235" in index and shown in index
+    assert "training PSNR" not in index and "training-batch" not in index
 
 
 def test_rerun_skips_every_stage_and_changes_nothing(config, finished, capsys):
@@ -91,12 +98,22 @@ def test_a_second_run_gives_byte_identical_outputs(config, finished, tmp_path, c
         assert f"[{i}/4] {name}: done in " in err and f"-> {out / name}\n" in err
 
 
+# `doefab` in a subprocess, learn scoring on the tests' small held-back image as in
+# this process (tests/conftest.py), so that its learn.json is the in-process run's
+DOEFAB_SMALL_HELD_OUT = (
+    f"import sys; sys.path.insert(0, {str(Path(__file__).parents[2])!r}); "
+    "import conftest, psf_learn.images as images; "
+    "images.held_out_images = conftest._small_held_out; "
+    "from doe.infra.cli import main; sys.exit(main(sys.argv[1:]))"
+)
+
+
 def test_killed_run_resumes_to_the_same_outputs(config, finished, tmp_path):
     out = tmp_path / "killed"
     cmd = [
         sys.executable,
-        "-m",
-        "doe",
+        "-c",
+        DOEFAB_SMALL_HELD_OUT,
         "run",
         "--config",
         str(config),
