@@ -12,6 +12,7 @@ How it was run (the figures in bench/README.md)::
 
     python bench/presets.py               # --steps 200, every preset
     python bench/presets.py --steps 6000 pf32   # the preset's full training budget
+    python bench/presets.py --out runs   # keeps runs/PRESET, e.g. for simulate-capture
 
 The training budget only changes the learned PSF, not what the run must do;
 200 steps keep the whole bench to a few minutes on the shared 2-core machine.
@@ -62,14 +63,16 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("presets", nargs="*", help="presets to run (default: all)")
     p.add_argument("--steps", type=int, default=200, help="training steps of each run")
+    p.add_argument("--out", help="keep the run folders here, one per preset (default: discarded)")
     args = p.parse_args(argv)
     names = args.presets or preset_names()
     for name in names:
         print(f"{name:11s} tiling {summary_line(tiling(load_design(name)))}")
     ok = True
     with tempfile.TemporaryDirectory() as tmp:
+        root = Path(args.out or tmp)
         for name in names:
-            text, passed = row(name, args.steps, Path(tmp))
+            text, passed = row(name, args.steps, root)
             print(text, flush=True)
             ok &= passed
     return 0 if ok else 1

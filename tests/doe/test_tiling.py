@@ -9,6 +9,7 @@ import pytest
 
 from doe.design import _read_preset, load_design, parse_design
 from doe.infra.cli import main
+from doe.infra.errors import InputError
 from doe.tiling import TILES_GOOD, own_cell_power, tiling
 
 
@@ -136,3 +137,27 @@ def test_config_show_and_presets_print_the_verdicts(capsys, preset):
     assert main(["presets"]) == 0
     listing = capsys.readouterr().out
     assert f"  tiling ok: {t.tiles} tiles of " in listing.split(f"{preset}")[1].splitlines()[1]
+
+
+def test_outermost_dots_drifting_off_a_tight_active_area_warn():
+    # sun2020's grid snap puts the 5th dot 5 x |lambda f / T - s| = 17.9 nm off its
+    # sub-pixel; an active area 0.03 um wider than the 5.71 um dot leaves 15 nm.
+    d = parse_design(_with("sun2020", sensor={"active_area_um": 5.74}), "tight.toml")
+    t = tiling(d)
+    tile = 175 * 4990e-9
+    offset = 5 * abs(655e-9 * 50e-3 / tile - 37.5e-6)
+    assert t.kernel_edge_offset == pytest.approx(offset) and offset > (5.74e-6 - t.dot_diameter) / 2
+    assert t.verdict == "marginal" and "outermost dots drift" in t.problems[0]
+    assert tiling(parse_design(_with("sun2020", sensor={"active_area_um": 5.9}))).verdict == "ok"
+
+
+def test_every_stage_refuses_a_design_without_a_dot_lattice(tmp_path):
+    # the check is the design's own: load_design (learn, retrieve, fab, run) refuses it
+    raw = _with("sun2020", fabrication={"aperture_mm": 1.5})  # 1 tile of 0.873 mm
+    with pytest.raises(InputError, match=r"\[fabrication\] aperture_mm: no dot lattice forms: 1 "):
+        load_design(_write(tmp_path, "one-tile", raw))
+    assert (
+        main(["run", "--out", str(tmp_path / "run"), "--config", str(tmp_path / "one-tile.toml")])
+        == 2
+    )
+    assert not (tmp_path / "run").exists()
