@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 from scipy.special import sici
 
-from doe.derived import derive
+from doe.derived import derive, snapped_pixel_pitch
 
 TILES_MIN = 2  # fewer whole tiles: refused
 TILES_GOOD = 8  # fewer: marginal
@@ -141,6 +141,8 @@ def _fixes(d, der, dot):
             out.append(f"[sensor] superres_factor <= {r_max}")
         elif r_max < 2 < r:  # tiles across = s / (lambda N): a wider sub-pixel and a shorter f
             out.append(f"[sensor] superres_factor = 2 with {_focal_fix(d, p / 2, k)}")
+    if dot <= d.sensor.active_area and out == []:  # the outermost dots drift: another N
+        out.append(_pixel_count_fix(d, der))
     if dot > d.sensor.active_area:
         a_dot = AIRY * wl * f / d.sensor.active_area * (1 + _MARGIN)
         out.append(f"[fabrication] aperture_mm >= {math.ceil(a_dot * 1e5) / 100:g} for the dot")
@@ -156,6 +158,17 @@ def _focal_fix(d, s, k):
     if d.fabrication.feature_size > feature_max:
         fix += f" and [fabrication] feature_size_um <= {math.floor(feature_max * 1e7) / 10:g}"
     return fix
+
+
+def _pixel_count_fix(d, der):
+    """The feature size, near the design's, whose grid-snapped pitch drifts least."""
+    grid, nominal = d.fabrication.grid, der.tile_size_nominal
+    counts = range(max(d.kernel_size, der.tile_pixels - 20), der.tile_pixels + 21)
+    best = min(counts, key=lambda n: abs(n * snapped_pixel_pitch(nominal, n, grid) - nominal))
+    return (
+        f"[fabrication] feature_size_um = {nominal / best * 1e6:.4g} (N = {best}, whose "
+        f"{snapped_pixel_pitch(nominal, best, grid) * 1e9:g} nm pitch lands nearest the grid)"
+    )
 
 
 def summary_line(t):

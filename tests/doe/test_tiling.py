@@ -149,6 +149,13 @@ def test_outermost_dots_drifting_off_a_tight_active_area_warn():
     assert t.kernel_edge_offset == pytest.approx(offset) and offset > (5.74e-6 - t.dot_diameter) / 2
     assert t.verdict == "marginal" and "outermost dots drift" in t.problems[0]
     assert tiling(parse_design(_with("sun2020", sensor={"active_area_um": 5.9}))).verdict == "ok"
+    # the fix: a tile pixel count whose snapped pitch lands nearer the grid
+    (feature,) = _numbers(r"feature_size_um = ([\d.]+) \(N = \d+", t.fixes[0])
+    raw = _with(
+        "sun2020", sensor={"active_area_um": 5.74}, fabrication={"feature_size_um": feature}
+    )
+    fixed = tiling(parse_design(raw, "fixed.toml"))
+    assert fixed.verdict == "ok" and fixed.kernel_edge_offset < offset / 5
 
 
 def test_every_stage_refuses_a_design_without_a_dot_lattice(tmp_path):
