@@ -14,8 +14,9 @@ network reads it as the PSF's own light.
 
 - Fewer than :data:`TILES_MIN` = 2 whole tiles: 40 % of every dot's power leaves
   its sub-pixel, the PSF is no dot lattice: refused.
-- Fewer than :data:`TILES_GOOD` = 8: more than 5 % leaks, as much as the whole
-  error budget of an 8-level quantisation: marginal (a warning).
+- Fewer than :data:`TILES_GOOD` = 8: more than 5 % leaks, more than an 8-level
+  plate's quantisation scatters out of its orders (sinc^2(1/8) = 95 % stays):
+  marginal (a warning).
 
 The dot's diameter through the lens's stop (diameter = the aperture) is the Airy
 diameter 2.44 lambda N at the working f-number N = f / aperture. A dot wider
