@@ -97,7 +97,8 @@ def tiling(d):
             f"the dot ({AIRY} lambda N = {dot * 1e6:.3g} um at f/{f / aperture:.3g}) is wider "
             f"than the {active * 1e6:g} um active area"
         )
-    elif offset > (active - dot) / 2:
+    drifting = dot <= active and offset > (active - dot) / 2
+    if drifting:
         problems.append(
             f"the PSF's outermost dots drift {offset * 1e6:.3g} um off their sub-pixels, "
             f"more than the {(active - dot) / 2 * 1e6:.3g} um the active area leaves around a "
@@ -118,7 +119,7 @@ def tiling(d):
         drift_at_edge=der.lattice_drift_at_edge,
         verdict=verdict,
         problems=tuple(problems),
-        fixes=tuple(_fixes(d, der, dot)) if problems else (),
+        fixes=tuple(_fixes(d, der, dot, drifting)) if problems else (),
     )
 
 
@@ -127,8 +128,9 @@ def tiling(d):
 _MARGIN = 1e-3
 
 
-def _fixes(d, der, dot):
-    """The changes, with values, that give TILES_GOOD tiles and a dot inside the active area."""
+def _fixes(d, der, dot, drifting):
+    """The changes, with values, that give TILES_GOOD tiles, a dot inside the active area
+    and outermost dots on their active areas."""
     wl, f, aperture = d.optics.wavelength, d.optics.focal_length, d.fabrication.aperture
     s, k = der.subpixel_pitch, d.kernel_size
     out = []
@@ -142,7 +144,7 @@ def _fixes(d, der, dot):
             out.append(f"[sensor] superres_factor <= {r_max}")
         elif r_max < 2 < r:  # tiles across = s / (lambda N): a wider sub-pixel and a shorter f
             out.append(f"[sensor] superres_factor = 2 with {_focal_fix(d, p / 2, k)}")
-    if dot <= d.sensor.active_area and out == []:  # the outermost dots drift: another N
+    if drifting:  # another tile pixel count N, whose snapped pitch drifts less
         out.append(_pixel_count_fix(d, der))
     if dot > d.sensor.active_area:
         a_dot = AIRY * wl * f / d.sensor.active_area * (1 + _MARGIN)
