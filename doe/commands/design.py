@@ -9,7 +9,9 @@ from doe.tiling import summary_line, tiling
 
 
 def register(sub):
-    p = sub.add_parser("presets", help="list the embedded design presets")
+    p = sub.add_parser(
+        "presets", help="list the embedded design presets and whether their tiling works"
+    )
     p.set_defaults(func=_presets)
     p = sub.add_parser("config", help="show a resolved design with its derived optics")
     csub = p.add_subparsers(dest="action", metavar="ACTION", required=True)
