@@ -19,6 +19,7 @@ from doe.infra.errors import InputError
 from doe.infra.files import LEVEL_COUNT_RULE, is_level_count
 from doe.infra.flags import MINUTES_MAX, PHOTONS_MAX, SEED_MAX, STEPS_MAX
 from doe.materials import CUSTOM_KEYS, IndexTable, Sellmeier, material_dispersion
+from doe.tiling import refusal, tiling
 
 
 @dataclass(frozen=True)
@@ -393,6 +394,9 @@ def _check_consistency(d, source):
             f"the tile needs N = {der.tile_pixels} pixels, more than {MAX_TILE_PIXELS} "
             "(retrieval time and memory grow as N^2)",
         )
+    refused = refusal(tiling(d))  # one or two tiles make no dot lattice (doe/tiling.py)
+    if refused:
+        raise InputError(f"{source}: [fabrication] aperture_mm", refused)
     from layouts.marks import check_marks_fit
 
     try:  # the marks are sized to the feature size: checked once the tile is sound

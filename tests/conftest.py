@@ -7,6 +7,8 @@ import numpy as np
 import pytest
 from hypothesis import settings
 
+from doe.design import preset_names
+
 # The same examples on every run, so that CI passes or fails on the code alone (a
 # random draw once found a case of a test's own flawed property); no deadline, as a
 # loaded 2-core machine runs some examples slowly. ``--hypothesis-profile=default``
@@ -120,3 +122,9 @@ def colour_at():
 def read_strict_json():
     """Return a reader of a JSON file that refuses NaN and Infinity, as strict readers do."""
     return lambda path: json.loads(path.read_text(), parse_constant=_refuse)
+
+
+@pytest.fixture(params=preset_names())
+def preset(request):
+    """Each embedded preset's name in turn: a test that takes it runs once per preset."""
+    return request.param

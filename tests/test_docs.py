@@ -21,6 +21,7 @@ DOCS = ROOT / "docs"
 # The architecture page and the command pages; each must show its stage from Python.
 PAGES = (
     "architecture.md",
+    "design.md",
     "learn.md",
     "retrieve.md",
     "fab.md",
