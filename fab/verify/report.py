@@ -221,7 +221,13 @@ def _measurement(report):
         ),
         (
             "lattice pitch (px), rotation (deg), zero order (row, col px)",
-            f"{lat['pitch_px']:.4f} (nominal {lat['nominal_pitch_px']:.4f}), "
+            f"{lat['pitch_px']:.4f} ("
+            + (
+                "measured; no --pixel-pitch-um"
+                if lat.get("nominal_pitch_px") is None
+                else f"flags: {lat['nominal_pitch_px']:.4f}"
+            )
+            + f"), "
             f"{lat['rotation_deg']:.3f}, ({report['zero_order_px'][0]:.2f}, "
             f"{report['zero_order_px'][1]:.2f})",
         ),
