@@ -113,7 +113,7 @@ def simulate_design_capture(design_dir, out, bench, faults=Faults(), force=False
     spot_um = bench.spot_sigma_um
     if spot_um is None:
         spot_um = SPOT_SIGMA_LAMBDA_F_D * wavelength * lens / aperture * 1e6
-    frame = bench.frame_px or int(math.ceil(pitch_px * (ref.kernel_size + 2 * FRAME_MARGIN_ORDERS)))
+    frame = bench.frame_px or math.ceil(pitch_px * (ref.kernel_size + 2 * FRAME_MARGIN_ORDERS))
     if frame < pitch_px * (ref.kernel_size + 2):
         raise InputError("--frame-px", f"{frame} px cannot hold the {ref.kernel_size} orders")
     plate, supersample = _plate_faults(ref, faults)
