@@ -21,6 +21,7 @@ from fab.verify.lattice import (
     PITCH_TOLERANCE,
     SPIKE_FRACTION,
     LatticeNotFound,
+    on_lattice_share,
     pixel_noise,
     pixel_patches,
     register_lattice,
@@ -32,8 +33,16 @@ MIN_MEASURED_PITCH_PX = 3.0
 SMOOTH_PX = 0.5
 # The brightest dots whose nearest neighbour gives the pitch.
 PITCH_DOTS = 400
-# At least this share of the design's bright orders (above 1 % of the brightest) must
-# have a bright order beside them for the nearest-neighbour distance to be the pitch.
+# The share of the dots' light that must lie on a stated pitch's lattice for sparse dots
+# to agree with it.
+ON_STATED_SHARE = 0.9
+# At least half the bright dots' nearest neighbours must lie within this fraction of
+# their median for it to be a lattice's pitch.
+NEIGHBOUR_AGREEMENT = 0.1
+# At least this share of the design's bright orders (the PITCH_DOTS brightest, at least
+# BRIGHT_ORDER of the brightest) must have a bright order beside them for the
+# nearest-neighbour distance to be the pitch.
+BRIGHT_ORDER = 1e-3
 ADJACENT_SHARE_MIN = 0.5
 
 
@@ -84,14 +93,22 @@ def measure_pitch(image, quantum=0.0):
     nearest = nearest[np.isfinite(nearest)]
     if nearest.size < 3:
         return None
-    return float(np.median(nearest))
+    pitch = float(np.median(nearest))
+    # a lattice's dots agree on it; a few scattered dots (a dim capture) do not
+    agree = np.abs(nearest / pitch - 1) <= NEIGHBOUR_AGREEMENT
+    if agree.sum() < 3 or agree.mean() < 0.5:
+        return None
+    return pitch
 
 
 def adjacent_bright_share(order_power):
-    """Return the share of the design's bright orders (>= 1 % of the brightest) that
-    have a bright order one step away along a lattice axis (periodic (N, N) powers)."""
+    """Return the share of the design's bright orders (the ``PITCH_DOTS`` brightest, at
+    least ``BRIGHT_ORDER`` of the brightest) that have a bright order one step away
+    along a lattice axis (periodic (N, N) powers)."""
     p = np.asarray(order_power, float)
-    bright = p >= 0.01 * p.max()
+    # as the capture's brightest PITCH_DOTS dots, those a camera sees well above its noise
+    top = np.sort(p, axis=None)[::-1][min(PITCH_DOTS, p.size) - 1]
+    bright = p >= max(BRIGHT_ORDER * p.max(), top)
     beside = np.zeros_like(bright)
     for axis in (0, 1):
         for step in (1, -1):
@@ -125,9 +142,9 @@ def capture_pitch(image, quantum, design_power, stated, source):
             ].pitch_px
         except LatticeNotFound:
             pass
-        if stated_px is not None:
+        if stated_px is not None and not _on_stated_lattice(image, quantum, stated_px):
             check_stated_pitch(measured, *stated)
-        return measured
+        return measured if stated_px is None else _closer(measured, stated_px)
     if stated_px is not None:
         return stated_px
     why = (
@@ -137,6 +154,25 @@ def capture_pitch(image, quantum, design_power, stated, source):
         "dots' spacing is not the lattice pitch"
     )
     raise InputError(source, f"{why}; give --pixel-pitch-um (the camera's pixel pitch)")
+
+
+def _on_stated_lattice(image, quantum, stated_px):
+    """Whether the capture's dots lie on a lattice of the stated pitch (within
+    ``PITCH_TOLERANCE``), ``ON_STATED_SHARE`` of their light on its sites: sparse dots
+    (a dim capture, a design lighting every other order) whose nearest neighbours lie
+    orders apart do not contradict it."""
+    try:
+        lattice, _ = register_lattice(image, stated_px, refine_iterations=1, quantum=quantum)
+    except LatticeNotFound:
+        return False
+    share = on_lattice_share(image, lattice, stated_px, quantum)
+    return share is not None and share >= ON_STATED_SHARE
+
+
+def _closer(measured, stated_px):
+    """Return the measured pitch where it agrees with the stated one, else the stated
+    (the dots lie on its lattice, farther apart than one order)."""
+    return measured if abs(measured / stated_px - 1) <= PITCH_TOLERANCE else stated_px
 
 
 def check_stated_pitch(measured_px, stated_px, lattice_pitch_um, pixel_pitch_um, source):
