@@ -230,18 +230,14 @@ def tolerance_analysis(
         "rows": rows,
         "budget": budget,
         "monte_carlo": {"plates": spec.monte_carlo_plates, "seed": seed, **mc},
-        "acceptance": one_budget.acceptance(
-            mc,
-            budget,
-            names[deepest],
-            (
-                spec.correlation_margin,
-                spec.rmse_margin,
-                spec.efficiency_margin,
-                spec.zero_order_margin,
-            ),
-        ),
+        "acceptance": one_budget.acceptance(mc, budget, names[deepest], _margins(spec)),
     }
+
+
+def _margins(spec):
+    """Return ``spec``'s measurement margins in ``fab.plate.budget.acceptance``'s order."""
+    return (spec.correlation_margin, spec.rmse_margin, spec.efficiency_margin,
+            spec.zero_order_margin)  # fmt: skip
 
 
 class _Plates:

@@ -164,12 +164,10 @@ def verify_plate(
     dark : path or None
         A dark frame of the same size and exposure.
     pixel_pitch_um : float or None
-        The camera's pixel pitch (um), cross-checked against the lattice pitch measured
-        in the capture (a contradiction is an InputError with both numbers); None: the
-        capture's own pitch alone is used.
+        The camera's pixel pitch (um), cross-checked against the pitch measured in the
+        capture (a contradiction: InputError with both); None: the measured pitch alone.
     lattice_pitch_um : float or None
         The order pitch on the camera (um); None: the design's, lambda f / tile size.
-        Cross-checked as ``pixel_pitch_um`` is, when that is given.
     orientation : str
         How the camera sees the design (``fab.verify.analysis.ORIENTATIONS``); never
         guessed.
