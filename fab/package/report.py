@@ -397,7 +397,11 @@ def _tolerance_blocks(tol):
                 ["rmse_max", f"{acc['rmse_max']:.6g}"],
                 ["efficiency_min", f"{acc['efficiency_min']:.6g}"],
                 ["zero_order_max", f"{acc['zero_order_max']:.6g}"],
-                *_deep_etch_limit(acc),
+                *[
+                    ["deep_etch_error_max", f"+-{v:.4g} (its etch budget)"]
+                    for v in [acc.get("deep_etch_error_max")]
+                    if v is not None
+                ],
             ],
         )
     )
@@ -491,10 +495,3 @@ def render_html(blocks):
     """Return the blocks as a self-contained HTML page (figures as relative links)."""
     title = next((b[1] for b in blocks if b[0] == "h1"), "Fabrication report")
     return render_page("fab_report.html", title=title, blocks=blocks)
-
-
-def _deep_etch_limit(acc):
-    """The deepest etch's limit row (its budget), as verify applies it; none in old analyses."""
-    if "deep_etch_error_max" not in acc:
-        return []
-    return [["deep_etch_error_max", f"+-{acc['deep_etch_error_max']:.4g} (its etch budget)"]]
