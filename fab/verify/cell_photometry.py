@@ -9,15 +9,18 @@ nearer its site than any other's), which holds the dot's light but for its tails
    neighbours' tails are weakest; the capture's offset (a pedestal without a dark frame,
    stray light) is taken out once for the frame;
 2. each cell's sum, less its pixels' background;
-3. the tails: a dot of sigma ``s`` (measured on the bright dots within their cells,
-   pixel included) puts ``c = Phi(-p / 2 s)`` of its light into each neighbour cell along
-   each axis; the cells' sums are the orders' powers convolved with the kernel
-   ``[c, 1 - 2c, c]`` along each axis, which is undone by a few fixed-point sweeps
-   (``c`` is at most a few per cent, so they converge at once).
+3. the tails: each dot, a pixel-integrated Gaussian of the bright dots' sigma (measured
+   within their cells, the pixel's 1/12 px^2 taken out) at its fitted position, puts a
+   share of its light into each neighbour cell, the pixels cut as the cells are; the
+   cells' sums are undone of those shares by a few fixed-point sweeps (each share is at
+   most a few per cent, so they converge at once).
+
+With every dot bright (no faint cell for the background), the powers come within 0.3 %
+of the peak at 4.27 px and 3.5 % at 3.6 px (tests/fab/verify/test_cell_photometry.py).
 """
 
 import numpy as np
-from scipy.special import ndtr
+from scipy.special import erf
 
 from fab.verify.lattice import lattice_points, pixel_noise, pixel_patches
 from fab.verify.photometry import OrderGrid, _remove_spikes
@@ -53,7 +56,11 @@ def measure_cells(image, lattice, saturated=None, quantum=0.0):
     power = np.full(valid.shape, np.nan)
     power[valid] = signal
     if spot is not None:
-        power = _undo_tails(power, valid, float(ndtr(-pitch / (2 * spot))))
+        # the dot alone, without the pixel's 1/12 px^2 (its cells already integrate it)
+        sharp = float(np.sqrt(max(spot**2 - 1 / 12, 0.05**2)))
+        shares = np.zeros((*valid.shape, 3, 3))
+        shares[valid] = _cell_shares(lattice, pr, pc, outer, sharp)
+        power = _undo_tails(power, valid, shares)
     sigma = np.full(valid.shape, np.nan)
     sigma[valid] = noise * np.sqrt(n_cell * (1 + n_cell / max(corners.size, 1)))
     sat = np.zeros(valid.shape, bool)
@@ -103,23 +110,52 @@ def _spot_sigma(net, dist, noise):
     return float(np.sqrt(max(np.median(second / flux[bright]), 1e-6) / 2))
 
 
-def _undo_tails(measured, valid, c):
-    """Return the powers whose cells, each leaking ``c`` to each neighbour along each
-    axis, give ``measured`` (NaN outside ``valid``)."""
+def _cell_shares(lattice, rows, cols, outer, sigma):
+    """Return (P, 3, 3): the share of each dot's light (a pixel-integrated Gaussian of
+    ``sigma`` at its fitted position) in its own cell [1, 1] and its neighbours' cells
+    [1 + du, 1 + dv], the pixels cut as the cells are (whole pixels, by their centres)."""
+    off = np.arange(-outer, outer + 1, dtype=np.float64)
+    fr = (rows - np.rint(rows))[:, None]
+    fc = (cols - np.rint(cols))[:, None]
+    s2 = np.sqrt(2) * sigma
+
+    def profile(frac):  # light of a dot at frac in each pixel of the offsets, one axis
+        return 0.5 * (erf((off + 0.5 - frac) / s2) - erf((off - 0.5 - frac) / s2))
+
+    light = profile(fr)[:, :, None] * profile(fc)[:, None, :]
+    dr = off[None, :, None] - fr[:, :, None]
+    dc = off[None, None, :] - fc[:, None, :]
+    inv = np.linalg.inv(lattice.basis)
+    cu = np.floor(inv[0, 0] * dr + inv[0, 1] * dc + 0.5)
+    cv = np.floor(inv[1, 0] * dr + inv[1, 1] * dc + 0.5)
+    shares = np.zeros((rows.size, 3, 3))
+    for a in (-1, 0, 1):
+        for b in (-1, 0, 1):
+            shares[:, a + 1, b + 1] = np.where((cu == a) & (cv == b), light, 0).sum(axis=(1, 2))
+    return shares
+
+
+def _undo_tails(measured, valid, shares):
+    """Return the powers whose dots, each spreading ``shares`` (nu, nv, 3, 3) of its light
+    over its own and its neighbours' cells, give the cells' ``measured`` sums."""
     m = np.where(valid, measured, 0.0)
-    p = m.copy()
-    centre = (1 - 2 * c) ** 2
+    own = np.where(valid, shares[..., 1, 1], 1.0)
+    p = m / own
     for _ in range(TAIL_SWEEPS):
-        spread = _blur(p, c)
-        p = np.where(valid, p + (m - spread) / centre, 0.0)
+        spread = np.zeros_like(m)
+        for a in (-1, 0, 1):
+            for b in (-1, 0, 1):
+                if a or b:  # dot (i - a, j - b) spreads into cell (i, j)
+                    spread += _shifted(p * shares[..., a + 1, b + 1], a, b)
+        p = np.where(valid, (m - spread) / own, 0.0)
     return np.where(valid, p, np.nan)
 
 
-def _blur(p, c):
-    """Return ``p`` convolved with ``[c, 1 - 2c, c]`` along both axes (zero outside)."""
-    for axis in (0, 1):
-        pad = np.pad(p, [(1, 1) if a == axis else (0, 0) for a in (0, 1)])
-        lo = np.take(pad, range(0, p.shape[axis]), axis=axis)
-        hi = np.take(pad, range(2, p.shape[axis] + 2), axis=axis)
-        p = (1 - 2 * c) * p + c * (lo + hi)
-    return p
+def _shifted(x, a, b):
+    """Return ``x`` moved by (a, b) cells (zero where it comes from outside)."""
+    out = np.zeros_like(x)
+    h, w = x.shape
+    out[max(a, 0) : h + min(a, 0), max(b, 0) : w + min(b, 0)] = x[
+        max(-a, 0) : h + min(-a, 0), max(-b, 0) : w + min(-b, 0)
+    ]
+    return out

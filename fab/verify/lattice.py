@@ -136,7 +136,9 @@ def register_lattice(image, nominal_pitch_px, refine_iterations=2, quantum=0.0):
     img = np.asarray(image, dtype=np.float32)
     h, w = img.shape
     pitch0 = float(nominal_pitch_px)
-    if not pitch0 >= MIN_PITCH_PX:
+    # a start (the nearest neighbours' median, a little short) may lie below the floor
+    # that the fitted pitch must reach
+    if not pitch0 >= MIN_PITCH_PX * (1 - PITCH_TOLERANCE):
         raise LatticeNotFound(
             f"the dots would be {pitch0:.3g} px apart, closer than the {MIN_PITCH_PX:g} px "
             "the photometry needs; check --pixel-pitch-um and --lattice-pitch-um (both in um) "
