@@ -23,6 +23,7 @@ COMMAND_MODULES = (
     "fab.commands.fab",  # fab
     "fab.commands.mesh",  # mesh
     "fab.commands.verify",  # verify, mtf
+    "fab.commands.simulate_capture",  # simulate-capture
     "psf_learn.commands.depth",  # depth, transient
     "fab.commands.run",  # run
 )

@@ -23,7 +23,10 @@ def register(sub):
     p.add_argument("capture", help="capture image: 8/16-bit TIFF or PNG, float TIFF or EXR")
     p.add_argument("--dark", help="dark frame of the same size and exposure")
     p.add_argument(
-        "--pixel-pitch-um", type=float, default=3.45, help="camera pixel pitch in um (default 3.45)"
+        "--pixel-pitch-um",
+        type=float,
+        help="camera pixel pitch in um, cross-checked against the lattice pitch measured "
+        "in the capture (default: the capture's own pitch alone)",
     )
     p.add_argument(
         "--lattice-pitch-um",

@@ -399,6 +399,11 @@ def _tolerance_blocks(tol):
                 ["rmse_max", f"{acc['rmse_max']:.6g}"],
                 ["efficiency_min", f"{acc['efficiency_min']:.6g}"],
                 ["zero_order_max", f"{acc['zero_order_max']:.6g}"],
+                *[
+                    ["deep_etch_error_max", f"+-{v:.4g} (its etch budget)"]
+                    for v in [acc.get("deep_etch_error_max")]
+                    if v is not None
+                ],
             ],
         )
     )

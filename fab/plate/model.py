@@ -98,6 +98,9 @@ class PlateFaults:
         Etch and glass swapped (level l made as L-1-l): the PSF is point-reflected.
     other_levels : (N, N) array or None
         Make this level map instead (a plate of another design).
+    mirrored : bool
+        The masks written mirrored left to right (a chrome-down exposure of data that
+        was not mirrored for it): every bitmap's columns reversed.
     """
 
     etch_errors: tuple[float, ...] = ()
@@ -105,6 +108,7 @@ class PlateFaults:
     cd_bias: float = 0.0
     conjugate: bool = False
     other_levels: np.ndarray | None = None
+    mirrored: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -264,11 +268,14 @@ def _faulty_tile(model, faults):
 
 def _made_bitmaps(model, faults):
     """Return the bitmaps of the masks made: the design's, another level map's, or
-    either conjugated (every bitmap inverted: the binary split of L - 1 - l)."""
+    mirrored (columns reversed), either conjugated (every bitmap inverted: the binary split
+    of L - 1 - l)."""
     bitmaps = model.bitmaps
     if faults.other_levels is not None:
         other = masks_from_levels(faults.other_levels, model.n_levels, model.level_step)
         bitmaps = np.stack([mk.bitmap for mk in other])
+    if faults.mirrored:
+        bitmaps = np.ascontiguousarray(bitmaps[..., ::-1])
     return ~bitmaps if faults.conjugate else bitmaps
 
 

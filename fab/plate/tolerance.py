@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from doe.fraunhofer import correlation, rmse, simulate_levels
+from fab.plate import budget as one_budget
 from fab.plate.model import PlateFaults, cd_bias_in_reach, plate_model, window_amplitudes
 
 
@@ -47,12 +48,12 @@ class ToleranceSpec:
     etch_fractions: tuple[float, ...] = (0.02, 0.05, 0.10)
     overlay: tuple[float, ...] = (0.25e-6, 0.5e-6, 1e-6, 2e-6)
     cd_bias: tuple[float, ...] = (0.1e-6, 0.25e-6)
-    rmse_allowance: float = 0.01
+    rmse_allowance: float = one_budget.RMSE_ALLOWANCE
     monte_carlo_plates: int = 16
-    correlation_margin: float = 0.02
-    rmse_margin: float = 0.01
-    efficiency_margin: float = 0.05
-    zero_order_margin: float = 0.005
+    correlation_margin: float = one_budget.CORRELATION_MARGIN
+    rmse_margin: float = one_budget.RMSE_MARGIN
+    efficiency_margin: float = one_budget.EFFICIENCY_MARGIN
+    zero_order_margin: float = one_budget.ZERO_ORDER_MARGIN
 
 
 TOLERANCES = ToleranceSpec()
@@ -208,6 +209,7 @@ def tolerance_analysis(
     names = [str(mk.name) for mk in masks]
     order = [getattr(mk, "exposure_order", i + 1) for i, mk in enumerate(masks)]
     ref = int(np.argmin(order))
+    deepest = int(np.argmax([mk.etch_depth for mk in masks]))
     plates = _Plates(model, target, on_plate)
     nominal = plates.quality()
     limit = nominal["rmse"] + spec.rmse_allowance if rmse_limit is None else float(rmse_limit)
@@ -228,18 +230,14 @@ def tolerance_analysis(
         "rows": rows,
         "budget": budget,
         "monte_carlo": {"plates": spec.monte_carlo_plates, "seed": seed, **mc},
-        "acceptance": _acceptance(mc, spec),
+        "acceptance": one_budget.acceptance(mc, budget, names[deepest], _margins(spec)),
     }
 
 
-def _acceptance(mc, spec):
-    """Return the acceptance thresholds: the worst Monte Carlo plate, widened by the margins."""
-    return {
-        "correlation_min": min(mc["correlation_vs_reference"]) - spec.correlation_margin,
-        "rmse_max": max(mc["rmse_vs_reference"]) + spec.rmse_margin,
-        "efficiency_min": min(mc["efficiency"]) * (1 - spec.efficiency_margin),
-        "zero_order_max": max(mc["zero_order"]) + spec.zero_order_margin,
-    }
+def _margins(spec):
+    """Return ``spec``'s measurement margins in ``fab.plate.budget.acceptance``'s order."""
+    return (spec.correlation_margin, spec.rmse_margin, spec.efficiency_margin,
+            spec.zero_order_margin)  # fmt: skip
 
 
 class _Plates:

@@ -21,8 +21,6 @@ mask pixels); the contract's PSF leaves out the sinc envelope, which inside the
 K x K window of an N = 175 tile changes powers by under 0.3 %.
 """
 
-import json
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,10 +32,10 @@ from doe.fraunhofer import (
     rmse,
     simulate_levels,
 )
+from fab.plate.budget import verify_thresholds
 from fab.verify.diagnosis import (
     DECISIVE_CHI2,
     OTHER_DESIGN_MAX,
-    SIGNIFICANCE,
     diagnose,
     frame_of_explaining_fault,
     winning_reflection,
@@ -63,25 +61,11 @@ ORIENTATIONS = (
     "antitranspose",
 )
 
-# Pass/fail thresholds used when the fabrication manifest has no "acceptance"
-# (fab.plate.tolerance derives them from the tolerance budget when it does).
-# Efficiency and zero order are relative to the design, because absolute values
-# depend on it: efficiency >= ratio * design efficiency, zero order <= design's
-# zero order + excess.
-DEFAULT_ACCEPTANCE = {
-    "correlation_min": 0.95,
-    "rmse_max": 0.08,
-    "efficiency_ratio_min": 0.85,
-    "zero_order_excess_max": 0.01,
-}
-
 # The window's signal must stand this far above its noise (else "low_signal").
 MIN_WINDOW_SNR = 30.0
 # Photometric error of every order besides the background noise (shot noise of the
 # bright dots, flat field), as a fraction of its power; used for significance only.
 PHOTOMETRIC_FLOOR = 0.01
-# A fitted deep-etch depth error beyond this (fraction) fails the plate.
-DEEP_ETCH_TOLERANCE = 0.10
 # The design's order powers under each point symmetry a faulty plate can show.
 _TRANSFORMS = {
     "design": lambda p: p,
@@ -99,7 +83,9 @@ _PLATE_LEVELS = {
 
 
 def resolve_thresholds(acceptance, design_efficiency, design_zero_order):
-    """Return absolute thresholds from the manifest's "acceptance" or the defaults.
+    """Return absolute thresholds from the manifest's "acceptance" or the defaults: the one
+    budget's (``fab.plate.budget.verify_thresholds``), with the capture's own
+    ``min_window_snr``.
 
     Returns
     -------
@@ -107,46 +93,9 @@ def resolve_thresholds(acceptance, design_efficiency, design_zero_order):
         correlation_min, rmse_max, efficiency_min, zero_order_max, min_window_snr,
         deep_etch_error_max, significance_sigmas, source.
     """
-    if acceptance:
-        missing = {"correlation_min", "rmse_max", "efficiency_min", "zero_order_max"} - set(
-            acceptance
-        )
-        if missing:
-            raise ValueError(f"acceptance lacks {sorted(missing)}")
-        out = {
-            k: _threshold(acceptance, k)
-            for k in ("correlation_min", "rmse_max", "efficiency_min", "zero_order_max")
-        }
-        out["source"] = "fab_manifest.json acceptance"
-    else:
-        d = DEFAULT_ACCEPTANCE
-        out = {
-            "correlation_min": d["correlation_min"],
-            "rmse_max": d["rmse_max"],
-            "efficiency_min": d["efficiency_ratio_min"] * design_efficiency,
-            "zero_order_max": float(design_zero_order) + d["zero_order_excess_max"],
-            # the name verify.json has always recorded for these defaults
-            "source": "defaults (fab.verify.DEFAULT_ACCEPTANCE)",
-        }
+    out = verify_thresholds(acceptance, design_efficiency, design_zero_order)
     out["min_window_snr"] = MIN_WINDOW_SNR
-    out["deep_etch_error_max"] = (
-        _threshold(acceptance, "deep_etch_error_max")
-        if acceptance and "deep_etch_error_max" in acceptance
-        else DEEP_ETCH_TOLERANCE
-    )
-    out["significance_sigmas"] = SIGNIFICANCE
     return out
-
-
-def _threshold(acceptance, key):
-    """Return acceptance[key] as a float; ValueError unless it is a finite number.
-
-    A correlation threshold is null for a design whose PSF has no correlation (1 x 1).
-    """
-    v = acceptance[key]
-    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-        raise ValueError(f"acceptance {key} is {json.dumps(v)}, not a finite number")
-    return float(v)
 
 
 def to_design_frame(array, orientation):

@@ -11,10 +11,11 @@ design does; another design when nothing explains the frame or the window.
 
 import numpy as np
 
+# Failing checks must be this many sigma beyond their threshold (noise is not a fault):
+# the one budget's rule (fab.plate.budget).
+from fab.plate.budget import SIGNIFICANCE, beyond, fit_sigma
 from fab.verify.overlay import REACH_PX as OVERLAY_REACH_PX
 
-# Failing checks must be this many sigma beyond their threshold (noise is not a fault).
-SIGNIFICANCE = 2.0
 # A reflection of the design (rot180: conjugate plate; mirrors) is named when it explains
 # the visible orders better than the design by this chi-square (after inflation by the
 # best fit's reduced chi-square) and its frame correlation reaches OTHER_DESIGN_MAX; the
@@ -318,13 +319,24 @@ def _deep_etch_off(result, thresholds):
     joint_off = joint is None or (
         result["deep_etch_error_joint_significance"] > (SIGNIFICANCE + 1) ** 2
     )
-    if abs(fit) > tolerance and (joint is None or (abs(joint) > tolerance and joint_off)):
+    if deep_etch_beyond_budget(result, tolerance) and (
+        joint is None or (abs(joint) > tolerance and joint_off)
+    ):
         return True
     if psf_fails(result, thresholds):
         return explains
     # a zero order brightened, the PSF within: the deepest only where the others' fit agrees
     # (on a sparse design, another etch far off pulls the deepest's own fit off too)
     return zero_order_brightened(result, thresholds) and explains and joint_off
+
+
+def deep_etch_beyond_budget(result, tolerance):
+    """Whether the deepest etch's own fit lies beyond ``tolerance`` (its budget) by
+    ``SIGNIFICANCE`` of its 1-sigma error (from the fit's chi-square gain)."""
+    fit = result["deep_etch_error_fit"]
+    if fit is None:
+        return False
+    return beyond(fit, fit_sigma(fit, result["deep_etch_error_fit_significance"]), tolerance)
 
 
 def diagnose(result, thresholds):
@@ -364,7 +376,8 @@ def diagnose(result, thresholds):
         if any(name != etch["masks"][0] for name, _ in off):
             process.append("etch_depth_error")
         deep = [err for name, err in off if name == etch["masks"][0]]
-        if deep and abs(deep[0]) > thresholds["deep_etch_error_max"]:
+        deep_sigma = (etch.get("errors_sigma") or [None])[0]
+        if deep and beyond(deep[0], deep_sigma, thresholds["deep_etch_error_max"]):
             process.append("deep_etch_error")
     elif (
         fault is None

@@ -116,7 +116,8 @@ def pitch_hint(result, on_lattice, pitch_px, pixel_pitch_um):
     return (
         f"only {on_lattice:.0%} of the dots' light lies on the fitted lattice "
         f"({pitch_px:.3g} px pitch): if this is the design's plate, the pitch is wrong; "
-        f"check --pixel-pitch-um ({pixel_pitch_um:g} um) and the lattice pitch "
+        + (f"check --pixel-pitch-um ({pixel_pitch_um:g} um) and " if pixel_pitch_um else "check ")
+        + "the lattice pitch "
         "(--lattice-pitch-um, lens focal length)"
     )
 

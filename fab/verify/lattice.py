@@ -30,9 +30,15 @@ from fab.verify.conditioning import robust_sigma
 # Pitch prior: the lattice pitch may differ from the nominal by this fraction
 # (lens focal length, camera pixel pitch, magnification).
 PITCH_TOLERANCE = 0.15
-# Dots closer than this (px) are not resolved well enough to register and measure: the
-# photometry aperture (>= 1.5 px) then overlaps its background annulus (from 0.38 pitch).
-MIN_PITCH_PX = 4.5
+# Dots closer than this (px) are not registered and measured: at 3 px, spots of 0.7 px
+# sigma fit a lattice a few per cent off (bench/README.md); at 3.5 px they measure as
+# well as at 11 px. Below
+# ``fab.verify.photometry.ANNULUS_MIN_PITCH_PX`` the orders are measured in their lattice
+# cells (``fab.verify.cell_photometry``), as an aperture would overlap its annulus.
+MIN_PITCH_PX = 3.4
+# Below this pitch (px) a dot's centroid is taken over 3 x 3 pixels, not 5 x 5, so that
+# its neighbours' light stays out.
+TIGHT_PITCH_PX = 4.5
 # A dot is detected when its smoothed peak stands this many noise sigmas out.
 DETECT_SIGMAS = 8.0
 # At most this many of the brightest dots are used to register the lattice.
@@ -130,10 +136,12 @@ def register_lattice(image, nominal_pitch_px, refine_iterations=2, quantum=0.0):
     img = np.asarray(image, dtype=np.float32)
     h, w = img.shape
     pitch0 = float(nominal_pitch_px)
-    if not pitch0 >= MIN_PITCH_PX:
+    # a start (the nearest neighbours' median, a little short) may lie below the floor
+    # that the fitted pitch must reach
+    if not pitch0 >= MIN_PITCH_PX * (1 - PITCH_TOLERANCE):
         raise LatticeNotFound(
             f"the dots would be {pitch0:.3g} px apart, closer than the {MIN_PITCH_PX:g} px "
-            "photometry needs; check --pixel-pitch-um and --lattice-pitch-um (both in um) "
+            "the photometry needs; check --pixel-pitch-um and --lattice-pitch-um (both in um) "
             "or magnify the lattice"
         )
     if min(h, w) < 4 * pitch0:
@@ -167,7 +175,7 @@ def register_lattice(image, nominal_pitch_px, refine_iterations=2, quantum=0.0):
     if lattice.pitch_px < MIN_PITCH_PX:
         raise LatticeNotFound(
             f"the dots are {lattice.pitch_px:.3g} px apart, closer than the "
-            f"{MIN_PITCH_PX:g} px photometry needs; magnify the lattice"
+            f"{MIN_PITCH_PX:g} px the photometry needs; magnify the lattice"
         )
     lattice = _recentre(lattice, (h, w))
     for _ in range(refine_iterations):
@@ -219,15 +227,17 @@ def _detect_dots(x, pitch, noise):
     """Return (P, 2) centroids (row, col) and signals of the dots standing out of the noise."""
     from scipy import ndimage
 
-    smooth = ndimage.gaussian_filter(x, 0.8)
+    # a tight lattice's dots would merge under the 0.8 px smoothing
+    blur = 0.5 if pitch < TIGHT_PITCH_PX else 0.8
+    smooth = ndimage.gaussian_filter(x, blur)
     # Smoothing a pixel's white noise by a Gaussian of 0.8 px divides sigma by ~2.8.
-    threshold = DETECT_SIGMAS * noise / (2 * np.sqrt(np.pi) * 0.8)
+    threshold = DETECT_SIGMAS * noise / (2 * np.sqrt(np.pi) * blur)
     size = max(3, int(0.6 * pitch) | 1)
     peak = (smooth == ndimage.maximum_filter(smooth, size=size)) & (smooth > threshold)
     r, c = np.nonzero(peak)
     order = np.argsort(smooth[r, c])[::-1][:MAX_DOTS]
     r, c = r[order], c[order]
-    rad = 2
+    rad = 1 if pitch < TIGHT_PITCH_PX else 2
     inside = (r >= rad) & (r < x.shape[0] - rad) & (c >= rad) & (c < x.shape[1] - rad)
     r, c = r[inside], c[inside]
     patch = np.clip(pixel_patches(x, r, c, rad), 0, None).astype(np.float64)
@@ -353,7 +363,7 @@ def pixel_patches(image, rows, cols, radius):
 
 def _refine(x, lattice, noise):
     """Refine origin and basis by least squares on the centroids of the dots above the noise."""
-    radius = max(2, round(0.3 * lattice.pitch_px))
+    radius = 1 if lattice.pitch_px < TIGHT_PITCH_PX else max(2, round(0.3 * lattice.pitch_px))
     u, v, rows, cols, valid = lattice_points(lattice, x.shape, radius)
     uu, vv = np.meshgrid(u, v, indexing="ij")
     uu, vv, rows, cols = uu[valid], vv[valid], rows[valid], cols[valid]
@@ -363,7 +373,10 @@ def _refine(x, lattice, noise):
     rim = np.concatenate(
         [patch[:, 0, :], patch[:, -1, :], patch[:, 1:-1, 0], patch[:, 1:-1, -1]], axis=1
     )
-    patch = np.clip(patch - np.median(rim, axis=1)[:, None, None], 0, None)
+    # (a 3 x 3 patch's rim holds the dot's own light: the frame's median is its background)
+    if radius > 1:
+        patch = patch - np.median(rim, axis=1)[:, None, None]
+    patch = np.clip(patch, 0, None)
     total = patch.sum(axis=(1, 2))
     signal = total - np.median(total)
     significant = signal > DETECT_SIGMAS * noise * (2 * radius + 1)

@@ -20,6 +20,9 @@ from fab.verify.lattice import (
 # Aperture photometry radii as fractions of the pitch: dot aperture, background annulus.
 APERTURE_RADIUS = 0.30
 ANNULUS = (0.38, 0.50)
+# Below this pitch (px) the dot aperture (>= 1.5 px) overlaps its background annulus:
+# such lattices are measured cell by cell (``fab.verify.cell_photometry``).
+ANNULUS_MIN_PITCH_PX = 4.5
 
 
 @dataclass(frozen=True)

@@ -27,8 +27,10 @@ from doe.infra.files import save_npy, staged_output
 from doe.records.fab_manifest import MANIFEST_NAME
 from doe.records.verify import VERIFY_JSON, VerifyRecord, write_verify
 from fab.verify.analysis import ORIENTATIONS, analyse, design_order_power, resolve_thresholds
-from fab.verify.capture import read_capture, read_raw_image
+from fab.verify.capture import read_capture
+from fab.verify.cell_photometry import measure_cells
 from fab.verify.conditioning import repair_pixels
+from fab.verify.dark_frame import refuse_a_dark_frame_with_dots
 from fab.verify.design_ref import DesignRef, read_design_dir
 from fab.verify.diagnosis import best_frame_correlation, is_judged
 from fab.verify.hints import (
@@ -41,7 +43,8 @@ from fab.verify.hints import (
 )
 from fab.verify.hot_pixels import repair_hot_pixels, repair_stray_spikes
 from fab.verify.lattice import LatticeNotFound, on_lattice_share, register_lattice
-from fab.verify.photometry import measure_orders
+from fab.verify.photometry import ANNULUS_MIN_PITCH_PX, measure_orders
+from fab.verify.pitch import capture_pitch, check_stated_pitch
 
 VERIFY_FILES = (VERIFY_JSON, "measured_psf.npy", "verify_report.html", "verify.png")
 # A capture too bright, too dim or ambiguous says nothing of the plate: take another.
@@ -141,7 +144,7 @@ def verify_plate(
     *,
     out=None,
     dark=None,
-    pixel_pitch_um=3.45,
+    pixel_pitch_um=None,
     lattice_pitch_um=None,
     orientation="as-designed",
     force=False,
@@ -160,8 +163,9 @@ def verify_plate(
         Output folder; None writes nothing (``save_verify`` can, later).
     dark : path or None
         A dark frame of the same size and exposure.
-    pixel_pitch_um : float
-        The camera's pixel pitch (um).
+    pixel_pitch_um : float or None
+        The camera's pixel pitch (um), cross-checked against the pitch measured in the
+        capture (a contradiction: InputError with both); None: the measured pitch alone.
     lattice_pitch_um : float or None
         The order pitch on the camera (um); None: the design's, lambda f / tile size.
     orientation : str
@@ -184,13 +188,15 @@ def verify_plate(
     setup = _setup(design, capture, dark, pixel_pitch_um, lattice_pitch_um, orientation)
     ref = setup.ref
     cap = read_capture(capture, dark)
-    registered = _register(cap, capture, dark, setup.nominal_px)
+    pitch_px = _pitch_of(cap, setup, capture, dark)
+    registered = _register(cap, capture, dark, pitch_px)
     lattice = registered.lattice
-    grid = measure_orders(
-        registered.image, lattice, cap.saturated & ~registered.repaired, cap.quantum
-    )
+    if setup.nominal_px is not None:
+        check_stated_pitch(lattice.pitch_px, *_stated(setup))
+    measure = measure_cells if lattice.pitch_px < ANNULUS_MIN_PITCH_PX else measure_orders
+    grid = measure(registered.image, lattice, cap.saturated & ~registered.repaired, cap.quantum)
     # before the spike repair, which would clear true dots off a wrongly fitted lattice
-    on_lattice = on_lattice_share(registered.found, lattice, setup.nominal_px, cap.quantum)
+    on_lattice = on_lattice_share(registered.found, lattice, pitch_px, cap.quantum)
     design_psf, design_eff = simulate_levels(ref.levels, ref.n_levels, ref.kernel_size)
     thresholds = _thresholds(design, ref, design_eff)
     result, measured = analyse(
@@ -242,9 +248,9 @@ class _Setup:
     ref: DesignRef
     capture: object  # the capture file as given
     dark: object  # the dark frame as given, or None
-    pixel_pitch_um: float
+    pixel_pitch_um: float | None
     lattice_pitch: float  # m
-    nominal_px: float  # the lattice pitch in camera pixels
+    nominal_px: float | None  # the lattice pitch in camera pixels the flags give
     orientation: str
 
 
@@ -258,7 +264,7 @@ def _setup(design, capture, dark, pixel_pitch_um, lattice_pitch_um, orientation)
     lattice_pitch = ref.lattice_pitch
     if lattice_pitch_um is not None:
         lattice_pitch = lattice_pitch_um * 1e-6
-    nominal_px = lattice_pitch / (pixel_pitch_um * 1e-6)
+    nominal_px = None if pixel_pitch_um is None else lattice_pitch / (pixel_pitch_um * 1e-6)
     return _Setup(
         design, ref, capture, dark, pixel_pitch_um, lattice_pitch, nominal_px, orientation
     )
@@ -282,6 +288,8 @@ def _report(setup, result, thresholds, lattice, on_lattice, notes):
         "thresholds": thresholds,
         "orientation": setup.orientation,
         "pixel_pitch_um": setup.pixel_pitch_um,
+        # the camera's pixels as the measured lattice implies them at lattice_pitch_um
+        "implied_pixel_pitch_um": setup.lattice_pitch * 1e6 / lattice.pitch_px,
         "lattice_pitch_um": setup.lattice_pitch * 1e6,
         # The design's own lattice, on its sensor: the grid measured_psf.npy is for
         # (a test bench's lens gives another lattice_pitch_um, not another PSF).
@@ -355,7 +363,7 @@ def _register(cap, capture, dark, nominal_px):
         lattice, notes = register_lattice(found, nominal_px, quantum=cap.quantum)
     except LatticeNotFound as e:
         if dark is not None:
-            _refuse_a_dark_frame_with_dots(capture, dark, nominal_px)
+            refuse_a_dark_frame_with_dots(capture, dark)
         extra = f"; {int(cap.saturated.sum())} saturated pixels" if cap.saturated.any() else ""
         raise InputError(capture, f"{e}{extra}") from None
     remedies = []
@@ -397,34 +405,23 @@ def _hot_pixels_on_dots_hint(repaired, lattice):
     )
 
 
-def _refuse_a_dark_frame_with_dots(capture, dark, nominal_px):
-    """Name the dark frame when it holds the dots that the dark-subtracted capture lacks.
+def _pitch_of(cap, setup, capture, dark):
+    """Return the capture's lattice pitch in pixels to register it at: measured (and
+    cross-checked against the flags), or the flags' where the capture cannot tell."""
+    ref = setup.ref
+    found = repair_pixels(cap.image, cap.hot)
+    try:
+        power = design_order_power(ref.levels, ref.n_levels)
+        return capture_pitch(found, cap.quantum, power, _stated(setup), capture)
+    except InputError:
+        if dark is not None:
+            refuse_a_dark_frame_with_dots(capture, dark)
+        raise
 
-    Files swapped, or a dark taken with the light on, leave no dot standing out on
-    the capture: the lab is sent to the dark frame, not to its plate or camera.
-    """
 
-    def holds_a_lattice(path):
-        raw = read_raw_image(path)
-        try:
-            register_lattice(raw.data.astype(np.float32), nominal_px, quantum=raw.quantum)
-        except LatticeNotFound:
-            return False
-        return True
-
-    if not holds_a_lattice(dark):
-        return
-    if holds_a_lattice(capture):
-        raise InputError(
-            dark,
-            "the dark frame holds the capture's dot lattice, so none is left once it is "
-            "subtracted; take the dark with the light blocked",
-        )
-    raise InputError(
-        dark,
-        f"the dark frame holds a dot lattice and the capture {Path(capture).name} "
-        "none: are the capture and --dark swapped?",
-    )
+def _stated(setup):
+    """Return (stated px, lattice pitch um, pixel pitch um, flag) for the pitch checks."""
+    return (setup.nominal_px, setup.lattice_pitch * 1e6, setup.pixel_pitch_um, "--pixel-pitch-um")
 
 
 def _thresholds(design, ref, design_efficiency):

@@ -9,6 +9,7 @@ import numpy as np
 
 from doe.figures import value_and_limit
 from doe.infra.png import save_png
+from fab.plate.budget import beyond, fit_sigma
 from fab.templates import render_page
 from fab.verify.diagnosis import fitted_fault, is_judged
 
@@ -155,13 +156,40 @@ def _checks(report):
             fit,
             "|error| <=",
             t["deep_etch_error_max"],
-            None if fit is None else "deep_etch_error" not in report["diagnosis"],
+            _deep_etch_verdict(report),
         ),
         ("window SNR", snr, ">=", t["min_window_snr"], snr >= t["min_window_snr"]),
         ("saturated dots", report["saturated_dots"], "=", 0, report["saturated_dots"] == 0),
     ]
     checks[:5] = [(n, v, op, lim, ok if judged else None) for n, v, op, lim, ok in checks[:5]]
+    if report["pass"]:  # a row says FAIL only where the plate fails
+        checks = [
+            (n, v, op, lim, f"beyond the limit by less than {sig:g} sigma: not a failure")
+            if ok is False
+            else (n, v, op, lim, ok)
+            for n, v, op, lim, ok in checks
+        ]
     return [(n, *_figure_and_limit(v, op, lim), ok) for n, v, op, lim, ok in checks]
+
+
+def _deep_etch_verdict(report):
+    """Return the deep-etch row's verdict against its budget: False where the plate fails
+    for it, None where the design leaves it no trace, else what the row means."""
+    fit, limit = report["deep_etch_error_fit"], report["thresholds"]["deep_etch_error_max"]
+    if fit is None:
+        return None
+    if "deep_etch_error" in report["diagnosis"]:
+        return False
+    if abs(fit) <= limit:
+        return "within budget"
+    sig = report["thresholds"]["significance_sigmas"]
+    sigma = fit_sigma(fit, report["deep_etch_error_fit_significance"])
+    joint = report["deep_etch_error_joint_fit"]
+    if not beyond(fit, sigma, limit, sig):
+        return f"beyond budget by less than {sig:g} sigma (± {sigma or 0:.2g}): not a failure"
+    if joint is not None and abs(joint) <= limit:
+        return f"beyond budget, explained by the other etches' errors (joint fit {joint:+.3g})"
+    return "beyond budget, not a significant fit: not a failure"
 
 
 def _measurement(report):
@@ -221,7 +249,13 @@ def _measurement(report):
         ),
         (
             "lattice pitch (px), rotation (deg), zero order (row, col px)",
-            f"{lat['pitch_px']:.4f} (nominal {lat['nominal_pitch_px']:.4f}), "
+            f"{lat['pitch_px']:.4f} ("
+            + (
+                "measured; no --pixel-pitch-um"
+                if lat.get("nominal_pitch_px") is None
+                else f"flags: {lat['nominal_pitch_px']:.4f}"
+            )
+            + f"), "
             f"{lat['rotation_deg']:.3f}, ({report['zero_order_px'][0]:.2f}, "
             f"{report['zero_order_px'][1]:.2f})",
         ),

@@ -36,7 +36,11 @@ def test_capture_with_no_light_in_the_window_is_unusable(tmp_path, levels, capsy
     image[100, 100] = 1.0
     write_image(tmp_path / "one_dot.exr", image)
     out = tmp_path / "out"
-    assert main(["verify", str(design), str(tmp_path / "one_dot.exr"), "--out", str(out)]) == 2
+    argv = ["verify", str(design), str(tmp_path / "one_dot.exr"), "--out", str(out)]
+    assert main(argv) == 2  # one dot has no neighbour: no pitch to measure
+    err = capsys.readouterr().err
+    assert "one_dot.exr: too few of its dots" in err and "give --pixel-pitch-um" in err
+    assert main([*argv, "--pixel-pitch-um", str(CAMERA_UM)]) == 2
     err = capsys.readouterr().err
     assert "one_dot.exr: too little signal" in err and not out.exists()
 
@@ -142,7 +146,7 @@ def test_an_exr_capture_compressed_with_loss_is_refused(tmp_path, compression):
 
 
 def test_dots_too_close_to_measure_exit_2(tmp_path, levels, capsys):
-    # At 3 px apart the aperture overlaps its background annulus: this capture of a good
+    # At 3 px apart the lattice fit is a few per cent off: this capture of a good
     # plate once failed as conjugate_plate; a pixel pitch in nm (1000x) once ran out of memory.
     design = make_design_dir(tmp_path / "design", levels)
     sim = simulate_capture(levels, L, pitch_px=3.0, shape=(300, 300), seed=16)
@@ -152,7 +156,9 @@ def test_dots_too_close_to_measure_exit_2(tmp_path, levels, capsys):
         argv = ["verify", str(design), str(tmp_path / "cap.png"), "--out", str(out)]
         assert main([*argv, "--pixel-pitch-um", str(pixel_um)]) == 2
         err = capsys.readouterr().err.strip()
-        assert "cap.png" in err and "px apart" in err and len(err.splitlines()) == 1
+        # the file, or the flag the capture contradicts (named with both pitches)
+        assert "px apart" in err and len(err.splitlines()) == 1
+        assert "cap.png" in err if pixel_um < 100 else "--pixel-pitch-um: " in err
         assert not out.exists()
     for flag, value in (("--pixel-pitch-um", "nan"), ("--lattice-pitch-um", "inf")):
         assert main([*argv, flag, value]) == 2

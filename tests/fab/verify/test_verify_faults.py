@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from verify_helpers import PITCH_PX, PITCH_UM, K, L, N, make_design_dir, run_verify
+from verify_helpers import CAMERA_UM, PITCH_PX, PITCH_UM, K, L, N, make_design_dir, run_verify
 
 from doe.fraunhofer import simulate_levels
 from doe.infra.cli import main
@@ -132,7 +132,7 @@ def verify_faulty_plate(tmp_path, levels, faults, seed, acceptance=None, supersa
     write_image(tmp_path / "d.png", sim["dark"], exposure=0.01)
     out = tmp_path / "out"
     code = main(["verify", str(design), str(tmp_path / "c.png"), "--dark", str(tmp_path / "d.png"),
-                 "--out", str(out)])  # fmt: skip
+                 "--out", str(out), "--pixel-pitch-um", str(CAMERA_UM)])  # fmt: skip
     return code, json.loads((out / "verify.json").read_text()), out
 
 
@@ -520,6 +520,7 @@ def test_a_two_level_plate_that_fails_is_diagnosed_not_a_crash(tmp_path):
         write_image(tmp_path / f"{name}_dark.png", sim["dark"], exposure=0.01)
         out = tmp_path / f"out_{name}"
         args = [str(tmp_path / f"{name}.png"), "--dark", str(tmp_path / f"{name}_dark.png")]
+        args += ["--pixel-pitch-um", str(CAMERA_UM)]  # a 2-level plate's sparse dots
         assert main(["verify", str(design), *args, "--out", str(out)]) == 1
         report = json.loads((out / "verify.json").read_text())
         assert named in report["diagnosis"]

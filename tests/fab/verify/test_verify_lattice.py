@@ -163,12 +163,12 @@ def test_dots_17_percent_off_the_nominal_pitch_are_refused(levels, scale, off):
 
 
 def test_dots_found_closer_than_photometry_needs_are_refused(levels):
-    # nominally 4.6 px apart (enough), found 4.2 px apart (within 15 %, too close)
-    sim = simulate_capture(levels, L, pitch_px=4.2, shape=(300, 300), seed=1)
+    # nominally 3.7 px apart (enough), found 3.3 px apart (within 15 %, too close)
+    sim = simulate_capture(levels, L, pitch_px=3.3, shape=(300, 300), seed=1)
     with pytest.raises(
-        LatticeNotFound, match=re.escape("the dots are 4.2 px apart, closer than the 4.5")
+        LatticeNotFound, match=re.escape("the dots are 3.3 px apart, closer than the 3.4")
     ):
-        register_lattice(sim["capture"], 4.6)
+        register_lattice(sim["capture"], 3.7)
 
 
 @pytest.mark.parametrize(("scale", "rotation_deg"), [(0.87, 0.0), (1.12, 0.0), (1.08, 4.0)])

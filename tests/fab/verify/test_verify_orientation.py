@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 import pytest
-from verify_helpers import PITCH_PX, K, L, N, make_design_dir, run_verify
+from verify_helpers import CAMERA_UM, PITCH_PX, K, L, N, make_design_dir, run_verify
 
 from doe.fraunhofer import simulate_levels
 from doe.infra.cli import main
@@ -245,7 +245,8 @@ def test_orientation_against_the_foundation_renderer(tmp_path, orientation, seen
     design = make_design_dir(tmp_path / "design", lv)
     write_image(tmp_path / "cap.exr", np.ascontiguousarray(seen(img)).astype(np.float32))
     out = tmp_path / "o"
-    args = ["--orientation", orientation, "--out", str(out)]
+    # a blazed tile lights one order: its dots' spacing is no pitch, the bench states it
+    args = ["--orientation", orientation, "--out", str(out), "--pixel-pitch-um", str(CAMERA_UM)]
     code = main(["verify", str(design), str(tmp_path / "cap.exr"), *args])
     report = json.loads((out / "verify.json").read_text())
     psf = read_psf(out / "measured_psf.npy")

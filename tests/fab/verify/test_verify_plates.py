@@ -185,18 +185,20 @@ def test_designed_plate_of_another_design_fails(tmp_path, designed):
 
 
 @pytest.mark.parametrize("camera_um", [5.86, 1.67])
-def test_wrong_camera_pitch_is_pointed_out(tmp_path, levels, capsys, camera_um):
-    # The capture is of the design's plate, taken with a 3.45 um camera, but the
-    # flag names another camera's pitch: the lattice is fitted at the nominal pitch
-    # and "other_design" alone would send the lab after the plate, not the flag.
+def test_wrong_camera_pitch_is_exit_2_with_both_numbers(tmp_path, levels, capsys, camera_um):
+    # The capture is of the design's plate, taken with a 3.45 um camera, but the flag
+    # names another camera's pitch: the capture's own pitch contradicts it. Read on the
+    # flag's lattice the good plate would fail as "other_design", sending the lab after
+    # the plate, not the flag.
     code, report, _ = run_verify(
         tmp_path, levels, dict(seed=1), flags=("--pixel-pitch-um", str(camera_um))
     )
-    assert code == 1 and report["diagnosis"] == ["other_design"]
-    assert report["lattice"]["on_lattice_light"] < 0.5
+    assert code == 2 and report is None
     err = capsys.readouterr().err
-    assert "lies on the fitted lattice" in err and f"--pixel-pitch-um ({camera_um:g} um)" in err
-    assert any("--pixel-pitch-um" in n for n in report["notes"])
+    assert err.startswith("doefab verify: error: --pixel-pitch-um:")
+    measured = float(re.search(r"dots are ([0-9.]+) px apart \(measured\)", err).group(1))
+    assert measured == pytest.approx(PITCH_PX, rel=2e-3)
+    assert f"give {PITCH_UM / camera_um:.4g} px" in err
 
 
 def test_overlay_error_within_budget_passes_and_reports_outside_power(tmp_path, levels):
