@@ -73,8 +73,9 @@ def plate_preview(
     size = math.ceil(2 * plate_half_nm / s)
     centre = size / 2
     # Row 0 of the array is its top edge: place it at y = +ny * n * p / 2.
-    top = round(centre - (ny * n / 2 + e_top) * pitch_nm / s)
-    left = round(centre - (nx * n / 2 + e_left) * pitch_nm / s)
+    # blocks stay on the whole-tile array's grid; the edge tiles add blocks before it
+    top = round(centre - ny * n * pitch_nm / 2 / s) + (-e_top) // f
+    left = round(centre - nx * n * pitch_nm / 2 / s) + (-e_left) // f
     h, w = min(small.shape[0], size - top), min(small.shape[1], size - left)
     if top < 0 or left < 0 or h <= 0 or w <= 0:
         raise ValueError("the tiled array does not fit inside the plate")
@@ -92,11 +93,12 @@ def plate_preview(
 
 
 def _block_counts(start, stop, n, f):
-    """Return (ceil((stop - start) / f), n): how often tile index k falls in block i of
-    the line of pixels start <= r < stop (pixel r shows tile index r mod n)."""
+    """Return (blocks, n): how often tile index k falls in block i of the line of pixels
+    start <= r < stop (pixel r shows tile index r mod n), the blocks of f pixels counted
+    from the block that holds pixel ``start`` on the grid of pixel 0's."""
     r = np.arange(start, stop)
-    blocks = -(-(stop - start) // f)
-    i = (r - start) // f * n + r % n
+    blocks = (stop - 1) // f - start // f + 1
+    i = (r // f - start // f) * n + r % n
     return np.bincount(i, minlength=blocks * n).reshape(blocks, n).astype(float)
 
 

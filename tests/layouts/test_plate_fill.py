@@ -147,3 +147,22 @@ def test_dies_place_the_plate_cell_by_one_aref_with_lanes_outside_the_masks(tmp_
     got = sorted((t.disp.x, t.disp.y) for t in inst.cell_inst.each_cplx_trans())
     pitch = dies.pitch_nm
     assert got == sorted((ox + i * pitch, oy + j * pitch) for i in range(2) for j in range(3))
+
+
+def test_the_plate_preview_averages_whole_and_edge_tiles_on_the_array_grid():
+    from fab.package.layer_images import plate_preview
+
+    bitmap = np.random.default_rng(6).random((N, N)) < 0.5
+    edges, f, pitch = (3, 5, 2, 4), 4, 1000
+    half = 40_000  # 80 mask pixels across: f = 1 pixel at max_px 80, f = 4 at max_px 20
+    img = plate_preview(bitmap, (3, 2), pitch, half, half, max_px=20, edge_pixels=edges)[:, :, 0]
+    # brute force: the plate pixel by pixel (array centred), then 4 x 4 block means
+    canvas = np.zeros((80, 80))
+    # the 36 x 24 pixel array's upper-left pixel: centred, on the preview's block grid
+    left, top = f * round((40 - 18) / f), f * round((40 - 12) / f)
+    for r in range(-edges[3], 24 + edges[2]):
+        for c in range(-edges[0], 36 + edges[1]):
+            canvas[top + r, left + c] = bitmap[r % N, c % N]
+    want = np.rint(canvas.reshape(20, f, 20, f).mean(axis=(1, 3)) * 255)
+    inner = np.s_[1:19, 1:19]  # inside the grey plate outline
+    assert np.array_equal(img[inner], want[inner]) and want[inner].any()
