@@ -121,7 +121,7 @@ def test_dies_are_recorded_for_the_order_sheet(packages):
 
 
 def test_the_aperture_scene_instances_the_edge_pieces(packages, tmp_path):
-    root, _, out = packages
+    root, levels, out = packages
     assert main(["mesh", str(root / "fill"), "--out", str(tmp_path), "--formats", "glb"]) == 0
     scene = trimesh.load(tmp_path / "aperture.glb")
     report_ = json.loads((tmp_path / "mesh_report.json").read_text())["aperture"]
@@ -130,11 +130,18 @@ def test_the_aperture_scene_instances_the_edge_pieces(packages, tmp_path):
     assert len(scene.graph.nodes_geometry) == 9 + 16
     x0, y0, x1, y1 = (v / 1e6 for v in out["fill"].manifest.fields["plate"]["pattern_extent_nm"])
     assert np.allclose(scene.bounds[:, :2], [[x0, y0], [x1, y1]], atol=1e-9)
-    # the merged scene covers the pattern's extent once: its area seen from above
-    total = sum(
-        scene.geometry[scene.graph[node][1]].area_faces.sum() for node in scene.graph.nodes_geometry
-    )
-    assert total > 2 * (x1 - x0) * (y1 - y0)
+    # every piece is closed, and the scene's volume is the pattern's, pixel by pixel
+    man = out["fill"].manifest.fields
+    step, p_mm = man["level_step_nm"] * 1e-6, man["pixel_pitch_nm"] * 1e-6
+    thickness = man["substrate_thickness_mm"]
+    volume = 0.0
+    for node in scene.graph.nodes_geometry:
+        geometry = scene.geometry[scene.graph[node][1]]
+        assert geometry.is_watertight and geometry.is_winding_consistent
+        volume += geometry.volume
+    span = np.arange(-4, 49) % N
+    tops = thickness - (8 - 1 - levels[np.ix_(span, span)]) * step
+    assert volume == pytest.approx(tops.sum() * p_mm**2, rel=1e-6)  # GLB: float32
 
 
 @pytest.mark.parametrize(
