@@ -221,8 +221,9 @@ class FabManifest:
             acceptance = man.get("acceptance")
             target_file = folder / man.get("target_psf_file", TARGET_PSF_FILE)
             target_named = "target_psf_file" in man
-            fraction = float(man.get("plate", {}).get("patterned_fraction", 1.0))
-        except (KeyError, TypeError, ValueError, OverflowError) as e:  # int(1e400) overflows
+            plate = man.get("plate") or {}
+            fraction = float(plate.get("patterned_fraction", 1.0))
+        except (KeyError, TypeError, ValueError, OverflowError, AttributeError) as e:  # 1e400
             raise InputError(self.path, f"malformed manifest ({e!r} missing or wrong)") from None
         return PlateReference(
             n_levels, levels_file, kernel, lattice, tuple(depths), pitch, acceptance,
@@ -232,7 +233,10 @@ class FabManifest:
 
 def _edge_pixels(man):
     """Return ``plate.edge_pixels`` as (left, right, bottom, top); zeros when absent."""
-    edges = man.get("plate", {}).get("edge_pixels", {})
+    plate = man.get("plate") or {}
+    edges = plate.get("edge_pixels", {}) if isinstance(plate, Mapping) else None
+    if not isinstance(edges, Mapping):
+        raise ValueError("plate.edge_pixels must be an object of left, right, bottom, top")
     return tuple(_whole(edges.get(k, 0)) for k in ("left", "right", "bottom", "top"))
 
 

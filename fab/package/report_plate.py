@@ -109,6 +109,13 @@ def _as_built_blocks(context, built):
             f"{built.efficiency:.4f}",
             f"{built.zero_order:.5f}",
         ],
+        [
+            "plate as built, each order's cell (the clear aperture as the stop)",
+            correlation_text(built.cell_correlation),
+            f"{built.cell_rmse:.5f}",
+            "-",
+            "-",
+        ],
     ]
     return [
         ("h3", "The plate as built"),
@@ -116,7 +123,10 @@ def _as_built_blocks(context, built):
             "p",
             "Order powers of the plate over its clear aperture (the far field in each "
             "order's direction, square pixels, plain glass where unpatterned) against the "
-            f"tile model's. Goals as built: {_verdict(built.missed)}.",
+            f"tile model's. Goals as built: {_verdict(built.missed)}. The last row is what "
+            "each order's cell of the far field collects when the clear aperture is the "
+            "stop: its diffraction spreads every dot into its neighbours' cells (the "
+            "camera's part, not judged against the goals).",
         ),
         ("table", ["model", "correlation", "rmse", "window efficiency", "zero order"], rows),
     ]

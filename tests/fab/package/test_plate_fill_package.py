@@ -10,6 +10,7 @@ from package_helpers import make_design_dir
 
 import fab.package.report as report
 from doe.infra.cli import main
+from doe.infra.errors import InputError
 from doe.records.fab_manifest import read_fab_manifest
 from fab.package.build import build_package
 from fab.package.layer_images import read_image
@@ -162,3 +163,14 @@ def test_unusable_plate_flags_exit_2_naming_the_flag(packages, tmp_path, capsys,
     )
     assert flag in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("plate", [[1, 2], {"edge_pixels": [4, 4]}, {"edge_pixels": {"left": 99}}])
+def test_a_malformed_plate_record_is_an_input_error(packages, tmp_path, plate):
+    out = packages[2]
+    fields = dict(out["fill"].manifest.fields, plate=plate)
+    path = tmp_path / "fab_manifest.json"
+    path.write_text(json.dumps(fields))
+    with pytest.raises(InputError) as e:
+        read_fab_manifest(path).tile_geometry()
+    assert e.value.source == str(path)
