@@ -22,6 +22,7 @@ import numpy as np
 
 from layouts.marks import (
     DEFAULT_FEATURE_NM,
+    MarkLayer,
     mark_rules,
     marks_and_labels,
     monitor_plan,
@@ -192,6 +193,11 @@ def build_library(
         top_cell = lib.new_cell(top_name)
         top_cell.add(_aref(top, die_layout.origin_nm, die_layout.dies, die_layout.pitch_nm / 1000))
         top_cell.add(*(_lane(r) for r in lane_rectangles_nm(die_layout)))
+        # a drawing layer like the outline's: the order sheet lists it as not to write
+        lanes = MarkLayer(
+            DICING_LANE_LAYER, 0, "dicing lanes and substrate edge (not etched)", None
+        )
+        mark_layers = (*mark_layers, lanes)
     info = PlateLayout(
         top_cell=top_name,
         tile_cell=tile_name,

@@ -112,13 +112,19 @@ def test_whole_tiles_shrink_the_frame_and_say_what_it_costs(packages):
 
 def test_dies_are_recorded_for_the_order_sheet(packages):
     root, _, out = packages
-    dies = out["dies"].manifest.fields["dies"]
-    plate_mm = 2 * plate_half_size_nm(1_500_000) / 1e6
-    assert dies["dies"] == [2, 1] and dies["dicing_lane_um"] == 300
-    assert dies["plate_size_mm"] == plate_mm
-    assert dies["die_pitch_mm"] == pytest.approx(plate_mm + 0.3)
-    assert dies["substrate_size_mm"] == pytest.approx([2 * (plate_mm + 0.3), plate_mm + 0.3])
+    man = out["dies"].manifest.fields
+    dies = man["dies"]
+    plate = man["plate_size_nm"][0]
+    assert (dies["nx"], dies["ny"], dies["lane_nm"]) == (2, 1, 300_000)
+    assert dies["plate_size_nm"] == [plate, plate]
+    assert dies["pitch_nm"] == [plate + 300_000] * 2
+    assert dies["substrate_size_nm"] == [2 * (plate + 300_000), plate + 300_000]
     assert "| dies (plates) | 2 x 1 " in (root / "dies" / "fab_report.md").read_text()
+    order = json.loads((root / "dies" / "mask_order.json").read_text())
+    assert order["dies"]["field_size_nm"] == [2 * plate + 300_000, plate]
+    assert {d["gds_layer"] for d in order["do_not_write"]} == {200, 201}
+    single = out["fill"].manifest.fields["dies"]
+    assert (single["nx"], single["ny"]) == (1, 1)
 
 
 def test_the_aperture_scene_instances_the_edge_pieces(packages, tmp_path):
