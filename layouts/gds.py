@@ -173,12 +173,7 @@ def build_library(
     tile = lib.new_cell(tile_name)
     tile.add(*polys)
     top.add(_aref(tile, (x0, y0), (nx, ny), tile_um))
-    edges = []
-    for piece in edge_pieces(plate):
-        cell = lib.new_cell(cell_name(design_name, piece.suffix))
-        cell.add(*tile_polygons(masks, pitch_nm, (piece.columns, piece.rows))[0])
-        top.add(_aref(cell, piece.origin_nm, piece.repeat, tile_um))
-        edges.append((cell.name, piece))
+    edges = _edge_cells(lib, top, masks, plate, design_name)
     if flat:
         top.flatten()  # copies every tile's polygons into the top cell (C++ side)
         for cell in [tile] + [lib[name] for name, _ in edges]:
@@ -190,14 +185,7 @@ def build_library(
         mark_layers, marks_info = _marks(top, masks, frame_half, design_name, rules)
     die_layout = plan_dies(dies, 2 * plate_half_size_nm(frame_half, rules), lane_nm, grid_nm)
     if several:
-        top_cell = lib.new_cell(top_name)
-        top_cell.add(_aref(top, die_layout.origin_nm, die_layout.dies, die_layout.pitch_nm / 1000))
-        top_cell.add(*(_lane(r) for r in lane_rectangles_nm(die_layout)))
-        # a drawing layer like the outline's: the order sheet lists it as not to write
-        lanes = MarkLayer(
-            DICING_LANE_LAYER, 0, "dicing lanes and substrate edge (not etched)", None
-        )
-        mark_layers = (*mark_layers, lanes)
+        mark_layers = (*mark_layers, _substrate(lib.new_cell(top_name), top, die_layout))
     info = PlateLayout(
         top_cell=top_name,
         tile_cell=tile_name,
@@ -215,6 +203,25 @@ def build_library(
         frame_half_nm=frame_half,
     )
     return lib, info
+
+
+def _edge_cells(lib, plate_cell, masks, plate, design_name):
+    """Add the clipped edge cells of ``plate`` and place them; return [(name, EdgePiece)]."""
+    edges, tile_um = [], plate.tile_nm / 1000.0
+    for piece in edge_pieces(plate):
+        cell = lib.new_cell(cell_name(design_name, piece.suffix))
+        cell.add(*tile_polygons(masks, plate.pixel_pitch_nm, (piece.columns, piece.rows))[0])
+        plate_cell.add(_aref(cell, piece.origin_nm, piece.repeat, tile_um))
+        edges.append((cell.name, piece))
+    return edges
+
+
+def _substrate(top, plate_cell, die_layout):
+    """Place the plate cell on the die lattice in ``top`` with the dicing lanes; return the
+    lanes' layer (a drawing layer like the outline's: the order sheet says not to write it)."""
+    top.add(_aref(plate_cell, die_layout.origin_nm, die_layout.dies, die_layout.pitch_nm / 1000))
+    top.add(*(_lane(r) for r in lane_rectangles_nm(die_layout)))
+    return MarkLayer(DICING_LANE_LAYER, 0, "dicing lanes and substrate edge (not etched)", None)
 
 
 def _marks(cell, masks, frame_half, design_name, rules):
