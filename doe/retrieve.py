@@ -56,6 +56,9 @@ class RetrieveResult:
         The quality goals the level map misses, one phrase each (empty: met).
     square_pixels_missed : tuple of str
         Those a plate of square pixels misses (their sinc^2 envelope).
+    as_built_missed : tuple of str
+        Those the plate as ``doefab fab`` builds it misses (the periodic pattern over
+        the whole clear aperture, :mod:`doe.aperture`).
     files : tuple of str
         The files written, relative to ``out``.
     """
@@ -67,6 +70,7 @@ class RetrieveResult:
     simulated_psf: np.ndarray
     missed: tuple[str, ...]
     square_pixels_missed: tuple[str, ...]
+    as_built_missed: tuple[str, ...] = ()
     files: tuple[str, ...] = OUTPUTS
 
     @property
@@ -153,9 +157,11 @@ def retrieve(
             result.quality_quantised,
         )
     missed, plate_missed = record.goals["missed"], record.square_pixels["missed"]
+    built_missed = record.as_built["missed"] if record.as_built else ()
     return RetrieveResult(
-        Path(out), record, result, target, simulated, tuple(missed), tuple(plate_missed)
-    )
+        Path(out), record, result, target, simulated, tuple(missed), tuple(plate_missed),
+        tuple(built_missed),
+    )  # fmt: skip
 
 
 def _record(result, psf, target, design, n):
@@ -180,6 +186,7 @@ def _record(result, psf, target, design, n):
             "allowed": design.fabrication.allow_corner_contacts,
             "per_mask": list(corner_contacts(result.levels, n_levels)),
         },
+        as_built=_as_built(result.levels, n_levels, design, n, target),
         seconds=round(result.seconds, 3),
         seed=result.seed,
         levels=n_levels,
@@ -192,6 +199,15 @@ def _record(result, psf, target, design, n):
         design=design_summary(design, tile_pixels=n),
         versions=_versions(),
     )
+
+
+def _as_built(levels, n_levels, design, n, target):
+    """The figures of the plate fab lays out by default (None where the grid leaves no pitch)."""
+    from doe.aperture import as_built, as_built_record, design_plate
+
+    if derive(design, tile_pixels=n).mask_pixel_pitch <= 0:
+        return None
+    return as_built_record(as_built(levels, n_levels, design_plate(design, n), target))
 
 
 def _tile_settings(design, levels, tile_pixels, seed):

@@ -69,6 +69,10 @@ class TileGeometry:
     array_origin_mm : tuple of float
         (x0, y0) of the lower-left tile (mm, as the meshes are); (0, 0) when the
         manifest does not say.
+    edge_pixels : tuple of int
+        (left, right, bottom, top): pixel columns and rows of clipped tiles that
+        continue the periodic pattern past the whole-tile array to the clear
+        aperture (``plate.edge_pixels``); zeros when the manifest has no ``plate``.
     """
 
     n_levels: int
@@ -77,6 +81,7 @@ class TileGeometry:
     tile_pixels: int
     tiles: tuple[int, int]
     array_origin_mm: tuple[float, float]
+    edge_pixels: tuple[int, int, int, int] = (0, 0, 0, 0)
 
 
 @dataclass(frozen=True)
@@ -104,6 +109,9 @@ class PlateReference:
         The target PSF, beside the manifest.
     target_named : bool
         Whether the manifest names the target file (then it must exist).
+    patterned_fraction : float
+        Fraction of the clear aperture the pattern covers (``plate``; 1 when absent):
+        below 1, plain glass adds to the zero order of a capture.
     """
 
     n_levels: int
@@ -115,6 +123,7 @@ class PlateReference:
     acceptance: Any
     target_psf_file: Path
     target_named: bool
+    patterned_fraction: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -153,6 +162,7 @@ class FabManifest:
             step, pitch = float(man["level_step_nm"]) * 1e-9, float(man["pixel_pitch_nm"]) * 1e-9
             tiles = [_whole(t) for t in man["tiles"]]
             origin = [float(v) * 1e-6 for v in man.get("array_origin_nm", [0.0, 0.0])]
+            edges = _edge_pixels(man)
         except (TypeError, ValueError, OverflowError) as e:  # int(1e400): OverflowError
             raise InputError(path, f"malformed value ({e})") from None
         if len(tiles) != 2 or min(tiles) < 1 or len(origin) != 2:
@@ -169,7 +179,11 @@ class FabManifest:
                 "level_step_nm and pixel_pitch_nm must lie between 1 pm and 1 m, "
                 "array_origin_nm be finite",
             )
-        return TileGeometry(n_levels, step, pitch, n, (tiles[0], tiles[1]), (origin[0], origin[1]))
+        if min(edges) < 0 or max(edges) > n:
+            raise InputError(path, f"plate.edge_pixels must lie in 0..{n} (the tile's N)")
+        return TileGeometry(
+            n_levels, step, pitch, n, (tiles[0], tiles[1]), (origin[0], origin[1]), edges
+        )
 
     def levels_path(self):
         """Return the level map's path (``levels_file``); InputError if it names no file."""
@@ -207,12 +221,23 @@ class FabManifest:
             acceptance = man.get("acceptance")
             target_file = folder / man.get("target_psf_file", TARGET_PSF_FILE)
             target_named = "target_psf_file" in man
-        except (KeyError, TypeError, ValueError, OverflowError) as e:  # int(1e400) overflows
+            plate = man.get("plate") or {}
+            fraction = float(plate.get("patterned_fraction", 1.0))
+        except (KeyError, TypeError, ValueError, OverflowError, AttributeError) as e:  # 1e400
             raise InputError(self.path, f"malformed manifest ({e!r} missing or wrong)") from None
         return PlateReference(
             n_levels, levels_file, kernel, lattice, tuple(depths), pitch, acceptance,
-            target_file, target_named,
+            target_file, target_named, fraction,
         )  # fmt: skip
+
+
+def _edge_pixels(man):
+    """Return ``plate.edge_pixels`` as (left, right, bottom, top); zeros when absent."""
+    plate = man.get("plate") or {}
+    edges = plate.get("edge_pixels", {}) if isinstance(plate, Mapping) else None
+    if not isinstance(edges, Mapping):
+        raise ValueError("plate.edge_pixels must be an object of left, right, bottom, top")
+    return tuple(_whole(edges.get(k, 0)) for k in ("left", "right", "bottom", "top"))
 
 
 def _whole(value):
@@ -247,7 +272,9 @@ def build_fab_manifest(
     derived : doe.derived.Derived
         Derived quantities for the tile's N (``derive(design, tile_pixels=N)``).
     layout : layouts.gds.PlateLayout
-        Cell names, pitch, tiles and array origin of the written GDS.
+        Cell names, pitch, tiles and array origin of the written GDS; its ``plate``
+        (edge pixels, clear aperture, patterned fraction) becomes the ``plate`` record
+        (``dies`` comes with ``fab.package.manifest.layout_keys`` in ``extra``).
     masks : list of fab.package.masks.Mask
     acceptance : dict or None
         Pass/fail thresholds from the tolerance analysis.
@@ -307,6 +334,10 @@ def build_fab_manifest(
         ],
         "acceptance": dict(acceptance) if acceptance else None,
     }
+    if layout.plate is not None:
+        manifest["plate"] = layout.plate.as_dict()
+        manifest["plate"]["edge_cells"] = [name for name, _ in layout.edge_cells]
+        manifest["plate_cell"] = layout.plate_cell
     manifest.update(extra or {})
     return manifest
 

@@ -32,7 +32,8 @@ class MeshReport:
         pinched corners, fab.mesh.chamfer).
     aperture : Mapping
         The instanced aperture: "tiles" [nx, ny], "instances", "origin_mm",
-        "pitch_mm", "note".
+        "pitch_mm", "note", and the clipped edge tiles that fill the clear aperture:
+        "edge_pieces" (distinct bodies) and "edge_instances" (their placements).
     files : Mapping of str to int
         Every file written but the report, with its size in bytes.
     crop : Mapping or None

@@ -16,6 +16,9 @@ The file is a JSON object (indented, keys sorted) with
 - ``corner_contacts``: whether the design ``allowed`` them (``[fabrication]
   allow_corner_contacts``) and their count ``per_mask``, M1 (deepest) first,
   periodic (:func:`doe.mask_rules.corner_contacts`);
+- ``as_built``: the figures of the plate ``doefab fab`` lays out by default (the
+  periodic pattern over the whole clear aperture, :mod:`doe.aperture`), with its
+  ``patterned_fraction``, ``zero_order``, ``goals_met`` and ``missed``;
 - ``seconds``, ``seed``, ``levels`` (L), ``tile_pixels`` (N), ``kernel_size`` (K);
 - ``target_psf``, ``target_psf_sha256``: the input PSF's file name and digest;
 - ``design``: :func:`doe.derived.design_summary` of the design as the tile
@@ -40,6 +43,7 @@ _OBJECTS = (
     "goals",
     "square_pixels",
     "corner_contacts",
+    "as_built",
     "design",
     "versions",
 )
@@ -60,6 +64,7 @@ class RetrievalRecord:
     goals: dict | None = None
     square_pixels: dict | None = None
     corner_contacts: dict | None = None
+    as_built: dict | None = None
     seconds: float | None = None
     seed: int | None = None
     levels: int | None = None

@@ -14,8 +14,9 @@ def register(sub):
         description=(
             "Turn DESIGN_DIR/levels.npy (uint8 N x N, values 0..L-1) into a fabrication "
             "package: binary masks with Sellmeier etch depths, a GDSII file with the tile "
-            "as one cell placed by one AREF over the aperture, alignment marks, layer images, "
-            "a tolerance table, fab_manifest.json and fab_report.{md,html}."
+            "as one cell placed by one AREF and clipped edge tiles that fill the clear "
+            "aperture, alignment marks, layer images, a tolerance table, fab_manifest.json "
+            "and fab_report.{md,html}."
         ),
     )
     p.add_argument(
@@ -33,6 +34,34 @@ def register(sub):
         action="store_true",
         help="add the report's 'In the camera' budget: band-pass, f-number, defocus, rotation",
     )
+    fewer = p.add_mutually_exclusive_group()
+    fewer.add_argument(
+        "--whole-tiles",
+        action="store_true",
+        help="whole tiles only (no clipped edge tiles); the clear-aperture frame shrinks to them",
+    )
+    fewer.add_argument(
+        "--tiles",
+        type=int,
+        metavar="N",
+        help="N x N whole tiles only (at most those that fit); the frame shrinks to them",
+    )
+    p.add_argument(
+        "--keep-aperture",
+        action="store_true",
+        help="with --whole-tiles or --tiles: keep the design's frame, plain glass around the tiles",
+    )
+    p.add_argument(
+        "--dies",
+        type=int,
+        nargs=2,
+        metavar=("NX", "NY"),
+        default=(1, 1),
+        help="NX x NY plates on the substrate with dicing lanes between them (default 1 1)",
+    )
+    p.add_argument(
+        "--lane-um", type=float, default=200.0, help="dicing lane width in um (default 200)"
+    )
     p.set_defaults(func=_fab)
 
 
@@ -43,6 +72,8 @@ def _fab(args):
         result = build_package(
             args.design_dir, args.out, config=args.config, force=args.force, oasis=args.oasis,
             camera_budget=args.camera_budget,
+            tiles=args.tiles, whole_tiles=args.whole_tiles, keep_aperture=args.keep_aperture,
+            dies=tuple(args.dies), lane_um=args.lane_um,
         )  # fmt: skip
     except PackageCheckFailed as e:
         print(f"doefab fab: FAIL {e}; nothing written", file=sys.stderr)
@@ -51,8 +82,12 @@ def _fab(args):
         print(f"doefab fab: {warning}", file=sys.stderr)
     m = result.manifest.fields
     depths = ", ".join(f"{mk['name']} {mk['etch_depth_nm']:.1f} nm" for mk in m["masks"])
+    plate = m["plate"]
+    dies = m["dies"]["nx"], m["dies"]["ny"]
     print(
         f"doefab fab: wrote {len(result.files)} files to {args.out} "
-        f"(N={m['tile_pixels']}, pitch {m['pixel_pitch_nm']} nm, tiles {m['tiles']}; {depths})"
+        f"(N={m['tile_pixels']}, pitch {m['pixel_pitch_nm']} nm, tiles {m['tiles']}, "
+        f"{plate['patterned_fraction']:.2%} of the clear aperture patterned, "
+        f"{dies[0]} x {dies[1]} dies; {depths})"
     )
     return 0

@@ -5,7 +5,9 @@ Reads FAB_DIR/fab_manifest.json and its levels file; writes into ``out``:
 - ``tile.{ply,glb,3mf,stl,step}``: one tile, lower-left corner at the origin;
 - ``aperture.{glb,3mf,step}``: the tile stored once and instanced on the
   tiles [nx, ny] lattice, pitch N p, lower-left tile at the manifest's
-  ``array_origin_nm`` (converted to mm; (0, 0) when absent);
+  ``array_origin_nm`` (converted to mm; (0, 0) when absent); in GLB and 3MF
+  also the clipped edge tiles that fill the clear aperture
+  (``fab.mesh.aperture_scene``), each stored once and instanced;
 - ``crop_CxC.{ply,glb,3mf,stl}`` with ``crop=C``: one merged body of C x C
   tiles, lower-left at the same origin (refused when too large to build);
 - ``preview.png`` and ``mesh_report.json``.
@@ -32,6 +34,7 @@ from doe.records.mesh_report import (
 )
 from fab.mesh import formats as mesh_io
 from fab.mesh import relief as mesh
+from fab.mesh.aperture_scene import SCENE_ENCODERS, aperture_parts, part_meshes
 from fab.mesh.chamfer import CHAMFER_LEG, CHAMFER_NOTE
 from fab.mesh.checks import (
     FORMATS,
@@ -107,6 +110,7 @@ def read_fab_dir(fab_dir, thickness_mm=None):
     return relief, {
         "tiles": list(tile.tiles),
         "origin_mm": list(tile.array_origin_mm),
+        "edge_pixels": list(tile.edge_pixels),
         "design_name": manifest.fields.get("design_name"),
         "material": manifest.fields.get("material"),
         "thickness_source": where,
@@ -239,9 +243,12 @@ def _write_models(stage, relief, info, formats, crop, progress):
             "note": CHAMFER_NOTE,
         },
     }
+    scene = _edge_scene(relief, info, (vertices, faces))
     aperture = {
         "tiles": tiles,
         "instances": len(offsets),
+        "edge_pieces": len(scene) - 1 if scene else 0,
+        "edge_instances": sum(len(part[3]) for part in scene[1:]) if scene else 0,
         "origin_mm": origin,
         "pitch_mm": n_rows * relief.pitch * 1e3,
         "note": APERTURE_NOTE,
@@ -253,7 +260,8 @@ def _write_models(stage, relief, info, formats, crop, progress):
         encode = _ENCODERS[fmt]
         atomic_write_bytes(stage / f"tile.{fmt}", encode(vertices, faces))
         if fmt in INSTANCED:
-            atomic_write_bytes(stage / f"aperture.{fmt}", encode(vertices, faces, offsets))
+            data = SCENE_ENCODERS[fmt](scene) if scene else encode(vertices, faces, offsets)
+            atomic_write_bytes(stage / f"aperture.{fmt}", data)
         seconds[fmt] = time.perf_counter() - t0
     crop_figures = None
     if crop is not None:
@@ -268,6 +276,14 @@ def _write_models(stage, relief, info, formats, crop, progress):
     report = MeshReport(tile, aperture, files, crop=crop_figures, step=step)
     write_mesh_report(stage / MESH_REPORT_NAME, report)
     return report, seconds
+
+
+def _edge_scene(relief, info, tile_mesh):
+    """The aperture scene's parts with the clipped edge tiles, or [] when there are none."""
+    if not any(info.get("edge_pixels", ())):
+        return []
+    parts = aperture_parts(relief, info["tiles"], info["origin_mm"], info["edge_pixels"])
+    return part_meshes(parts, tile_mesh)
 
 
 _ENCODERS = {

@@ -153,8 +153,10 @@ def mask_table(masks, counts, pitch_nm):
 
 
 def build_package(
-    design_dir, out, *, config=None, force=False, oasis=False, progress=True, camera_budget=False
-):
+    design_dir, out, *, config=None, force=False, oasis=False, progress=True,
+    camera_budget=False, tiles=None, whole_tiles=False, keep_aperture=False, dies=(1, 1),
+    lane_um=None,
+):  # fmt: skip
     """Write the fabrication package of DESIGN_DIR's tile into ``out``.
 
     Parameters
@@ -174,6 +176,19 @@ def build_package(
         Show progress bars on a terminal.
     camera_budget : bool
         Add the report's "In the camera" budget (doe.camera_budget; ~2 s of CPU).
+    tiles : int or None
+        Whole tiles across (at most those that fit the aperture): whole tiles only,
+        the clear-aperture frame shrunk to them. Default: the pattern fills the
+        clear aperture (whole tiles and clipped edge tiles).
+    whole_tiles : bool
+        Whole tiles only, as many as fit; the frame shrinks to them.
+    keep_aperture : bool
+        With ``tiles`` or ``whole_tiles``: keep the design's frame (plain glass
+        inside it around the tiles; the warnings and report say what it costs).
+    dies : (int, int)
+        Plates along x and y on the substrate, dicing lanes between them.
+    lane_um : float or None
+        Dicing lane width (default 200 um).
 
     Returns
     -------
@@ -193,11 +208,13 @@ def build_package(
     from doe.infra.files import staged_output
     from fab.package.layer_images import layer_image_names
     from fab.package.order import ORDER_FILES
+    from fab.package.plate_choice import choose_plate
 
     design = load_design(config)
     levels, target = load_design_dir(design_dir, design)
     der, pitch_nm, k = _check_tile(design, levels, target, Path(design_dir))
     tile, warnings = _plan(design, der, levels, target, k, pitch_nm)
+    choice = choose_plate(design, der, tiles, whole_tiles, keep_aperture, dies, lane_um)
     bar = tqdm(
         STAGES, desc="doefab fab", file=sys.stderr, disable=not (progress and sys.stderr.isatty())
     )
@@ -207,9 +224,10 @@ def build_package(
     known += list(ORDER_FILES)
     stale = previous_package_files(Path(out) / MANIFEST_NAME, layer_image_names)
     with staged_output(out, force, names=known, stale=stale) as stage:
-        manifest, report_files = _write_package(
-            stage, tile, Path(design_dir), Path(out), oasis, bar, progress, camera_budget
+        manifest, report_files, more = _write_package(
+            stage, tile, choice, Path(design_dir), Path(out), oasis, bar, progress, camera_budget
         )
+        warnings += more
         all_files = sorted(str(p.relative_to(stage)) for p in stage.rglob("*") if p.is_file())
     return PackageResult(
         out=Path(out),
@@ -288,24 +306,27 @@ def _plan(design, der, levels, target, k, pitch_nm):
     return tile, warnings
 
 
-def _write_package(stage, tile, design_dir, out, oasis, bar, progress, camera=False):
-    """Write the package's files into ``stage``; return (manifest dict, report files)."""
+def _write_package(stage, tile, choice, design_dir, out, oasis, bar, progress, camera=False):
+    """Write the package's files into ``stage``; return (manifest dict, report files, warnings)."""
+    from doe.aperture import as_built, as_built_record
     from fab.package.layer_images import write_layer_images
     from fab.package.manifest import file_records, layout_keys
     from fab.package.order import ORDER_FILES, write_mask_order
+    from fab.package.plate_choice import plate_warnings
     from layouts.gds import build_library, write_gds, write_oasis
     from layouts.readback import check_written_gds
 
     design, der, masks, pitch_nm = tile.design, tile.derived, tile.masks, tile.pitch_nm
-    n, n_levels = tile.levels.shape[0], design.fabrication.levels
-    tiles = (der.tiles, der.tiles)
+    n_levels = design.fabrication.levels
+    tiles = choice.plate.tiles
     aperture_nm = round(design.fabrication.aperture * 1e9)
     extra = dict(tile.extra)
     bar.set_postfix_str("gds")
     lib, layout = build_library(
         masks, pitch_nm, tiles, design.name, aperture_nm,
         grid_nm=round(design.fabrication.grid * 1e9),
-        feature_nm=round(design.fabrication.feature_size * 1e9),
+        feature_nm=round(design.fabrication.feature_size * 1e9), mode=choice.mode,
+        dies=choice.dies, lane_nm=choice.lane_nm,
     )  # fmt: skip
     write_gds(lib, stage / GDS_NAME)
     try:  # KLayout reads the file back: gdstk truncates it on a full disk without a word
@@ -324,9 +345,10 @@ def _write_package(stage, tile, design_dir, out, oasis, bar, progress, camera=Fa
         raise PackageCheckFailed("; ".join(problems))
     bar.update()
     bar.set_postfix_str("images")
-    half = max(tiles) * n * pitch_nm // 2 + 1
-    aperture_half = max(half, aperture_nm // 2)
-    write_layer_images(stage, masks, tiles, pitch_nm, layout.plate_half_nm, aperture_half)
+    write_layer_images(
+        stage, masks, tiles, pitch_nm, layout.plate_half_nm, layout.frame_half_nm,
+        edge_pixels=layout.plate.edge_pixels,
+    )  # fmt: skip
     bar.update()
     bar.set_postfix_str("tolerance")
     tolerance = _tolerance(tile.levels, n_levels, tile.target, masks, der, design, progress)
@@ -335,6 +357,8 @@ def _write_package(stage, tile, design_dir, out, oasis, bar, progress, camera=Fa
     _write_arrays(stage, tile, design_dir)
     acceptance = tolerance.get("acceptance")
     extra.update(layout_keys(layout, masks, n_levels, der.level_step * 1e9, ORDER_FILES))
+    built = as_built(tile.levels, n_levels, layout.plate, tile.target)
+    extra["as_built"] = as_built_record(built)
     manifest = build_fab_manifest(design, der, layout, masks, acceptance, extra, tile.kernel_size)
     write_mask_order(stage, manifest, tolerance)
     write_fab_manifest(stage / MANIFEST_NAME, manifest)
@@ -349,6 +373,7 @@ def _write_package(stage, tile, design_dir, out, oasis, bar, progress, camera=Fa
         "target_psf": tile.target,
         "simulated_psf": tile.simulated,
         "efficiency": tile.efficiency,
+        "as_built": built,
         "tolerance": tolerance,
         "orientation": ORIENTATION,
         "files": file_records(stage, written),
@@ -360,7 +385,8 @@ def _write_package(stage, tile, design_dir, out, oasis, bar, progress, camera=Fa
     report_files = _report(stage, context)
     bar.update()
     bar.close()
-    return manifest, report_files
+    tile_missed = _goal_warnings(tile.levels, n_levels, tile.target, tile.simulated)
+    return manifest, report_files, plate_warnings(choice, built, tile_missed)
 
 
 def _write_arrays(stage, tile, design_dir):

@@ -33,7 +33,10 @@ def preview_factor(pitch_nm, plate_half_nm, max_px=PREVIEW_MAX_PX):
     return max(1, math.ceil(2 * plate_half_nm / pitch_nm / max_px))
 
 
-def plate_preview(bitmap, tiles, pitch_nm, plate_half_nm, aperture_half_nm, max_px=PREVIEW_MAX_PX):
+def plate_preview(
+    bitmap, tiles, pitch_nm, plate_half_nm, aperture_half_nm, max_px=PREVIEW_MAX_PX,
+    edge_pixels=(0, 0, 0, 0),
+):  # fmt: skip
     """Return a downsampled picture of the whole plate for one mask.
 
     Parameters
@@ -48,6 +51,9 @@ def plate_preview(bitmap, tiles, pitch_nm, plate_half_nm, aperture_half_nm, max_
         Half sizes of the plate and of the clear aperture (nm), centred on the array.
     max_px : int
         Upper bound of the preview's width and height.
+    edge_pixels : (int, int, int, int)
+        Pixel columns left and right, rows below and above the whole-tile array that
+        continue the periodic pattern (the clipped edge tiles).
 
     Returns
     -------
@@ -57,16 +63,19 @@ def plate_preview(bitmap, tiles, pitch_nm, plate_half_nm, aperture_half_nm, max_
     b = np.asarray(bitmap, dtype=bool)
     n = b.shape[0]
     nx, ny = tiles
+    e_left, e_right, e_bottom, e_top = (int(v) for v in edge_pixels)
     f = preview_factor(pitch_nm, plate_half_nm, max_px)
     s = f * pitch_nm  # preview pixel size, nm
     # The whole tiled plate can be tens of gigapixels at a fine pitch; count the etched
     # pixels of each f x f block from the tile alone: rows @ tile @ cols.T, exact integers.
-    small = _block_counts(ny * n, n, f) @ b.astype(float) @ _block_counts(nx * n, n, f).T / f**2
+    rows = _block_counts(-e_top, ny * n + e_bottom, n, f)
+    small = rows @ b.astype(float) @ _block_counts(-e_left, nx * n + e_right, n, f).T / f**2
     size = math.ceil(2 * plate_half_nm / s)
     centre = size / 2
     # Row 0 of the array is its top edge: place it at y = +ny * n * p / 2.
-    top = round(centre - ny * n * pitch_nm / 2 / s)
-    left = round(centre - nx * n * pitch_nm / 2 / s)
+    # blocks stay on the whole-tile array's grid; the edge tiles add blocks before it
+    top = round(centre - ny * n * pitch_nm / 2 / s) + (-e_top) // f
+    left = round(centre - nx * n * pitch_nm / 2 / s) + (-e_left) // f
     h, w = min(small.shape[0], size - top), min(small.shape[1], size - left)
     if top < 0 or left < 0 or h <= 0 or w <= 0:
         raise ValueError("the tiled array does not fit inside the plate")
@@ -83,11 +92,14 @@ def plate_preview(bitmap, tiles, pitch_nm, plate_half_nm, aperture_half_nm, max_
     return img[:, :, None]
 
 
-def _block_counts(length, n, f):
-    """Return (ceil(length / f), n): how often tile index k falls in block i of the tiled line."""
-    r = np.arange(length)
-    blocks = -(-length // f)
-    return np.bincount(r // f * n + r % n, minlength=blocks * n).reshape(blocks, n).astype(float)
+def _block_counts(start, stop, n, f):
+    """Return (blocks, n): how often tile index k falls in block i of the line of pixels
+    start <= r < stop (pixel r shows tile index r mod n), the blocks of f pixels counted
+    from the block that holds pixel ``start`` on the grid of pixel 0's."""
+    r = np.arange(start, stop)
+    blocks = (stop - 1) // f - start // f + 1
+    i = (r // f - start // f) * n + r % n
+    return np.bincount(i, minlength=blocks * n).reshape(blocks, n).astype(float)
 
 
 def write_image(path, image, pixel_nm=None, description=None):
@@ -143,7 +155,9 @@ def layer_image_names(mask_name):
     return f"{mask_name}_tile.tif", f"{mask_name}_plate.png"
 
 
-def write_layer_images(out_dir, masks, tiles, pitch_nm, plate_half_nm, aperture_half_nm):
+def write_layer_images(
+    out_dir, masks, tiles, pitch_nm, plate_half_nm, aperture_half_nm, edge_pixels=(0, 0, 0, 0)
+):
     """Write the tile TIFF and the plate preview PNG of every mask; return the file names."""
     out_dir = Path(out_dir)
     names = []
@@ -151,7 +165,9 @@ def write_layer_images(out_dir, masks, tiles, pitch_nm, plate_half_nm, aperture_
         tif, png = layer_image_names(mk.name)
         tile = tile_image(mk.bitmap)
         write_image(out_dir / tif, tile, pitch_nm, tile_image_description(mk.name))
-        preview = plate_preview(mk.bitmap, tiles, pitch_nm, plate_half_nm, aperture_half_nm)
+        preview = plate_preview(
+            mk.bitmap, tiles, pitch_nm, plate_half_nm, aperture_half_nm, edge_pixels=edge_pixels
+        )
         f = preview_factor(pitch_nm, plate_half_nm)
         write_image(out_dir / png, preview, f * pitch_nm, plate_preview_description(mk.name))
         names += [tif, png]

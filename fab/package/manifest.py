@@ -22,8 +22,8 @@ def layout_keys(layout, masks, n_levels, level_step_nm, order_files=()):
 
     The GDS units, the write grid, the plate's outer size, the marks' feature size
     and vernier, each etch-depth pad (position, size, masks, depth and level), each
-    CD structure, the die layout (``layout.dies`` and ``layout.die_pitch_nm`` when
-    the layout places several plates, else one), and the order sheet's files.
+    CD structure, the die layout (``layout.dies``, a ``layouts.plate_plan.DieLayout``:
+    dies, pitch, lane, plate and substrate size), and the order sheet's files.
 
     Parameters
     ----------
@@ -39,8 +39,7 @@ def layout_keys(layout, masks, n_levels, level_step_nm, order_files=()):
     rules = layout.mark_rules
     name = {mk.gds_layer: mk.name for mk in masks}
     plate = 2 * int(layout.plate_half_nm)
-    dies = tuple(getattr(layout, "dies", (1, 1)))
-    die_pitch = tuple(getattr(layout, "die_pitch_nm", (plate, plate)))
+    dies = getattr(layout, "dies", None)  # layouts.plate_plan.DieLayout
     return {
         "gds_unit_m": GDS_UNIT,
         "gds_precision_m": GDS_PRECISION,
@@ -78,6 +77,6 @@ def layout_keys(layout, masks, n_levels, level_step_nm, order_files=()):
             }
             for cd in layout.cd_structures
         ],
-        "dies": {"nx": int(dies[0]), "ny": int(dies[1]), "pitch_nm": [int(v) for v in die_pitch]},
+        "dies": dies.as_dict() if dies else {"nx": 1, "ny": 1, "pitch_nm": [plate, plate]},
         "mask_order": list(order_files),
     }

@@ -52,9 +52,24 @@ HEADLINES = (
         "goals met as a plate of square pixels (their sinc^2 envelope)",
         None,
     ),
+    (
+        "retrieve",
+        RETRIEVAL_JSON,
+        ("as_built", "goals_met"),
+        "goals met by the plate as built (the pattern over the whole clear aperture)",
+        None,
+    ),
     ("fab", MANIFEST_NAME, ("level_step_nm",), "level step (nm)", None),
     ("fab", MANIFEST_NAME, ("pixel_pitch_nm",), "mask pixel pitch (nm)", None),
-    ("fab", MANIFEST_NAME, ("tiles",), "tiles across the aperture", None),
+    ("fab", MANIFEST_NAME, ("tiles",), "whole tiles across the aperture", None),
+    (
+        "fab",
+        MANIFEST_NAME,
+        ("plate", "patterned_fraction"),
+        "patterned fraction of the aperture",
+        None,
+    ),
+    ("fab", MANIFEST_NAME, ("as_built", "goals_met"), "goals met by the plate as made", None),
 )
 
 
@@ -171,7 +186,7 @@ def _headline_rows(run_dir, stages):
         if value is None:
             continue
         if isinstance(value, bool):
-            shown = "yes" if value else f"NO: see retrieve/{RETRIEVAL_JSON}"
+            shown = "yes" if value else f"NO: see {stage}/{name}"
         elif isinstance(value, float):
             shown = f"{value:.6g}" if goal is None else value_and_limit(value, goal, 6)[0]
         else:

@@ -1,0 +1,142 @@
+"""The aperture scene: the whole tile and the clipped edge tiles, each stored once, instanced.
+
+The plate's pattern fills its clear aperture (:mod:`layouts.plate_plan`): whole tiles on
+the [nx, ny] lattice, and around them at most eight clipped edge pieces (the tile's
+pixels in a window, placed where the periodic pattern continues), as the manifest's
+``plate.edge_pixels`` say. Each piece is its own closed relief body (the same level
+map window, the same substrate thickness), stored once in the scene and placed by
+translation: GLB node instances of one mesh per piece, 3MF components of one object
+per piece. Units are mm; lower-left of the whole-tile array at ``origin_mm``.
+"""
+
+import io
+import zipfile
+
+import numpy as np
+
+from fab.mesh import relief as mesh
+from layouts.plate_plan import PlatePattern, edge_pieces
+
+_ZIP_DATE = (1980, 1, 1, 0, 0, 0)
+
+
+def aperture_parts(relief, tiles, origin_mm, edge_pixels):
+    """Return the scene's parts: [(name, Relief, offsets (M, 3) mm)], the whole tile first.
+
+    Parameters
+    ----------
+    relief : fab.mesh.relief.Relief
+        The tile.
+    tiles : (int, int)
+        Whole tiles along x and y.
+    origin_mm : (float, float)
+        Lower-left corner of the whole-tile array.
+    edge_pixels : (int, int, int, int)
+        Pixel columns left and right, rows below and above the array (the clipped tiles).
+    """
+    parts = [("tile", relief, mesh.instance_offsets_mm(relief, tiles, origin_mm))]
+    n = relief.levels.shape[0]
+    p_mm = relief.pitch * 1e3
+    # the plan in pixel units (pitch 1, origin 0): positions are then pixel counts
+    plan = PlatePattern(n, 1, tuple(tiles), (0, 0), tuple(edge_pixels), 0, 0)
+    for piece in edge_pieces(plan):
+        (c0, c1), (r0, r1) = piece.columns, piece.rows
+        window = mesh.Relief(
+            relief.levels[r0:r1, c0:c1], relief.n_levels, relief.step, relief.pitch,
+            relief.thickness,
+        )  # fmt: skip
+        # the window's lower-left pixel corner within its virtual tile
+        offsets = [
+            (origin_mm[0] + (x + c0) * p_mm, origin_mm[1] + (y + n - r1) * p_mm, 0.0)
+            for x, y in piece.placements(n)
+        ]
+        parts.append((piece.suffix, window, np.array(offsets, np.float64)))
+    return parts
+
+
+def part_meshes(parts, tile_mesh):
+    """Return [(name, vertices, faces, offsets)]: the whole tile's given mesh, the rest built."""
+    out = []
+    for i, (name, relief, offsets) in enumerate(parts):
+        v, f = tile_mesh if i == 0 else mesh.tile_mesh(relief)
+        out.append((name, v, f, offsets))
+    return out
+
+
+def scene_glb_bytes(meshes):
+    """Return a binary glTF: each part's mesh once, a node per placement (mm)."""
+    import trimesh
+
+    scene = trimesh.Scene()
+    for name, v, f, offsets in meshes:
+        geometry = trimesh.Trimesh(v, f, process=False)
+        for k, off in enumerate(offsets):
+            m = np.eye(4)
+            m[:3, 3] = off
+            if k == 0:
+                scene.add_geometry(geometry, geom_name=name, node_name=f"{name}_0", transform=m)
+            else:
+                scene.graph.update(frame_to=f"{name}_{k}", matrix=m, geometry=name)
+    return scene.export(file_type="glb")
+
+
+def scene_3mf_bytes(meshes):
+    """Return a 3MF package (mm): one object per part, one assembly of translated components."""
+    objects, comps = [], []
+    for i, (name, v, f, offsets) in enumerate(meshes, start=1):
+        vert = "".join(
+            f'<vertex x="{x:.9f}" y="{y:.9f}" z="{z:.9f}"/>'
+            for x, y, z in np.asarray(v, np.float64).tolist()
+        )
+        tri = "".join(
+            f'<triangle v1="{a}" v2="{b}" v3="{c}"/>' for a, b, c in np.asarray(f).tolist()
+        )
+        objects.append(
+            f'<object id="{i}" name="{name}" type="model"><mesh><vertices>{vert}</vertices>'
+            f"<triangles>{tri}</triangles></mesh></object>"
+        )
+        comps += [
+            f'<component objectid="{i}" transform="1 0 0 0 1 0 0 0 1 {x:.9f} {y:.9f} {z:.9f}"/>'
+            for x, y, z in np.asarray(offsets, np.float64).tolist()
+        ]
+    top = len(meshes) + 1
+    objects.append(
+        f'<object id="{top}" name="aperture" type="model"><components>{"".join(comps)}'
+        "</components></object>"
+    )
+    model = (
+        '<?xml version="1.0" encoding="UTF-8"?>\n'
+        '<model unit="millimeter" xml:lang="en-US" '
+        'xmlns="http://schemas.microsoft.com/3dmanufacturing/core/2015/02">'
+        f'<resources>{"".join(objects)}</resources><build><item objectid="{top}"/></build>'
+        "</model>\n"
+    )
+    content_types = (
+        '<?xml version="1.0" encoding="UTF-8"?>\n'
+        '<Types xmlns="http://schemas.openxmlformats.org/package/2006/content-types">'
+        '<Default Extension="rels" '
+        'ContentType="application/vnd.openxmlformats-package.relationships+xml"/>'
+        '<Default Extension="model" '
+        'ContentType="application/vnd.ms-package.3dmanufacturing-3dmodel+xml"/></Types>\n'
+    )
+    rels = (
+        '<?xml version="1.0" encoding="UTF-8"?>\n'
+        '<Relationships xmlns="http://schemas.openxmlformats.org/package/2006/relationships">'
+        '<Relationship Target="/3D/3dmodel.model" Id="rel0" '
+        'Type="http://schemas.microsoft.com/3dmanufacturing/2013/01/3dmodel"/>'
+        "</Relationships>\n"
+    )
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as z:
+        for name, text in (
+            ("[Content_Types].xml", content_types),
+            ("_rels/.rels", rels),
+            ("3D/3dmodel.model", model),
+        ):
+            info = zipfile.ZipInfo(name, date_time=_ZIP_DATE)
+            info.compress_type = zipfile.ZIP_DEFLATED
+            z.writestr(info, text.encode("utf-8"), compresslevel=6)
+    return buf.getvalue()
+
+
+SCENE_ENCODERS = {"glb": scene_glb_bytes, "3mf": scene_3mf_bytes}
