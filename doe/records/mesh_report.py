@@ -46,7 +46,9 @@ class MeshReport:
         "analytic_volume_mm3"); None when none was asked for.
     step : Mapping or None
         The STEP solid's check ("solids", "closed", "volume_mm3", "faces",
-        "volume_rel_err", "ok", ...); None when STEP was not written.
+        "volume_rel_err", "ok", ...; with edge pieces also "edge": "solids",
+        "volume_rel_err_max", "ok", and "ok" then covers them too); None when STEP
+        was not written.
     units : str
     convention : str
     """

@@ -55,11 +55,13 @@ def _mesh(args):
         thickness_mm=args.thickness_mm,
         force=args.force,
     )
-    tile = result.report.tile
+    tile, aperture = result.report.tile, result.report.aperture
     timing = ", ".join(f"{k} {v:.1f} s" for k, v in result.seconds.items())
+    edges = aperture.get("edge_instances", 0)
+    edges = f" + {edges} edge pieces (aperture_edge.*)" if edges else ""
     print(
         f"doefab mesh: {tile['triangles']:,} triangles per tile, "
-        f"{result.report.aperture['instances']} instances, "
+        f"{aperture['instances']} instances{edges}, "
         f"volume rel. err {tile['volume_rel_err']:.1e}; {timing}; wrote {args.out}"
     )
     if result.step_ok is False:
