@@ -6,6 +6,8 @@ Reads FAB_DIR/fab_manifest.json and its levels file; writes into --out:
 - ``aperture.{glb,3mf,step}``: the tile stored once and instanced on the
   tiles [nx, ny] lattice, pitch N p, lower-left tile at the manifest's
   ``array_origin_nm`` (converted to mm; (0, 0) when absent);
+- ``aperture_edge.{glb,3mf,step}`` when the plate has edge pixels: the clipped
+  edge tiles that fill the clear aperture, in the same coordinates;
 - ``crop_CxC.{ply,glb,3mf,stl}`` with ``--crop C``: one merged body of C x C
   tiles, lower-left at the same origin (refused when too large to build);
 - ``preview.png`` and ``mesh_report.json``.
