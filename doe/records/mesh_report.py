@@ -16,7 +16,10 @@ from doe.infra.files import previous_files, read_json, write_json
 MESH_REPORT_NAME = "mesh_report.json"
 UNITS = "mm"
 CONVENTION = "z up, back face z=0, row 0 of levels at the largest y (CONVENTIONS.md)"
-APERTURE_NOTE = "lower-left tile at the manifest's array_origin_nm"
+APERTURE_NOTE = (
+    "lower-left tile at the manifest's array_origin_nm; the clipped edge tiles in the "
+    "edge scene, same coordinates"
+)
 
 
 @dataclass(frozen=True)
@@ -32,8 +35,10 @@ class MeshReport:
         pinched corners, fab.mesh.chamfer).
     aperture : Mapping
         The instanced aperture: "tiles" [nx, ny], "instances", "origin_mm",
-        "pitch_mm", "note", and the clipped edge tiles that fill the clear aperture:
-        "edge_pieces" (distinct bodies) and "edge_instances" (their placements).
+        "pitch_mm", "note" (the whole tiles: ``aperture.*``), and the clipped edge
+        tiles that fill the clear aperture around them: "edge_pieces" (distinct
+        bodies), "edge_instances" (their placements) and "edge_scene" (the files
+        that hold them, ``aperture_edge.*``; empty when there are none).
     files : Mapping of str to int
         Every file written but the report, with its size in bytes.
     crop : Mapping or None
@@ -41,7 +46,9 @@ class MeshReport:
         "analytic_volume_mm3"); None when none was asked for.
     step : Mapping or None
         The STEP solid's check ("solids", "closed", "volume_mm3", "faces",
-        "volume_rel_err", "ok", ...); None when STEP was not written.
+        "volume_rel_err", "ok", ...; with edge pieces also "edge": "solids",
+        "volume_rel_err_max", "ok", and "ok" then covers them too); None when STEP
+        was not written.
     units : str
     convention : str
     """

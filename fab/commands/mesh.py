@@ -6,6 +6,8 @@ Reads FAB_DIR/fab_manifest.json and its levels file; writes into --out:
 - ``aperture.{glb,3mf,step}``: the tile stored once and instanced on the
   tiles [nx, ny] lattice, pitch N p, lower-left tile at the manifest's
   ``array_origin_nm`` (converted to mm; (0, 0) when absent);
+- ``aperture_edge.{glb,3mf,step}`` when the plate has edge pixels: the clipped
+  edge tiles that fill the clear aperture, in the same coordinates;
 - ``crop_CxC.{ply,glb,3mf,stl}`` with ``--crop C``: one merged body of C x C
   tiles, lower-left at the same origin (refused when too large to build);
 - ``preview.png`` and ``mesh_report.json``.
@@ -55,11 +57,13 @@ def _mesh(args):
         thickness_mm=args.thickness_mm,
         force=args.force,
     )
-    tile = result.report.tile
+    tile, aperture = result.report.tile, result.report.aperture
     timing = ", ".join(f"{k} {v:.1f} s" for k, v in result.seconds.items())
+    edges = aperture.get("edge_instances", 0)
+    edges = f" + {edges} edge pieces (aperture_edge.*)" if edges else ""
     print(
         f"doefab mesh: {tile['triangles']:,} triangles per tile, "
-        f"{result.report.aperture['instances']} instances, "
+        f"{aperture['instances']} instances{edges}, "
         f"volume rel. err {tile['volume_rel_err']:.1e}; {timing}; wrote {args.out}"
     )
     if result.step_ok is False:

@@ -1,12 +1,16 @@
-"""The aperture scene: the whole tile and the clipped edge tiles, each stored once, instanced.
+"""The aperture's edge scene: the clipped edge tiles, each stored once, instanced.
 
 The plate's pattern fills its clear aperture (:mod:`layouts.plate_plan`): whole tiles on
 the [nx, ny] lattice, and around them at most eight clipped edge pieces (the tile's
 pixels in a window, placed where the periodic pattern continues), as the manifest's
-``plate.edge_pixels`` say. Each piece is its own closed relief body (the same level
-map window, the same substrate thickness), stored once in the scene and placed by
-translation: GLB node instances of one mesh per piece, 3MF components of one object
-per piece. Units are mm; lower-left of the whole-tile array at ``origin_mm``.
+``plate.edge_pixels`` say. The whole tiles stay in ``aperture.{glb,3mf}``: one tile
+geometry instanced on the lattice, the contract that an independent checker holds a
+scene to. The edge pieces go to their own scene, ``aperture_edge.{glb,3mf}``
+(:data:`EDGE_SCENE`), in the same coordinates, so that loading both shows the filled
+aperture. Each piece is its own closed relief body (the same level map window, the
+same substrate thickness), stored once and placed by translation: GLB node instances
+of one mesh per piece, 3MF components of one object per piece. Units are mm;
+lower-left of the whole-tile array at ``origin_mm``.
 """
 
 import io
@@ -18,6 +22,8 @@ from fab.mesh import relief as mesh
 from layouts.plate_plan import PlatePattern, edge_pieces
 
 _ZIP_DATE = (1980, 1, 1, 0, 0, 0)
+EDGE_SCENE = "aperture_edge"
+"""Stem of the edge pieces' scene files (``aperture_edge.glb``, ``aperture_edge.3mf``)."""
 
 
 def aperture_parts(relief, tiles, origin_mm, edge_pixels):
@@ -54,13 +60,9 @@ def aperture_parts(relief, tiles, origin_mm, edge_pixels):
     return parts
 
 
-def part_meshes(parts, tile_mesh):
-    """Return [(name, vertices, faces, offsets)]: the whole tile's given mesh, the rest built."""
-    out = []
-    for i, (name, relief, offsets) in enumerate(parts):
-        v, f = tile_mesh if i == 0 else mesh.tile_mesh(relief)
-        out.append((name, v, f, offsets))
-    return out
+def part_meshes(parts):
+    """Return [(name, vertices, faces, offsets)]: each part's relief built as a mesh (mm)."""
+    return [(name, *mesh.tile_mesh(relief), offsets) for name, relief, offsets in parts]
 
 
 def scene_glb_bytes(meshes):
@@ -80,10 +82,11 @@ def scene_glb_bytes(meshes):
     return scene.export(file_type="glb")
 
 
-def scene_3mf_bytes(meshes):
-    """Return a 3MF package (mm): one object per part, one assembly of translated components."""
+def scene_3mf_bytes(meshes, name=EDGE_SCENE):
+    """Return a 3MF package (mm): one object per part, one assembly (``name``) of
+    translated components."""
     objects, comps = [], []
-    for i, (name, v, f, offsets) in enumerate(meshes, start=1):
+    for i, (part, v, f, offsets) in enumerate(meshes, start=1):
         vert = "".join(
             f'<vertex x="{x:.9f}" y="{y:.9f}" z="{z:.9f}"/>'
             for x, y, z in np.asarray(v, np.float64).tolist()
@@ -92,7 +95,7 @@ def scene_3mf_bytes(meshes):
             f'<triangle v1="{a}" v2="{b}" v3="{c}"/>' for a, b, c in np.asarray(f).tolist()
         )
         objects.append(
-            f'<object id="{i}" name="{name}" type="model"><mesh><vertices>{vert}</vertices>'
+            f'<object id="{i}" name="{part}" type="model"><mesh><vertices>{vert}</vertices>'
             f"<triangles>{tri}</triangles></mesh></object>"
         )
         comps += [
@@ -101,7 +104,7 @@ def scene_3mf_bytes(meshes):
         ]
     top = len(meshes) + 1
     objects.append(
-        f'<object id="{top}" name="aperture" type="model"><components>{"".join(comps)}'
+        f'<object id="{top}" name="{name}" type="model"><components>{"".join(comps)}'
         "</components></object>"
     )
     model = (
@@ -128,12 +131,12 @@ def scene_3mf_bytes(meshes):
     )
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w") as z:
-        for name, text in (
+        for member, text in (
             ("[Content_Types].xml", content_types),
             ("_rels/.rels", rels),
             ("3D/3dmodel.model", model),
         ):
-            info = zipfile.ZipInfo(name, date_time=_ZIP_DATE)
+            info = zipfile.ZipInfo(member, date_time=_ZIP_DATE)
             info.compress_type = zipfile.ZIP_DEFLATED
             z.writestr(info, text.encode("utf-8"), compresslevel=6)
     return buf.getvalue()

@@ -5,9 +5,10 @@ Reads FAB_DIR/fab_manifest.json and its levels file; writes into ``out``:
 - ``tile.{ply,glb,3mf,stl,step}``: one tile, lower-left corner at the origin;
 - ``aperture.{glb,3mf,step}``: the tile stored once and instanced on the
   tiles [nx, ny] lattice, pitch N p, lower-left tile at the manifest's
-  ``array_origin_nm`` (converted to mm; (0, 0) when absent); in GLB and 3MF
-  also the clipped edge tiles that fill the clear aperture
-  (``fab.mesh.aperture_scene``), each stored once and instanced;
+  ``array_origin_nm`` (converted to mm; (0, 0) when absent);
+- ``aperture_edge.{glb,3mf,step}`` when the plate has edge pixels: the clipped
+  edge tiles that fill the clear aperture around the whole tiles, in the same
+  coordinates (``fab.mesh.aperture_scene``), each stored once and instanced;
 - ``crop_CxC.{ply,glb,3mf,stl}`` with ``crop=C``: one merged body of C x C
   tiles, lower-left at the same origin (refused when too large to build);
 - ``preview.png`` and ``mesh_report.json``.
@@ -34,7 +35,7 @@ from doe.records.mesh_report import (
 )
 from fab.mesh import formats as mesh_io
 from fab.mesh import relief as mesh
-from fab.mesh.aperture_scene import SCENE_ENCODERS, aperture_parts, part_meshes
+from fab.mesh.aperture_scene import EDGE_SCENE, SCENE_ENCODERS, aperture_parts, part_meshes
 from fab.mesh.chamfer import CHAMFER_LEG, CHAMFER_NOTE
 from fab.mesh.checks import (
     FORMATS,
@@ -190,7 +191,7 @@ def build_meshes(
         check_crop(relief, crop, info["tiles"])
     if "step" in formats:
         check_step_size(relief, Path(fab_dir) / MANIFEST_NAME)
-    names = _file_names(formats, crop)
+    names = _file_names(formats, crop, any(info["edge_pixels"]))
     stale = previous_mesh_files(Path(out) / MESH_REPORT_NAME)
     with staged_output(out, force, names, stale) as stage:
         report, seconds = _write_models(stage, relief, info, formats, crop, progress)
@@ -198,9 +199,10 @@ def build_meshes(
     return MeshResult(Path(out), tuple(formats), files, report, seconds)
 
 
-def _file_names(formats, crop):
-    """Return the names a run with these formats and crop writes."""
+def _file_names(formats, crop, edges):
+    """Return the names a run with these formats and crop writes (``edges``: edge pieces)."""
     names = [f"tile.{f}" for f in formats] + [f"aperture.{f}" for f in formats if f in INSTANCED]
+    names += [f"{EDGE_SCENE}.{f}" for f in formats if edges and f in INSTANCED]
     if crop is not None:
         names += [f"crop_{crop}x{crop}.{f}" for f in formats if f != "step"]
     return [*names, "preview.png", MESH_REPORT_NAME]
@@ -243,12 +245,14 @@ def _write_models(stage, relief, info, formats, crop, progress):
             "note": CHAMFER_NOTE,
         },
     }
-    scene = _edge_scene(relief, info, (vertices, faces))
+    edge_parts = _edge_parts(relief, info)
+    scene = part_meshes(edge_parts) if set(formats) & set(SCENE_ENCODERS) else []
     aperture = {
         "tiles": tiles,
         "instances": len(offsets),
-        "edge_pieces": len(scene) - 1 if scene else 0,
-        "edge_instances": sum(len(part[3]) for part in scene[1:]) if scene else 0,
+        "edge_pieces": len(edge_parts),
+        "edge_instances": sum(len(part[2]) for part in edge_parts),
+        "edge_scene": [f"{EDGE_SCENE}.{f}" for f in formats if edge_parts and f in INSTANCED],
         "origin_mm": origin,
         "pitch_mm": n_rows * relief.pitch * 1e3,
         "note": APERTURE_NOTE,
@@ -260,8 +264,9 @@ def _write_models(stage, relief, info, formats, crop, progress):
         encode = _ENCODERS[fmt]
         atomic_write_bytes(stage / f"tile.{fmt}", encode(vertices, faces))
         if fmt in INSTANCED:
-            data = SCENE_ENCODERS[fmt](scene) if scene else encode(vertices, faces, offsets)
-            atomic_write_bytes(stage / f"aperture.{fmt}", data)
+            atomic_write_bytes(stage / f"aperture.{fmt}", encode(vertices, faces, offsets))
+        if scene and fmt in SCENE_ENCODERS:
+            atomic_write_bytes(stage / f"{EDGE_SCENE}.{fmt}", SCENE_ENCODERS[fmt](scene))
         seconds[fmt] = time.perf_counter() - t0
     crop_figures = None
     if crop is not None:
@@ -269,6 +274,8 @@ def _write_models(stage, relief, info, formats, crop, progress):
     step = None
     if "step" in formats:
         step = _write_step(relief, surface, offsets, stage, seconds)
+        if edge_parts:
+            step = _write_edge_step(edge_parts, step, stage, seconds)
     atomic_write_bytes(stage / "preview.png", mesh_io.preview_png_bytes(relief))
     files = {
         p.name: p.stat().st_size for p in sorted(stage.iterdir()) if p.name != MESH_REPORT_NAME
@@ -278,12 +285,12 @@ def _write_models(stage, relief, info, formats, crop, progress):
     return report, seconds
 
 
-def _edge_scene(relief, info, tile_mesh):
-    """The aperture scene's parts with the clipped edge tiles, or [] when there are none."""
-    if not any(info.get("edge_pixels", ())):
+def _edge_parts(relief, info):
+    """The edge scene's parts [(name, Relief, offsets)], or [] when there are none."""
+    if not any(info["edge_pixels"]):
         return []
     parts = aperture_parts(relief, info["tiles"], info["origin_mm"], info["edge_pixels"])
-    return part_meshes(parts, tile_mesh)
+    return parts[1:]  # parts[0]: the whole tile, in aperture.*
 
 
 _ENCODERS = {
@@ -331,3 +338,22 @@ def _write_step(relief, surface, offsets, stage, seconds):
     rel = check["volume_mm3"] / analytic - 1
     ok = check["solids"] == 1 and check["closed"] and abs(rel) <= 1e-6
     return dict(check, faces=len(solid.faces()), volume_rel_err=rel, ok=ok)
+
+
+def _write_edge_step(edge_parts, tile_check, stage, seconds):
+    """Write aperture_edge.step; return the STEP check with the edge solids' added."""
+    from fab.mesh import step  # build123d: only when STEP is asked for
+
+    t0 = time.perf_counter()
+    solids = [(name, step.tile_solid(part), offsets) for name, part, offsets in edge_parts]
+    data = step.scene_step_bytes(solids, EDGE_SCENE)
+    atomic_write_bytes(stage / f"{EDGE_SCENE}.step", data)
+    seconds["step_edge"] = time.perf_counter() - t0
+    checks = [step.check_solid(solid) for _, solid, _ in solids]
+    errors = [
+        c["volume_mm3"] / (part.analytic_volume() * 1e9) - 1
+        for c, (_, part, _) in zip(checks, edge_parts, strict=True)
+    ]
+    ok = all(c["solids"] == 1 and c["closed"] for c in checks) and max(map(abs, errors)) <= 1e-6
+    edge = {"solids": len(solids), "volume_rel_err_max": max(errors, key=abs), "ok": ok}
+    return dict(tile_check, edge=edge, ok=bool(tile_check["ok"] and ok))

@@ -99,20 +99,45 @@ def step_bytes(solid, offsets_mm=None, name="tile"):
     name : str
         Product name of the tile.
     """
-    from OCP.APIHeaderSection import APIHeaderSection_MakeHeader
+    if offsets_mm is None:
+        doc, tool = _new_document()
+        _add_solid(tool, solid, name)
+        return _write_document(doc, name)
+    return scene_step_bytes([(name, solid, offsets_mm)], "aperture")
+
+
+def scene_step_bytes(parts, name):
+    """Return a STEP (AP214, mm) assembly ``name`` of several solids, each stored once.
+
+    ``parts``: [(part name, build123d.Solid in mm, offsets (M, 3) mm)]; each offset
+    places one located instance of its part (translation only). For small solids (the
+    clipped edge tiles): OCCT's writer time grows with instances x solid size.
+    """
     from OCP.gp import gp_Trsf, gp_Vec
-    from OCP.IFSelect import IFSelect_ReturnStatus
-    from OCP.Interface import Interface_Static
-    from OCP.Message import Message, Message_Gravity
-    from OCP.STEPCAFControl import STEPCAFControl_Controller, STEPCAFControl_Writer
-    from OCP.STEPControl import STEPControl_Controller, STEPControl_StepModelType
-    from OCP.TCollection import TCollection_ExtendedString, TCollection_HAsciiString
+    from OCP.TCollection import TCollection_ExtendedString
     from OCP.TDataStd import TDataStd_Name
-    from OCP.TDocStd import TDocStd_Document
     from OCP.TopLoc import TopLoc_Location
+
+    doc, tool = _new_document()
+    labels = [_add_solid(tool, solid, part) for part, solid, _ in parts]
+    assembly = tool.NewShape()
+    TDataStd_Name.Set_s(assembly, TCollection_ExtendedString(name))
+    for label, (part, _, offsets) in zip(labels, parts, strict=True):
+        for n, (x, y, z) in enumerate(np.asarray(offsets, np.float64).tolist()):
+            trsf = gp_Trsf()
+            trsf.SetTranslation(gp_Vec(x, y, z))
+            comp = tool.AddComponent(assembly, label, TopLoc_Location(trsf))
+            TDataStd_Name.Set_s(comp, TCollection_ExtendedString(f"{part}_{n}"))
+    tool.UpdateAssemblies()
+    return _write_document(doc, name)
+
+
+def _new_document():
+    """Return (an XCAF document in mm, its shape tool)."""
+    from OCP.TCollection import TCollection_ExtendedString
+    from OCP.TDocStd import TDocStd_Document
     from OCP.XCAFApp import XCAFApp_Application
     from OCP.XCAFDoc import XCAFDoc_DocumentTool
-    from OCP.XSControl import XSControl_WorkSession
 
     doc = TDocStd_Document(TCollection_ExtendedString("XmlOcaf"))
     app = XCAFApp_Application.GetApplication_s()
@@ -121,17 +146,29 @@ def step_bytes(solid, offsets_mm=None, name="tile"):
     XCAFDoc_DocumentTool.SetLengthUnit_s(doc, 1e-3)  # document unit: mm
     tool = XCAFDoc_DocumentTool.ShapeTool_s(doc.Main())
     tool.SetAutoNaming_s(False)
-    tile = tool.AddShape(solid.wrapped, False)
-    TDataStd_Name.Set_s(tile, TCollection_ExtendedString(name))
-    if offsets_mm is not None:
-        assembly = tool.NewShape()
-        TDataStd_Name.Set_s(assembly, TCollection_ExtendedString("aperture"))
-        for n, (x, y, z) in enumerate(np.asarray(offsets_mm, np.float64).tolist()):
-            trsf = gp_Trsf()
-            trsf.SetTranslation(gp_Vec(x, y, z))
-            comp = tool.AddComponent(assembly, tile, TopLoc_Location(trsf))
-            TDataStd_Name.Set_s(comp, TCollection_ExtendedString(f"{name}_{n}"))
-        tool.UpdateAssemblies()
+    return doc, tool
+
+
+def _add_solid(tool, solid, name):
+    """Add ``solid`` to the document as a named shape; return its label."""
+    from OCP.TCollection import TCollection_ExtendedString
+    from OCP.TDataStd import TDataStd_Name
+
+    label = tool.AddShape(solid.wrapped, False)
+    TDataStd_Name.Set_s(label, TCollection_ExtendedString(name))
+    return label
+
+
+def _write_document(doc, name):
+    """Return the STEP bytes of an XCAF document (header ``name``, pinned timestamp)."""
+    from OCP.APIHeaderSection import APIHeaderSection_MakeHeader
+    from OCP.IFSelect import IFSelect_ReturnStatus
+    from OCP.Interface import Interface_Static
+    from OCP.Message import Message, Message_Gravity
+    from OCP.STEPCAFControl import STEPCAFControl_Controller, STEPCAFControl_Writer
+    from OCP.STEPControl import STEPControl_Controller, STEPControl_StepModelType
+    from OCP.TCollection import TCollection_HAsciiString
+    from OCP.XSControl import XSControl_WorkSession
 
     for printer in Message.DefaultMessenger_s().Printers():
         printer.SetTraceLevel(Message_Gravity.Message_Fail)
@@ -155,7 +192,7 @@ def step_bytes(solid, offsets_mm=None, name="tile"):
     if not header.IsDone():
         header = APIHeaderSection_MakeHeader(0)
         header.Apply(writer.Writer().Model())
-    header.SetName(TCollection_HAsciiString(name if offsets_mm is None else "aperture"))
+    header.SetName(TCollection_HAsciiString(name))
     header.SetTimeStamp(TCollection_HAsciiString(STEP_TIMESTAMP))
     header.SetOriginatingSystem(TCollection_HAsciiString("doefab (build123d/OCCT)"))
     Interface_Static.SetIVal_s("write.surfacecurve.mode", 0)  # no pcurves: planar faces only

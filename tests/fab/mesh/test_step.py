@@ -144,7 +144,7 @@ def test_step_assembly_transforms_map_the_tile_origin_onto_each_offset(route):
     assert np.allclose(sorted(placed), sorted(offsets.tolist()), rtol=0, atol=1e-12)
 
 
-def write_fab_dir(path, levels):
+def write_fab_dir(path, levels, **extra):
     path.mkdir(parents=True)
     np.save(path / "levels.npy", levels)
     manifest = {
@@ -156,6 +156,7 @@ def write_fab_dir(path, levels):
         "array_origin_nm": [0, 0],
         "levels_file": "levels.npy",
         "substrate_thickness_mm": THICK * 1e3,
+        **extra,
     }
     (path / "fab_manifest.json").write_text(json.dumps(manifest))
     return path
@@ -182,6 +183,41 @@ def test_cli_step_writes_checked_solid_and_assembly(tmp_path):
     )
     t = 6 * PITCH * 1e3
     assert lows == [(0.0, 0.0), (0.0, round(t, 6)), (round(t, 6), 0.0), (round(t, 6), round(t, 6))]
+
+
+def test_cli_step_edge_pieces_and_tiles_cover_the_filled_aperture(tmp_path):
+    # 2 x 2 tiles of 6 pixels, and 1 / 2 / 2 / 1 pixel columns and rows of the periodic
+    # pattern left / right / below / above them: the clipped edge tiles
+    n = 6
+    relief = relief_of(n, seed=8)
+    edges = {"left": 1, "right": 2, "bottom": 2, "top": 1}
+    fab = write_fab_dir(tmp_path / "fab", relief.levels, plate={"edge_pixels": edges})
+    out = tmp_path / "out"
+    assert main(["mesh", str(fab), "--out", str(out), "--formats", "step"]) == 0
+    report = json.loads((out / "mesh_report.json").read_text())
+    assert report["aperture"]["edge_scene"] == ["aperture_edge.step"]
+    assert report["step"]["ok"] and report["step"]["edge"]["solids"] == 8
+    p = PITCH * 1e3
+    solids = step.read_step(out / "aperture.step").solids()
+    edge_solids = step.read_step(out / "aperture_edge.step").solids()
+    assert (
+        len(solids) == 4 and len(edge_solids) == 4 + 4 + 4 == report["aperture"]["edge_instances"]
+    )
+    # the pattern's columns -1 .. 13 and rows -1 .. 13 (row 0: the array's top row)
+    cols, rows = np.arange(-1, 2 * n + 2), np.arange(-1, 2 * n + 2)
+    pattern = relief.levels[np.ix_(rows % n, cols % n)]
+    covered = np.zeros(pattern.shape, int)
+    for solid in [*solids, *edge_solids]:
+        assert step.check_solid(solid)["closed"]
+        box = solid.bounding_box()
+        c0, c1 = round(box.min.X / p) + 1, round(box.max.X / p) + 1
+        r0, r1 = 2 * n - round(box.max.Y / p) + 1, 2 * n - round(box.min.Y / p) + 1
+        covered[r0:r1, c0:c1] += 1
+        window = pattern[r0:r1, c0:c1]
+        assert solid.volume == pytest.approx(
+            exact_volume_mm3(window, L, STEP_M, PITCH, THICK), rel=1e-9
+        )
+    assert (covered == 1).all()  # every pixel of the filled aperture once, no overlap
 
 
 def test_cli_step_with_a_crop_writes_the_crop_in_the_mesh_formats_only(tmp_path):

@@ -127,25 +127,31 @@ def test_dies_are_recorded_for_the_order_sheet(packages):
     assert (single["nx"], single["ny"]) == (1, 1)
 
 
-def test_the_aperture_scene_instances_the_edge_pieces(packages, tmp_path):
+def test_the_aperture_scenes_instance_the_tiles_and_the_edge_pieces(packages, tmp_path):
     root, levels, out = packages
     assert main(["mesh", str(root / "fill"), "--out", str(tmp_path), "--formats", "glb"]) == 0
-    scene = trimesh.load(tmp_path / "aperture.glb")
+    tiles = trimesh.load(tmp_path / "aperture.glb")
+    edge = trimesh.load(tmp_path / "aperture_edge.glb")
     report_ = json.loads((tmp_path / "mesh_report.json").read_text())["aperture"]
-    # 9 whole tiles; 4 strips of 3 and 4 corners
+    # 9 whole tiles (one geometry); 4 strips of 3 and 4 corners beside them
     assert (report_["instances"], report_["edge_pieces"], report_["edge_instances"]) == (9, 8, 16)
-    assert len(scene.graph.nodes_geometry) == 9 + 16
+    assert len(tiles.graph.nodes_geometry) == 9 and len(tiles.geometry) == 1
+    assert len(edge.graph.nodes_geometry) == 16 and len(edge.geometry) == 8
     x0, y0, x1, y1 = (v / 1e6 for v in out["fill"].manifest.fields["plate"]["pattern_extent_nm"])
-    assert np.allclose(scene.bounds[:, :2], [[x0, y0], [x1, y1]], atol=1e-9)
-    # every piece is closed, and the scene's volume is the pattern's, pixel by pixel
+    bounds = np.concatenate([tiles.bounds, edge.bounds])[:, :2]
+    assert np.allclose(
+        [bounds[:, :2].min(0), bounds[:, :2].max(0)], [[x0, y0], [x1, y1]], atol=1e-9
+    )
+    # every piece is closed, and the scenes' volume is the pattern's, pixel by pixel
     man = out["fill"].manifest.fields
     step, p_mm = man["level_step_nm"] * 1e-6, man["pixel_pitch_nm"] * 1e-6
     thickness = man["substrate_thickness_mm"]
     volume = 0.0
-    for node in scene.graph.nodes_geometry:
-        geometry = scene.geometry[scene.graph[node][1]]
-        assert geometry.is_watertight and geometry.is_winding_consistent
-        volume += geometry.volume
+    for scene in (tiles, edge):
+        for node in scene.graph.nodes_geometry:
+            geometry = scene.geometry[scene.graph[node][1]]
+            assert geometry.is_watertight and geometry.is_winding_consistent
+            volume += geometry.volume
     span = np.arange(-4, 49) % N
     tops = thickness - (8 - 1 - levels[np.ix_(span, span)]) * step
     assert volume == pytest.approx(tops.sum() * p_mm**2, rel=1e-6)  # GLB: float32
