@@ -29,7 +29,8 @@ class CaptureRecord:
         The camera and lens: ``pixel_pitch_um``, ``bits``, ``peak_fraction``,
         ``full_well_e``, ``rotation_deg``, ``focal_length_mm``, ``spot_sigma_um``,
         ``frame_px``, ``orientation``, ``lattice_pitch_um`` (on the camera),
-        ``lattice_pitch_px``, ``seed``.
+        ``lattice_pitch_px``, ``seed``, ``bandwidth_nm``, ``spectrum`` (a file or None),
+        ``f_number`` and ``light``: the spectrum rendered (wavelengths and weights).
     faults : dict
         ``etch_errors`` (by mask name, fractions), ``overlay_um`` (by mask name,
         [dx, dy]), ``conjugate``, ``mirrored``, ``other_design`` (a folder or None).

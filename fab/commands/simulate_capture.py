@@ -37,6 +37,18 @@ def register(sub):
         help="dot sigma on the camera (um; default 0.44 lambda f / D of the test lens)",
     )
     b.add_argument("--frame-px", type=int, help="square frame side (default: window + 8 orders)")
+    b.add_argument(
+        "--bandwidth-nm",
+        type=float,
+        default=0.0,
+        help="FWHM of a Gaussian band-pass at the design wavelength (nm; default 0)",
+    )
+    b.add_argument("--spectrum", help="two-column file (nm, weight): the light instead")
+    b.add_argument(
+        "--f-number",
+        type=float,
+        help="the test lens's stop, f / N (default: the plate's aperture); sets the dots' size",
+    )
     b.add_argument("--orientation", choices=ORIENTATIONS, default="as-designed")
     b.add_argument("--seed", type=int, default=0)
     f = p.add_argument_group("plate faults (fab.plate.model.PlateFaults)")
@@ -68,6 +80,7 @@ def _simulate(args):
     for flag in ("pixel_pitch_um", "peak_fraction", "full_well_e", "focal_length_mm"):
         flags.positive("--" + flag.replace("_", "-"), getattr(args, flag))
     flags.positive("--spot-sigma-um", args.spot_sigma_um)
+    flags.positive("--f-number", args.f_number)
     flags.positive("--frame-px", args.frame_px)
     flags.seed("--seed", args.seed)
     bench = Bench(
@@ -81,6 +94,9 @@ def _simulate(args):
         frame_px=args.frame_px,
         orientation=args.orientation,
         seed=args.seed,
+        bandwidth_nm=args.bandwidth_nm,
+        spectrum=args.spectrum,
+        f_number=args.f_number,
     )
     faults = Faults(
         etch_errors={m: float(v) for m, v in _pairs("--etch-error", args.etch_error, 1)},

@@ -40,6 +40,19 @@ def register(sub):
         help="how the camera sees the design (default as-designed: camera row "
         "index grows downwards = -y, columns = +x, as the PSF); never guessed",
     )
+    p.add_argument(
+        "--bandwidth-nm",
+        type=float,
+        default=0.0,
+        help="the bench's light: FWHM of a Gaussian band-pass at the design wavelength "
+        "(nm; default 0); the capture is compared with the design's order powers over it",
+    )
+    p.add_argument("--spectrum", help="the bench's light as a two-column file (nm, weight)")
+    p.add_argument(
+        "--f-number",
+        type=float,
+        help="the test lens's stop f / N (recorded; it sizes the dots, not their powers)",
+    )
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--force", action="store_true", help="overwrite existing output files")
     p.set_defaults(func=_verify)
@@ -58,6 +71,9 @@ def _verify(args):
 
     flags.positive("--pixel-pitch-um", args.pixel_pitch_um)
     flags.positive("--lattice-pitch-um", args.lattice_pitch_um)
+    flags.positive("--f-number", args.f_number)
+    bench = {"bandwidth_nm": args.bandwidth_nm, "spectrum": args.spectrum}
+    bench["f_number"] = args.f_number
     result = verify_plate(
         args.design_dir,
         args.capture,
@@ -65,6 +81,7 @@ def _verify(args):
         pixel_pitch_um=args.pixel_pitch_um,
         lattice_pitch_um=args.lattice_pitch_um,
         orientation=args.orientation,
+        bench=bench,
     )
     for hint in result.hints:
         print(f"doefab verify: {hint}", file=sys.stderr)

@@ -30,9 +30,9 @@ from doe.fraunhofer import (
     level_phase,
     order_amplitudes,
     rmse,
-    simulate_levels,
 )
 from fab.plate.budget import verify_thresholds
+from fab.verify.bench_band import reference_order_power, reference_window
 from fab.verify.diagnosis import (
     DECISIVE_CHI2,
     OTHER_DESIGN_MAX,
@@ -177,7 +177,7 @@ def _searches_by_orientation(grid, levels, n_levels, kernel_size):
     return searches
 
 
-def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
+def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds, band=None):
     """Measure the PSF in a registered order grid, compare it with the design and diagnose.
 
     A plate that a reflection of the design fits better than the bare design does is
@@ -198,6 +198,9 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
         Camera orientation (see ``to_design_frame``).
     thresholds : dict
         From ``resolve_thresholds``.
+    band : fab.verify.bench_band.Band or None
+        The bench's light: the design's order powers are averaged over it (None: the
+        design wavelength alone).
 
     Returns
     -------
@@ -206,7 +209,7 @@ def analyse(grid, levels, n_levels, kernel_size, orientation, thresholds):
         float64, >= 0, sum 1, or None when the window runs off the frame
         (``result["window_in_frame"]`` False) or holds no light.
     """
-    args = (grid, levels, n_levels, kernel_size, orientation, thresholds)
+    args = (grid, levels, n_levels, kernel_size, orientation, thresholds, band)
     result, measured_psf = _analyse_as(None, *args)
     reflection = result["measured_as"]
     if reflection == "design":
@@ -238,13 +241,13 @@ class _Frame:
     searches: dict  # {transform: locate_zero_order of the design's far field so transformed}
 
 
-def _frame(grid, levels, n_levels, kernel_size, orientation):
+def _frame(grid, levels, n_levels, kernel_size, orientation, band=None):
     """Return the capture's orders in the design's frame, the zero order searched for under
     the design and each of its reflections."""
     power, valid, sigma = _in_design_frame(grid, orientation)
     rows, cols = to_design_frame(grid.rows, orientation), to_design_frame(grid.cols, orientation)
     sat = to_design_frame(grid.saturated, orientation)
-    period = design_order_power(levels, n_levels)
+    period = reference_order_power(levels, n_levels, band)
     searches = {
         name: locate_zero_order(power, valid, sigma, transform(period), kernel_size // 2)
         for name, transform in _TRANSFORMS.items()
@@ -252,13 +255,13 @@ def _frame(grid, levels, n_levels, kernel_size, orientation):
     return _Frame(power, valid, sigma, rows, cols, sat, period, searches)
 
 
-def _analyse_as(plate, grid, levels, n_levels, kernel_size, orientation, thresholds):
+def _analyse_as(plate, grid, levels, n_levels, kernel_size, orientation, thresholds, band):
     """``analyse`` with the plate measured as ``plate`` ("design" or a reflection; None:
     the reflection that wins, or the design)."""
-    frame = _frame(grid, levels, n_levels, kernel_size, orientation)
+    frame = _frame(grid, levels, n_levels, kernel_size, orientation, band)
     power, valid, sigma, searches = frame.power, frame.valid, frame.sigma, frame.searches
     k, half = kernel_size, kernel_size // 2
-    design_psf, design_eff = simulate_levels(levels, n_levels, k)
+    design_psf, design_eff = reference_window(levels, n_levels, k, band)
     result = {
         "frame_correlation": {name: s["score"] for name, s in searches.items()},
         "outside_window_correlation": {
@@ -300,7 +303,7 @@ def _analyse_as(plate, grid, levels, n_levels, kernel_size, orientation, thresho
     if not (measured_psf.sum() > 0 and beam["power"] > 0):  # no light in the window: no PSF
         return result, None
     measured_psf = measured_psf / measured_psf.sum()
-    result.update(_psf_figures(measured_psf, design_psf, levels, n_levels))
+    result.update(_psf_figures(measured_psf, design_psf, levels, n_levels, band))
     result.update(_power_figures(frame, (m0, n0), sl, model, beam, period))
     etch_fit = fit_etch_error(window, sigma[sl], levels, n_levels)
     # The deepest etch's error is fitted beside the others' too (milliseconds): an
@@ -323,14 +326,14 @@ def _analyse_as(plate, grid, levels, n_levels, kernel_size, orientation, thresho
     return result, measured_psf
 
 
-def _psf_figures(measured_psf, design_psf, levels, n_levels):
+def _psf_figures(measured_psf, design_psf, levels, n_levels, band=None):
     """Return how the measured PSF compares with the design's and with the plate's it is
     measured as (the design, or the reflection that won)."""
     k = design_psf.shape[0]
     return {
         "correlation": correlation(measured_psf, design_psf),
         "correlation_as_measured": correlation(
-            measured_psf, simulate_levels(levels, n_levels, k)[0]
+            measured_psf, reference_window(levels, n_levels, k, band)[0]
         ),
         "rmse": rmse(measured_psf, design_psf),
     }

@@ -10,8 +10,10 @@ plate model) and images its dot lattice on the bench's camera
 the lattice on the camera is the design's lattice pitch scaled by the test lens's focal
 length over the design's, divided by the camera's pixel pitch.
 
-The bench's band-pass and stop (``--bandwidth-nm``, ``--f-number``) belong to the camera
-model and are not simulated here: the dots are the monochromatic far field.
+The bench's band-pass (``--bandwidth-nm`` or ``--spectrum``) renders each wavelength's
+dots (``fab.verify.bench_band``: the plate's phase dispersed, the lattice and the dots
+scaled by lambda / lambda0) and sums them by weight; its stop (``--f-number``: a round
+stop of f / N on the test lens, within the plate's aperture) sets the dots' size.
 """
 
 import dataclasses
@@ -32,6 +34,7 @@ from doe.records.fab_manifest import MANIFEST_NAME, read_fab_manifest
 from doe.records.retrieval import RETRIEVAL_JSON, read_retrieval
 from fab.package.masks import masks_from_levels
 from fab.plate.model import PlateFaults
+from fab.verify.bench_band import bench_band
 from fab.verify.capture import write_image
 from fab.verify.design_ref import read_design_dir
 from fab.verify.simulate import ORIENTATION_MAPS, simulate_capture
@@ -55,8 +58,9 @@ class Bench:
     lambda f / D of that lens over the plate's aperture); ``frame_px`` the square
     frame's side (None: the K x K window and 8 orders around it). Exposure:
     ``peak_fraction`` of full scale in the brightest pixel, ``full_well_e`` electrons
-    at full scale (shot noise). The band-pass and f-number of the camera model are
-    not part of it yet.
+    at full scale (shot noise). ``bandwidth_nm`` (a Gaussian band-pass's FWHM, 0: the
+    design wavelength) or ``spectrum`` (a two-column file, nm and weight) is the light;
+    ``f_number`` (None: the plate's aperture) the test lens's stop.
     """
 
     pixel_pitch_um: float
@@ -69,6 +73,9 @@ class Bench:
     frame_px: int | None = None
     orientation: str = "as-designed"
     seed: int = 0
+    bandwidth_nm: float = 0.0
+    spectrum: str | None = None
+    f_number: float | None = None
 
 
 @dataclass(frozen=True)
@@ -112,7 +119,9 @@ def simulate_design_capture(design_dir, out, bench, faults=Faults(), force=False
     pitch_px = lattice_um / bench.pixel_pitch_um
     spot_um = bench.spot_sigma_um
     if spot_um is None:
-        spot_um = SPOT_SIGMA_LAMBDA_F_D * wavelength * lens / aperture * 1e6
+        stop = aperture if bench.f_number is None else min(aperture, lens / bench.f_number)
+        spot_um = SPOT_SIGMA_LAMBDA_F_D * wavelength * lens / stop * 1e6
+    band = bench_band(design_dir, bench.bandwidth_nm, bench.spectrum)
     frame = bench.frame_px or math.ceil(pitch_px * (ref.kernel_size + 2 * FRAME_MARGIN_ORDERS))
     if frame < pitch_px * (ref.kernel_size + 2):
         raise InputError("--frame-px", f"{frame} px cannot hold the {ref.kernel_size} orders")
@@ -132,6 +141,7 @@ def simulate_design_capture(design_dir, out, bench, faults=Faults(), force=False
         full_well_e=bench.full_well_e,
         bits=bench.bits,
         seed=bench.seed,
+        band=None if band.monochromatic else band,
     )
     record = CaptureRecord(
         design_dir=str(design_dir),
@@ -143,6 +153,7 @@ def simulate_design_capture(design_dir, out, bench, faults=Faults(), force=False
             "lattice_pitch_um": lattice_um,
             "lattice_pitch_px": pitch_px,
             "exposure_s": EXPOSURE_S,
+            "light": band.as_dict(),
         },
         faults=dataclasses.asdict(faults),
         zero_order_px=[float(v) for v in sim["zero_order_px"]],

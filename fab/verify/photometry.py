@@ -20,6 +20,11 @@ from fab.verify.lattice import (
 # Aperture photometry radii as fractions of the pitch: dot aperture, background annulus.
 APERTURE_RADIUS = 0.30
 ANNULUS = (0.38, 0.50)
+# The most of its light a focused dot puts in one pixel (0.3 px sigma, centred), and how
+# many sigmas of the aperture's noise the rest of a hot pixel's aperture must lie below
+# what such a dot leaves around its peak.
+DOT_PEAK_FRACTION = 0.82
+SPIKE_SIGMAS = 4.0
 # Below this pitch (px) the dot aperture (>= 1.5 px) overlaps its background annulus:
 # such lattices are measured cell by cell (``fab.verify.cell_photometry``).
 ANNULUS_MIN_PITCH_PX = 4.5
@@ -161,7 +166,10 @@ def _remove_spikes(inap, signal, sigma):
     A focused dot puts at most ~82 % of its light into one pixel (a spot of
     0.3 px sigma centred on it); an aperture with more than ``SPIKE_FRACTION``
     of a significant signal in one pixel holds a hot pixel (or a cosmic ray),
-    whose excess over the median of its 8 neighbours is removed.
+    whose excess over the median of its 8 neighbours is removed, where the rest
+    of the aperture is also ``SPIKE_SIGMAS`` of its noise below the least a dot of
+    that peak leaves around it: a faint dot centred on a pixel, the share of its
+    neighbours hidden in the noise, keeps its light.
 
     Returns
     -------
@@ -171,7 +179,9 @@ def _remove_spikes(inap, signal, sigma):
     flat = inap.reshape(p, -1)
     peak_idx = np.argmax(flat, axis=1)
     peak = flat[np.arange(p), peak_idx]
-    spike = (signal > DETECT_SIGMAS * sigma) & (peak > SPIKE_FRACTION * signal)
+    rest = signal - peak
+    below_a_dot = rest < peak * (1 - DOT_PEAK_FRACTION) / DOT_PEAK_FRACTION - SPIKE_SIGMAS * sigma
+    spike = (signal > DETECT_SIGMAS * sigma) & (peak > SPIKE_FRACTION * signal) & below_a_dot
     if not spike.any():
         return signal, 0
     side = inap.shape[1]

@@ -20,13 +20,22 @@ from pathlib import Path
 
 import numpy as np
 
-from doe.fraunhofer import correlation, simulate_levels
+from doe.fraunhofer import correlation
 from doe.infra import flags
 from doe.infra.errors import InputError
 from doe.infra.files import save_npy, staged_output
 from doe.records.fab_manifest import MANIFEST_NAME
 from doe.records.verify import VERIFY_JSON, VerifyRecord, write_verify
 from fab.verify.analysis import ORIENTATIONS, analyse, design_order_power, resolve_thresholds
+from fab.verify.bench_band import (
+    bench_band,
+    bench_record,
+    reference_order_power,
+    reference_window,
+)
+from fab.verify.bench_band import (
+    light as _light,
+)
 from fab.verify.capture import read_capture
 from fab.verify.cell_photometry import measure_cells
 from fab.verify.conditioning import repair_pixels
@@ -148,6 +157,7 @@ def verify_plate(
     lattice_pitch_um=None,
     orientation="as-designed",
     force=False,
+    bench=None,
 ):
     """Verify a fabricated plate from a point-source capture of its dot lattice.
 
@@ -173,6 +183,8 @@ def verify_plate(
         guessed.
     force : bool
         Overwrite existing output files.
+    bench : dict or None
+        ``bandwidth_nm`` or ``spectrum``, ``f_number`` (``fab.verify.bench_band``).
 
     Returns
     -------
@@ -197,25 +209,22 @@ def verify_plate(
     grid = measure(registered.image, lattice, cap.saturated & ~registered.repaired, cap.quantum)
     # before the spike repair, which would clear true dots off a wrongly fitted lattice
     on_lattice = on_lattice_share(registered.found, lattice, pitch_px, cap.quantum)
-    design_psf, design_eff = simulate_levels(ref.levels, ref.n_levels, ref.kernel_size)
-    thresholds = _thresholds(design, ref, design_eff)
+    band, design_psf, thresholds = _reference(setup, bench)
     result, measured = analyse(
-        grid, ref.levels, ref.n_levels, ref.kernel_size, orientation, thresholds
+        grid, ref.levels, ref.n_levels, ref.kernel_size, orientation, thresholds, band
     )
     if measured is None:
         raise InputError(capture, _why_no_psf(result, ref))
     notes = capture_notes(result, cap, ref)
-    report = _report(
-        setup, result, thresholds, lattice, on_lattice, cap.notes + registered.notes + notes
-    )
+    report = _report(setup, result, (thresholds, bench_record(bench, band)), lattice,
+                     on_lattice, cap.notes + registered.notes + notes)  # fmt: skip
     hints = [
         pitch_hint(result, on_lattice, lattice.pitch_px, pixel_pitch_um),
         orientation_hint(result, grid, ref, orientation),
         fault_hint(report),
         beyond_reach_hint(report),
     ]
-    hints = [hint for hint in hints if hint]
-    report["notes"] += hints
+    report["notes"] += (hints := [hint for hint in hints if hint])
     if result["implied_deep_etch_error"] is not None and ref.deep_etch_depth:
         report["implied_deep_etch_error_nm"] = (
             result["implied_deep_etch_error"] * ref.deep_etch_depth * 1e9
@@ -238,6 +247,16 @@ def verify_plate(
         figures=_ReportFigures(registered.image, grid, lattice, design_psf, orientation),
     )
     return verified if out is None else save_verify(verified, out, force=force)
+
+
+def _reference(setup, bench):
+    """Return the bench's Band (None: the design wavelength), the design's PSF under it
+    and the thresholds."""
+    ref = setup.ref
+    stated = bench and (bench.get("bandwidth_nm") or bench.get("spectrum"))
+    band = bench_band(setup.design, **_light(bench)) if stated else None
+    psf, efficiency = reference_window(ref.levels, ref.n_levels, ref.kernel_size, band)
+    return band, psf, _thresholds(setup.design, ref, efficiency, band)
 
 
 @dataclass(frozen=True, eq=False)
@@ -270,11 +289,13 @@ def _setup(design, capture, dark, pixel_pitch_um, lattice_pitch_um, orientation)
     )
 
 
-def _report(setup, result, thresholds, lattice, on_lattice, notes):
+def _report(setup, result, judged, lattice, on_lattice, notes):
     """Return the report (``verify.json``'s content) of an analysis ``result``: with the
-    lattice, the thresholds, the flags and inputs it ran with, and ``notes``; the fits'
-    shifts in um and etch errors in nm where the design folder gives the scale."""
+    lattice, ``judged`` (the thresholds, the bench's record), the flags and inputs it ran
+    with, and ``notes``; the fits' shifts in um and etch errors in nm where the design
+    folder gives the scale."""
     ref, design, dark = setup.ref, setup.design, setup.dark
+    thresholds, bench = judged
     report = {
         **result,
         # The lattice's centre is its zero order (the origin of the fit is only
@@ -286,6 +307,7 @@ def _report(setup, result, thresholds, lattice, on_lattice, notes):
             "on_lattice_light": on_lattice,
         },
         "thresholds": thresholds,
+        "bench": bench,
         "orientation": setup.orientation,
         "pixel_pitch_um": setup.pixel_pitch_um,
         # the camera's pixels as the measured lattice implies them at lattice_pitch_um
@@ -424,13 +446,13 @@ def _stated(setup):
     return (setup.nominal_px, setup.lattice_pitch * 1e6, setup.pixel_pitch_um, "--pixel-pitch-um")
 
 
-def _thresholds(design, ref, design_efficiency):
+def _thresholds(design, ref, design_efficiency, band=None):
     """Return the pass/fail thresholds: the design folder's acceptance, or the defaults.
 
     Raises InputError naming the manifest when its acceptance lacks a threshold or
     holds one that is no number.
     """
-    zero_order = design_order_power(ref.levels, ref.n_levels)[0, 0]
+    zero_order = reference_order_power(ref.levels, ref.n_levels, band)[0, 0]
     try:
         return resolve_thresholds(ref.acceptance, design_efficiency, zero_order)
     except ValueError as e:  # only a fab folder's manifest holds an acceptance

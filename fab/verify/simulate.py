@@ -62,6 +62,7 @@ def simulate_capture(
     hot_pixels=0,
     bits=12,
     seed=0,
+    band=None,
 ):
     """Simulate a capture of the plate's dot lattice and a matching dark frame.
 
@@ -103,6 +104,9 @@ def simulate_capture(
     bits : int
         ADC bits; 12 is stored MSB-aligned in uint16, 8 as uint8, 16 as uint16.
     seed : int
+    band : fab.verify.bench_band.Band or None
+        The bench's spectrum (None: the design wavelength alone): each wavelength's
+        dots, of its plate phase, at its lattice pitch and spot size, weighted.
 
     Returns
     -------
@@ -114,10 +118,14 @@ def simulate_capture(
     h, w = shape
     centre = np.array(centre if centre is not None else ((h - 1) / 2, (w - 1) / 2), float)
     phase = plate_phase(levels, n_levels, faults, mask_pixel_pitch, supersample)
-    order_power = plate_far_field(phase)
     sigma = float(np.hypot(spot_sigma_px, blur_sigma_px))
-    lattice = (pitch_px * scale, np.radians(rotation_deg), orientation)
-    image = _dot_image(order_power, shape, centre, lattice, sigma)
+    if band is None:
+        order_power = plate_far_field(phase)
+        lattice = (pitch_px * scale, np.radians(rotation_deg), orientation)
+        image = _dot_image(order_power, shape, centre, lattice, sigma)
+    else:
+        order_power, image = _band_image(phase, band, shape, centre, sigma, (
+            pitch_px * scale, np.radians(rotation_deg), orientation))  # fmt: skip
     if not image.max() > 0:
         raise ValueError("no order lands in the frame: move centre nearer to it")
     exposure = (peak_fraction, full_well_e, read_noise_dn, dark_level_dn, hot_pixels, bits)
@@ -151,6 +159,21 @@ def _dot_image(order_power, shape, centre, lattice, sigma):
     m, n = _inverse_orientation(orientation, du[inside], dv[inside])
     power = order_power(m, n)
     return _render_dots(rows[inside], cols[inside], power, (h, w), sigma, rad)
+
+
+def _band_image(phase, band, shape, centre, sigma, lattice):
+    """Return (order power function, noiseless image) of the plate under ``band``: each
+    wavelength's far field (phase scaled) at its pitch and spot size, weighted."""
+    pitch, theta, orientation = lattice
+    fields = [plate_far_field(f * phase) for f in band.phase_factor]
+    image = np.zeros(shape)
+    for weight, far, s in zip(band.weights, fields, band.scale, strict=True):
+        image += weight * _dot_image(far, shape, centre, (pitch * s, theta, orientation), sigma * s)
+
+    def order_power(m, n):
+        return sum(w * far(m, n) for w, far in zip(band.weights, fields, strict=True))
+
+    return order_power, image
 
 
 def _frames(image, exposure, rng):

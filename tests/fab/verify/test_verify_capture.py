@@ -422,3 +422,39 @@ def test_plateau_of_exactly_the_plateau_pixels_marks_a_float_capture_clipped():
     fewer = image.copy()
     fewer[rows[0], cols[0]] = 999.0  # one pixel fewer at the maximum: a peak, not a plateau
     assert not condition_capture(dataclasses.replace(raw, data=fewer)).saturated.any()
+
+
+def test_a_faint_dot_centred_on_a_pixel_keeps_its_light_and_a_hot_pixel_does_not():
+    # Every dot of an 11 px lattice centred on a pixel puts 82 % of its light in it
+    # (a 0.3 px sigma spot); at 16 sigma the noise hides its neighbours' share in some
+    # apertures, which must not pass for hot pixels. Four sites without a dot hold a
+    # single hot pixel each.
+    from scipy.special import erf
+
+    from fab.verify.lattice import Lattice
+    from fab.verify.photometry import measure_orders
+
+    pitch, power, noise = 11, 200.0, 1.5
+    edges = np.arange(-5, 6)
+    profile = 0.5 * (
+        erf((edges + 0.5) / (0.3 * np.sqrt(2))) - erf((edges - 0.5) / (0.3 * np.sqrt(2)))
+    )
+    dot = power * np.outer(profile, profile)
+    img = np.random.default_rng(3).normal(0.0, noise, (21 * pitch, 21 * pitch))
+    hot = {(3, 4), (7, 12), (15, 2), (18, 18)}
+    for u in range(1, 20):
+        for v in range(1, 20):
+            r, c = u * pitch, v * pitch
+            if (u, v) in hot:
+                img[r, c] += 400.0
+            else:
+                img[r - 5 : r + 6, c - 5 : c + 6] += dot
+    lattice = Lattice(origin=np.zeros(2), basis=np.eye(2) * pitch)
+    grid = measure_orders(img, lattice)
+    assert grid.spike_orders == len(hot)
+    at = {(int(u), int(v)): (i, j) for i, u in enumerate(grid.u) for j, v in enumerate(grid.v)}
+    dots = [grid.power[at[u, v]] for u in range(1, 20) for v in range(1, 20) if (u, v) not in hot]
+    sigma = float(np.median(grid.sigma[grid.valid]))
+    assert 12 < power / sigma < 20  # faint: the light around the peak is within the noise
+    assert np.min(dots) > power - 5 * sigma and np.mean(dots) == pytest.approx(power, rel=0.01)
+    assert all(abs(grid.power[at[h]]) < 5 * sigma for h in hot)
