@@ -133,8 +133,9 @@ def camera_budget(design, levels, target, axes=None, *, heights=None, allowance=
         meets them (``met``); ``axes``: per axis ``values`` (the coarse points and
         those the refinement added, sorted) with their ``correlation``, ``rmse``,
         ``collected_fraction``, ``within_budget`` (:func:`budget_range`'s dict) and
-        ``within_goals`` (the same for the design goals, interpolated between the
-        points sampled, not bisected; no range when the nominal camera misses them);
+        ``within_goals`` (``runs``: each [lo, hi] of the values where the design goals
+        hold, interpolated between the points sampled, not bisected; ``nominal``:
+        whether the nominal camera's point is one of them);
         ``seconds``.
     """
     start = time.perf_counter()
@@ -190,12 +191,30 @@ def _fidelity(corr, rmse_value):
 
 
 def _goal_range(axis, curve):
-    """The range within the design goals, interpolated between the points sampled."""
+    """Where the design goals hold: every run of the points sampled within them, each end
+    interpolated between its neighbours (not bisected), the nominal camera's or not."""
+    xs = curve["values"]
     fid = [_fidelity(c, r) for c, r in zip(curve["correlation"], curve["rmse"], strict=True)]
-    within = budget_range(axis, curve["values"], fid, 1.0)
-    if within["range"] is None:
-        within["why"] = "the nominal camera misses the design goals"
-    return within
+    runs, i = [], 0
+    while i < len(xs):
+        if not fid[i] <= 1:
+            i += 1
+            continue
+        j = i
+        while j + 1 < len(xs) and fid[j + 1] <= 1:
+            j += 1
+        runs.append([_crossing(xs, fid, i, i - 1), _crossing(xs, fid, j, j + 1)])
+        i = j + 1
+    return {"runs": runs, "nominal": fid[xs.index(_default_value(axis, xs))] <= 1}
+
+
+def _crossing(xs, ys, inside, outside):
+    """Where the line from an inside point to its outside neighbour crosses 1 (the point
+    itself at the end of the values explored)."""
+    if not 0 <= outside < len(xs):
+        return xs[inside]
+    t = (1 - ys[inside]) / (ys[outside] - ys[inside])
+    return xs[inside] + t * (xs[outside] - xs[inside])
 
 
 def _key(design, n, settings):

@@ -113,7 +113,7 @@ def save_budget_figure(path, budget):
     for col, (name, curve) in enumerate(axes.items()):
         x = np.asarray(curve["values"], float)
         span = curve["within_budget"]["range"]
-        goal_span = curve["within_goals"]["range"]
+        goal_runs = curve["within_goals"]["runs"]
         for row, (key, lines, label) in enumerate(rows):
             ax = grid[row][col]
             y = np.asarray([np.nan if v is None else v for v in curve[key]], float)
@@ -124,8 +124,8 @@ def save_budget_figure(path, budget):
                 ax.axhline(value, ls=style, color="k", lw=0.8, label=f"{what} {value:.4g}")
             if span is not None:
                 ax.axvspan(span[0], span[1], color="tab:green", alpha=0.12, lw=0)
-            if goal_span is not None:  # hatched: within the design goals too
-                ax.axvspan(*goal_span, fill=False, hatch="//", edgecolor="tab:blue", lw=0)
+            for lo, hi in goal_runs:  # hatched: where the design goals hold
+                ax.axvspan(lo, hi, fill=False, hatch="//", edgecolor="tab:blue", lw=0)
             if key == "rmse":  # the limit near the nominal and the far points both show
                 ax.set_yscale("log")
             else:

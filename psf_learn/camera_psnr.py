@@ -23,11 +23,13 @@ import numpy as np
 
 from doe.infra.errors import InputError
 
+# The ends of the fab report's budget curves (doe.camera_budget.BUDGET_AXES), fewer
+# points between: each costs a capture and a reconstruction of every image.
 PSNR_AXES = {
     "bandwidth_nm": (0.0, 20.0, 40.0),
     "f_number": (1.8, 4.0, 16.0),
-    "defocus_um": (-250.0, -100.0, 0.0, 100.0, 250.0),
-    "rotation_deg": (0.0, 2.0, 4.0),
+    "defocus_um": (-500.0, -250.0, -100.0, 0.0, 100.0, 250.0, 500.0),
+    "rotation_deg": (0.0, 2.5, 5.0),
 }
 # The PSNR a camera setting may cost against the nominal camera: a stated margin (half a
 # dB), not one derived from a measurement; --allowance-db sets another.

@@ -240,6 +240,15 @@ def test_the_budget_curves_are_the_effective_psfs_and_end_where_they_cross_the_l
         lo, hi = curve["within_budget"]["range"]
         rows = zip(curve["values"], curve["rmse"], strict=True)
         assert all(r <= limit for v, r in rows if lo <= v <= hi)
+    # the design goals hold around the nominal camera (its own PSF is the target) and
+    # nowhere else: the run's ends part the points that meet them from those that miss
+    curve = budget["axes"]["defocus_um"]
+    goals = curve["within_goals"]
+    assert goals["nominal"] and len(goals["runs"]) == 1
+    lo, hi = goals["runs"][0]
+    assert -300 < lo < 0 < hi < 300
+    for v, c, r in zip(curve["values"], curve["correlation"], curve["rmse"], strict=True):
+        assert (lo <= v <= hi) == (c >= 0.9999 and r <= 0.005)
     # defocus: 300 um misses the limit both ways; each end lies within a bisected interval
     within = budget["axes"]["defocus_um"]["within_budget"]
     assert within["ends"] == ["limit", "limit"] and -300 < within["range"][0] < 0
