@@ -1,11 +1,14 @@
 """The camera model's cost and convergence (doe.camera), on the default design.
 
-    python bench/camera.py [--quick]
+    python bench/camera.py [--quick | --budget]
 
 Prints
 1. seconds for one effective PSF: a 40 nm band at f/2 (the goal: <= 2 s), and the
    default camera;
-2. seconds for the budget curves (doe.camera_budget.BUDGET_AXES);
+2. seconds for the budget curves (doe.camera_budget.BUDGET_AXES) and for the fab
+   report's budget (doe.camera_budget.camera_budget, bisected range ends, and its
+   figure); with --budget only this, and the budget's range ends against those of
+   finely sampled curves (--budget-fine: every 10 um, 0.05 deg, 1 nm, 2 % in N);
 3. convergence in the model's sampling: the order margin and the spectral step,
    each halved and doubled, as the largest change of E over its peak and of the
    collected fraction;
@@ -177,10 +180,16 @@ def independent_green():
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer convergence cases, no FFT")
+    parser.add_argument(
+        "--budget", action="store_true", help="only the report budget against fine curves"
+    )
     args = parser.parse_args()
     d = load_design()
     levels = np.load(LEVELS)
     target = simulate_levels(levels, d.fabrication.levels, d.kernel_size)[0]
+    if args.budget:
+        budget_against_fine(d, levels, target)
+        return
     for name, kw in (
         ("40 nm band at f/2", {"bandwidth_nm": 40.0, "f_number": 2.0}),
         ("the default camera", {}),
@@ -202,6 +211,49 @@ def main():
     if not args.quick:
         independent(d, levels)
         independent_green()
+
+
+FINE_AXES = {
+    "bandwidth_nm": tuple(np.arange(0.0, 40.5, 1.0)),
+    "f_number": tuple(np.round(1.8 * 1.02 ** np.arange(0, 112), 4)),
+    "defocus_um": tuple(np.arange(-500.0, 501.0, 10.0)),
+    "rotation_deg": tuple(np.arange(0.0, 5.01, 0.05)),
+}
+
+
+def budget_against_fine(d, levels, target):
+    """The fab report's budget: its cost, and its range ends against finely sampled curves."""
+    import tempfile
+
+    from doe.camera_budget import budget_range, camera_budget
+    from doe.camera_figure import save_budget_figure
+
+    wall, cpu = seconds(lambda: camera_budget(d, levels, target), 1)
+    budget = camera_budget(d, levels, target)
+    with tempfile.TemporaryDirectory() as tmp:
+        f_wall, f_cpu = seconds(lambda: save_budget_figure(Path(tmp) / "b.png", budget), 1)
+    points = sum(len(c["values"]) for c in budget["axes"].values())
+    print(
+        f"report budget, {points} points: {wall:.1f} s wall, {cpu:.2f} s CPU; "
+        f"its figure {f_wall:.1f} s wall, {f_cpu:.2f} s CPU"
+    )
+    nominal, limit = budget["nominal"], budget["limit"]["rmse_max"]
+    print(
+        f"  nominal camera: correlation {nominal['correlation']:.5f} rmse {nominal['rmse']:.4f} "
+        f"collected {nominal['collected_fraction']:.4f}; limit rmse {limit:.4f}"
+    )
+    for axis, values in FINE_AXES.items():
+        figures = camera_figures(d, levels, target, [{axis: float(v)} for v in values])
+        fine = budget_range(axis, [float(v) for v in values], [f["rmse"] for f in figures], limit)
+        mine = budget["axes"][axis]["within_budget"]
+        print(f"  {axis}: report {_ends(mine)}, fine ({len(values)} points) {_ends(fine)}")
+
+
+def _ends(within):
+    if within["range"] is None:
+        return within["why"]
+    lo, hi = within["range"]
+    return f"{lo:.4g} .. {hi:.4g} ({', '.join(within['ends'])})"
 
 
 if __name__ == "__main__":

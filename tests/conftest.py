@@ -32,6 +32,25 @@ def small_held_out_images():
         yield
 
 
+@pytest.fixture(autouse=True, scope="session")
+def no_camera_budget():
+    """Build the tests' fab packages without the report's camera budget (about 1.5 s of CPU
+    a build; the suite builds some 70). Tests of the section ask for ``camera_budget_on``."""
+    import fab.package.build as build
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(build, "CAMERA_BUDGET", False)
+        yield
+
+
+@pytest.fixture
+def camera_budget_on(monkeypatch):
+    """Build fab packages as ``doefab fab`` does by default: with the camera budget."""
+    import fab.package.build as build
+
+    monkeypatch.setattr(build, "CAMERA_BUDGET", True)
+
+
 @functools.cache
 def _small_held_out_image():
     from psf_learn.images import dead_leaves

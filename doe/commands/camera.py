@@ -69,8 +69,15 @@ def run(args):
         f"{correlation_text(rec['correlation'])}, rmse {rec['rmse']:.4f} against the design's "
         f"PSF ({rec['settings']['spectrum']['description']}) -> {args.out}"
     )
-    for axis, curve in rec.get("budget", {}).items():
-        within = curve["within_goals"]
-        shown = "none" if within is None else f"{within[0]:g} .. {within[1]:g}"
-        print(f"  within the goals: {axis} {shown}")
+    budget = rec.get("budget")
+    if budget is not None:
+        print(
+            f"  budget: rmse within the nominal camera's {budget['nominal']['rmse']:.4f} "
+            f"+ {budget['limit']['allowance']:g}"
+        )
+        for axis, curve in budget["axes"].items():
+            within = curve["within_budget"]
+            r = within["range"]
+            shown = within["why"] if r is None else f"{r[0]:.3g} .. {r[1]:.3g}"
+            print(f"  within the budget: {axis} {shown}")
     return 0

@@ -20,6 +20,7 @@ COMMAND_MODULES = (
     "doe.commands.retrieve",  # retrieve
     "doe.commands.camera",  # camera
     "psf_learn.commands.learn",  # learn, evaluate, sr
+    "psf_learn.commands.camera_psnr",  # camera-psnr
     "fab.commands.fab",  # fab
     "fab.commands.mesh",  # mesh
     "fab.commands.verify",  # verify, mtf

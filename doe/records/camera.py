@@ -17,10 +17,13 @@ an effective PSF sampled for another sub-pixel grid. The file is a JSON object
   (``target_psf``, CONVENTIONS.md's figures; correlation null for a uniform one);
 - ``window``: the same figures and ``efficiency`` of the monochromatic plate of
   square pixels at the design wavelength (the design's own window powers);
-- ``budget`` (with ``--budget``): per setting (``bandwidth_nm``, ``f_number``,
-  ``defocus_um``, ``rotation_deg``) its ``values`` and the ``correlation``,
-  ``rmse`` and ``collected_fraction`` of each, varied alone from the default camera,
-  and ``within_goals`` ([lo, hi] that keeps the design goals, or null);
+- ``budget`` (with ``--budget``): :func:`doe.camera_budget.camera_budget`: the
+  ``nominal`` camera's figures, the ``limit`` (its rmse + the ``allowance``), the
+  design ``goals`` and whether the nominal camera meets them, the nominal ``dots``,
+  and per setting (``bandwidth_nm``, ``f_number``, ``defocus_um``, ``rotation_deg``,
+  in ``axes``) its ``values`` and the ``correlation``, ``rmse`` and
+  ``collected_fraction`` of each, varied alone from the default camera, and
+  ``within_budget`` (``range`` [lo, hi] within the limit or null, ``ends``, ``why``);
 - ``design_dir``, ``kind`` (``fab`` or ``retrieve``), ``target_psf``, ``psf``
   (``effective_psf.npy``), ``seconds``, ``design`` (:func:`doe.derived.design_summary`
   for the tile's N), ``versions``.

@@ -30,9 +30,16 @@ def register(sub):
     p.add_argument("--force", action="store_true", help="overwrite existing files in --out")
     p.add_argument("--oasis", action="store_true", help="also write mask.oas (KLayout)")
     p.add_argument(
-        "--camera-budget",
+        "--no-camera-budget",
         action="store_true",
-        help="add the report's 'In the camera' budget: band-pass, f-number, defocus, rotation",
+        help="leave the report's 'In the camera' budget out (band-pass, f-number, defocus, "
+        "rotation; about 1.5 s of CPU)",
+    )
+    p.add_argument(
+        "--camera-psnr",
+        metavar="FILE",
+        help="camera_psnr.json of doefab camera-psnr (or its folder): the same budget in dB "
+        "of a learned model's reconstruction PSNR, in the report",
     )
     fewer = p.add_mutually_exclusive_group()
     fewer.add_argument(
@@ -71,7 +78,7 @@ def _fab(args):
     try:
         result = build_package(
             args.design_dir, args.out, config=args.config, force=args.force, oasis=args.oasis,
-            camera_budget=args.camera_budget,
+            camera_budget=False if args.no_camera_budget else None, camera_psnr=args.camera_psnr,
             tiles=args.tiles, whole_tiles=args.whole_tiles, keep_aperture=args.keep_aperture,
             dies=tuple(args.dies), lane_um=args.lane_um,
         )  # fmt: skip

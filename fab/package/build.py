@@ -152,10 +152,15 @@ def mask_table(masks, counts, pitch_nm):
     ]
 
 
+# Whether a build computes the report's camera budget when not told (the test suite,
+# which builds some 70 packages, turns it off and on where a test reads the section).
+CAMERA_BUDGET = True
+
+
 def build_package(
     design_dir, out, *, config=None, force=False, oasis=False, progress=True,
-    camera_budget=False, tiles=None, whole_tiles=False, keep_aperture=False, dies=(1, 1),
-    lane_um=None,
+    camera_budget=None, camera_psnr=None, tiles=None, whole_tiles=False, keep_aperture=False,
+    dies=(1, 1), lane_um=None,
 ):  # fmt: skip
     """Write the fabrication package of DESIGN_DIR's tile into ``out``.
 
@@ -174,8 +179,12 @@ def build_package(
         Also write mask.oas.
     progress : bool
         Show progress bars on a terminal.
-    camera_budget : bool
-        Add the report's "In the camera" budget (doe.camera_budget; ~2 s of CPU).
+    camera_budget : bool or None
+        Add the report's "In the camera" budget (doe.camera_budget; about 1.5 s of
+        CPU); None: :data:`CAMERA_BUDGET`.
+    camera_psnr : path or None
+        ``doefab camera-psnr``'s camera_psnr.json of this tile: its dB budget goes into
+        the report too.
     tiles : int or None
         Whole tiles across (at most those that fit the aperture): whole tiles only,
         the clear-aperture frame shrunk to them. Default: the pattern fills the
@@ -209,12 +218,14 @@ def build_package(
     from fab.package.layer_images import layer_image_names
     from fab.package.order import ORDER_FILES
     from fab.package.plate_choice import choose_plate
+    from fab.package.report_camera import CAMERA_REPORT_FIGURES
 
     design = load_design(config)
     levels, target = load_design_dir(design_dir, design)
     der, pitch_nm, k = _check_tile(design, levels, target, Path(design_dir))
     tile, warnings = _plan(design, der, levels, target, k, pitch_nm)
     choice = choose_plate(design, der, tiles, whole_tiles, keep_aperture, dies, lane_um)
+    psnr = None if camera_psnr is None else _camera_psnr(camera_psnr, tile.levels)
     bar = tqdm(
         STAGES, desc="doefab fab", file=sys.stderr, disable=not (progress and sys.stderr.isatty())
     )
@@ -223,10 +234,13 @@ def build_package(
     known += [OASIS_NAME] if oasis else []
     known += list(ORDER_FILES)
     stale = previous_package_files(Path(out) / MANIFEST_NAME, layer_image_names)
+    if stale:  # an earlier package's camera figures, which this build may leave out
+        stale = [*stale, *CAMERA_REPORT_FIGURES]
     with staged_output(out, force, names=known, stale=stale) as stage:
         manifest, report_files, more = _write_package(
-            stage, tile, choice, Path(design_dir), Path(out), oasis, bar, progress, camera_budget
-        )
+            stage, tile, choice, Path(design_dir), Path(out), oasis, bar, progress,
+            (CAMERA_BUDGET if camera_budget is None else camera_budget, psnr),
+        )  # fmt: skip
         warnings += more
         all_files = sorted(str(p.relative_to(stage)) for p in stage.rglob("*") if p.is_file())
     return PackageResult(
@@ -306,7 +320,9 @@ def _plan(design, der, levels, target, k, pitch_nm):
     return tile, warnings
 
 
-def _write_package(stage, tile, choice, design_dir, out, oasis, bar, progress, camera=False):
+def _write_package(
+    stage, tile, choice, design_dir, out, oasis, bar, progress, camera=(False, None)
+):
     """Write the package's files into ``stage``; return (manifest dict, report files, warnings)."""
     from doe.aperture import as_built, as_built_record
     from fab.package.layer_images import write_layer_images
@@ -378,15 +394,31 @@ def _write_package(stage, tile, choice, design_dir, out, oasis, bar, progress, c
         "orientation": ORIENTATION,
         "files": file_records(stage, written),
     }
-    if camera:
-        from doe.camera_budget import camera_budget
-
-        context["camera_budget"] = camera_budget(design, tile.levels, tile.target)
+    context.update(_camera_context(design, tile, *camera))
     report_files = _report(stage, context)
     bar.update()
     bar.close()
     tile_missed = _goal_warnings(tile.levels, n_levels, tile.target, tile.simulated)
     return manifest, report_files, plate_warnings(choice, built, tile_missed)
+
+
+def _camera_context(design, tile, budget, psnr):
+    """The report's "In the camera": the budget (the one tolerance budget's allowance) and dB."""
+    from doe.camera_budget import camera_budget
+    from fab.plate.budget import RMSE_ALLOWANCE
+
+    out = {"camera_psnr": psnr}
+    if budget:
+        allowance = RMSE_ALLOWANCE
+        out["camera_budget"] = camera_budget(design, tile.levels, tile.target, allowance=allowance)
+    return out
+
+
+def _camera_psnr(path, levels):
+    """Read camera_psnr.json (or the folder holding it), refused unless made for ``levels``."""
+    from doe.records.camera_psnr import read_camera_psnr
+
+    return read_camera_psnr(path, levels).data
 
 
 def _write_arrays(stage, tile, design_dir):

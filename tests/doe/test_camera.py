@@ -14,7 +14,7 @@ from doe.camera import effective_psf, plate_orders
 from doe.camera_figure import sensor_view
 from doe.derived import derive
 from doe.design import load_design
-from doe.fraunhofer import level_phase, pixel_envelope, window_power
+from doe.fraunhofer import level_phase, pixel_envelope, rmse, window_power
 from doe.spectrum import Spectrum
 
 DESIGNS = {
@@ -216,23 +216,44 @@ def test_the_effective_psf_tends_to_the_window_powers_as_the_stop_grows(tmp_path
     assert errors[2] == pytest.approx(errors[1] / 2, rel=0.15)
 
 
-def test_the_budget_curves_are_the_effective_psfs_and_mark_the_goals(tmp_path):
-    from doe.camera_budget import camera_budget
+def test_the_budget_curves_are_the_effective_psfs_and_end_where_they_cross_the_limit(tmp_path):
+    from doe.camera_budget import RESOLUTION, camera_budget
 
     d = design(tmp_path, "bk7532")
     levels = window_tile(d, seed=2)
     target = effective_psf(d, levels).psf  # the default camera meets its own PSF exactly
     axes = {"bandwidth_nm": (0.0, 10.0, 40.0), "defocus_um": (-300.0, 0.0, 20.0, 300.0)}
     budget = camera_budget(d, levels, target, axes)
+    assert budget["nominal"]["rmse"] == pytest.approx(0.0, abs=1e-5)  # its grid: the band's
+    limit = budget["limit"]["rmse_max"]
+    assert limit == budget["nominal"]["rmse"] + 0.01
     for axis, values in axes.items():
-        curve = budget[axis]
-        figures = zip(values, curve["correlation"], curve["collected_fraction"], strict=True)
-        for value, corr, cf in figures:
+        curve = budget["axes"][axis]
+        assert set(values) <= set(curve["values"]) and curve["values"] == sorted(curve["values"])
+        figures = list(
+            zip(curve["values"], curve["correlation"], curve["collected_fraction"], strict=True)
+        )
+        for value, corr, cf in figures[:: max(1, len(figures) // 3)]:
             alone = effective_psf(d, levels, **{axis: value})
             assert cf == pytest.approx(alone.collected_fraction, abs=1e-5)
             assert corr == pytest.approx(np.corrcoef(alone.psf.ravel(), target.ravel())[0, 1])
-        lo, hi = curve["within_goals"]
-        rows = zip(values, curve["correlation"], curve["rmse"], strict=True)
-        assert all(c >= 0.9999 and r <= 0.005 for v, c, r in rows if lo <= v <= hi)
-        assert lo <= 0 <= hi
-    assert budget["defocus_um"]["within_goals"][0] > -300  # 300 um defocus misses the goals
+        lo, hi = curve["within_budget"]["range"]
+        rows = zip(curve["values"], curve["rmse"], strict=True)
+        assert all(r <= limit for v, r in rows if lo <= v <= hi)
+    # the design goals hold around the nominal camera (its own PSF is the target) and
+    # nowhere else: the run's ends part the points that meet them from those that miss
+    curve = budget["axes"]["defocus_um"]
+    goals = curve["within_goals"]
+    assert goals["nominal"] and len(goals["runs"]) == 1
+    lo, hi = goals["runs"][0]
+    assert -300 < lo < 0 < hi < 300
+    for v, c, r in zip(curve["values"], curve["correlation"], curve["rmse"], strict=True):
+        assert (lo <= v <= hi) == (c >= 0.9999 and r <= 0.005)
+    # defocus: 300 um misses the limit both ways; each end lies within a bisected interval
+    within = budget["axes"]["defocus_um"]["within_budget"]
+    assert within["ends"] == ["limit", "limit"] and -300 < within["range"][0] < 0
+    for end, out in zip(within["range"], (-1, 1), strict=True):
+        step = RESOLUTION["defocus_um"]
+        inside = effective_psf(d, levels, defocus_um=end - out * step).psf
+        outside = effective_psf(d, levels, defocus_um=end + out * step).psf
+        assert rmse(inside, target) <= limit < rmse(outside, target)

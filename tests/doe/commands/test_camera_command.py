@@ -165,11 +165,12 @@ def test_the_budget_goes_into_camera_json_and_its_figure(folder, tmp_path, monke
     out = tmp_path / "cam"
     argv = ["camera", str(where), "--out", str(out), "--config", str(config), "--budget"]
     assert main(argv) == 0
-    assert "within the goals: rotation_deg" in capsys.readouterr().out
-    curve = read_camera(out / "camera.json").data["budget"]["rotation_deg"]
-    assert curve["values"] == [0.0, 3.0] and set(curve) >= {"rmse", "within_goals"}
+    assert "within the budget: rotation_deg" in capsys.readouterr().out
+    curve = read_camera(out / "camera.json").data["budget"]["axes"]["rotation_deg"]
+    assert curve["values"][0] == 0.0 and curve["values"][-1] == 3.0
+    assert set(curve) >= {"rmse", "within_budget"}
     turned = effective_psf(d, levels, rotation_deg=3.0).collected_fraction
-    assert curve["collected_fraction"][1] == pytest.approx(turned, abs=1e-5)
+    assert curve["collected_fraction"][-1] == pytest.approx(turned, abs=1e-5)
     assert (out / "camera_budget.png").stat().st_size > 0
 
 
