@@ -129,7 +129,20 @@ def scene_step_bytes(parts, name):
             comp = tool.AddComponent(assembly, label, TopLoc_Location(trsf))
             TDataStd_Name.Set_s(comp, TCollection_ExtendedString(f"{part}_{n}"))
     tool.UpdateAssemblies()
-    return _write_document(doc, name)
+    return _numbered_occurrences(_write_document(doc, name))
+
+
+_OCCURRENCE_ID = re.compile(rb"NEXT_ASSEMBLY_USAGE_OCCURRENCE\('\d+'")
+
+
+def _numbered_occurrences(step):
+    """Number the assembly occurrences 1, 2, ... in file order.
+
+    OCCT takes their ids from a counter that lives as long as the process, so a
+    second scene written by the same process would otherwise differ in these ids.
+    """
+    count = iter(range(1, 1 << 62))
+    return _OCCURRENCE_ID.sub(lambda m: b"NEXT_ASSEMBLY_USAGE_OCCURRENCE('%d'" % next(count), step)
 
 
 def _new_document():

@@ -42,6 +42,16 @@ def test_step_tile_reimports_as_one_closed_solid_with_exact_volume(tmp_path):
     assert step.step_bytes(step.tile_solid(relief)) == data, "rerun must give equal bytes"
 
 
+def test_a_scene_written_twice_in_one_process_gives_equal_bytes():
+    # OCCT numbers assembly occurrences from a counter that lives as long as the process
+    solid = step.tile_solid(relief_of(3, seed=2))
+    parts = [("piece", solid, [[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]])]
+    first = step.scene_step_bytes(parts, "edge")
+    assert step.scene_step_bytes(parts, "edge") == first
+    ids = re.findall(rb"NEXT_ASSEMBLY_USAGE_OCCURRENCE\('(\d+)'", first)
+    assert ids == [b"1", b"2"]
+
+
 def test_step_checkerboard_corners_give_a_closed_solid(tmp_path):
     levels = np.tile(np.array([[7, 0], [0, 7]], np.uint8), (2, 2))
     relief = Relief(levels, L, STEP_M, PITCH, THICK)
