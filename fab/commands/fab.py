@@ -33,6 +33,12 @@ def register(sub):
         action="store_true",
         help="add the report's 'In the camera' budget: band-pass, f-number, defocus, rotation",
     )
+    p.add_argument(
+        "--allow-drc",
+        action="store_true",
+        help="write the package even when the design-rule check (drc.lydrc: width and space "
+        "at the feature size, Euclidean) finds violations; the report lists them",
+    )
     p.set_defaults(func=_fab)
 
 
@@ -43,6 +49,7 @@ def _fab(args):
         result = build_package(
             args.design_dir, args.out, config=args.config, force=args.force, oasis=args.oasis,
             camera_budget=args.camera_budget,
+            allow_drc=args.allow_drc,
         )  # fmt: skip
     except PackageCheckFailed as e:
         print(f"doefab fab: FAIL {e}; nothing written", file=sys.stderr)
@@ -50,6 +57,13 @@ def _fab(args):
     for warning in result.warnings:  # once the package is in place: a refusal stays one line
         print(f"doefab fab: {warning}", file=sys.stderr)
     m = result.manifest.fields
+    drc = m["drc"]
+    if drc["violations_allowed"]:
+        print(
+            f"doefab fab: warning: {drc['total']} design-rule markers allowed by --allow-drc "
+            f"(markers in {drc['markers']})",
+            file=sys.stderr,
+        )
     depths = ", ".join(f"{mk['name']} {mk['etch_depth_nm']:.1f} nm" for mk in m["masks"])
     print(
         f"doefab fab: wrote {len(result.files)} files to {args.out} "

@@ -1,8 +1,9 @@
 """Build the fabrication package of a phase tile: :func:`build_package` (``doefab fab``).
 
-Masks -> GDS (+ optional OASIS) -> KLayout read-back check -> layer images ->
-tolerance analysis -> manifest -> report, all written through a staging folder
-so that a failed or refused run leaves nothing behind.
+Masks -> GDS (+ optional OASIS) -> KLayout read-back check -> design-rule check
+(:mod:`fab.package.drc`) -> layer images -> tolerance analysis -> manifest -> report,
+all written through a staging folder so that a failed or refused run leaves nothing
+behind.
 """
 
 import shutil
@@ -13,6 +14,8 @@ from types import MappingProxyType
 
 from doe.infra.errors import InputError, first_line
 from doe.records.fab_manifest import (
+    DRC_DECK,
+    DRC_MARKERS,
     GDS_NAME,
     LEVELS_FILE,
     MANIFEST_NAME,
@@ -25,7 +28,7 @@ from doe.records.fab_manifest import (
     write_fab_manifest,
 )
 
-STAGES = ("gds", "check", "images", "tolerance", "manifest", "report")
+STAGES = ("gds", "check", "drc", "images", "tolerance", "manifest", "report")
 
 
 class PackageCheckFailed(Exception):
@@ -153,7 +156,15 @@ def mask_table(masks, counts, pitch_nm):
 
 
 def build_package(
-    design_dir, out, *, config=None, force=False, oasis=False, progress=True, camera_budget=False
+    design_dir,
+    out,
+    *,
+    config=None,
+    force=False,
+    oasis=False,
+    progress=True,
+    camera_budget=False,
+    allow_drc=False,
 ):
     """Write the fabrication package of DESIGN_DIR's tile into ``out``.
 
@@ -174,6 +185,9 @@ def build_package(
         Show progress bars on a terminal.
     camera_budget : bool
         Add the report's "In the camera" budget (doe.camera_budget; ~2 s of CPU).
+    allow_drc : bool
+        Write the package even when the design-rule check finds violations
+        (``--allow-drc``); the manifest and report then say what was allowed.
 
     Returns
     -------
@@ -182,7 +196,8 @@ def build_package(
     Raises
     ------
     InputError
-        Unusable input (exit 2).
+        Unusable input (exit 2); :class:`fab.package.drc.DrcRefused` for a package
+        with design-rule violations without ``allow_drc``.
     PackageCheckFailed
         The written GDS does not read back as the masks (exit 1).
         In both cases nothing is left in ``out``.
@@ -201,14 +216,20 @@ def build_package(
     bar = tqdm(
         STAGES, desc="doefab fab", file=sys.stderr, disable=not (progress and sys.stderr.isatty())
     )
-    known = [GDS_NAME, MANIFEST_NAME, LEVELS_FILE, TARGET_PSF_FILE]
+    known = [GDS_NAME, MANIFEST_NAME, LEVELS_FILE, TARGET_PSF_FILE, DRC_DECK, DRC_MARKERS]
     known += [name for mk in tile.masks for name in layer_image_names(mk.name)]
     known += [OASIS_NAME] if oasis else []
     known += list(ORDER_FILES)
     stale = previous_package_files(Path(out) / MANIFEST_NAME, layer_image_names)
     with staged_output(out, force, names=known, stale=stale) as stage:
         manifest, report_files = _write_package(
-            stage, tile, Path(design_dir), Path(out), oasis, bar, progress, camera_budget
+            stage,
+            tile,
+            Path(design_dir),
+            Path(out),
+            (oasis, allow_drc, camera_budget),
+            bar,
+            progress,
         )
         all_files = sorted(str(p.relative_to(stage)) for p in stage.rglob("*") if p.is_file())
     return PackageResult(
@@ -288,8 +309,11 @@ def _plan(design, der, levels, target, k, pitch_nm):
     return tile, warnings
 
 
-def _write_package(stage, tile, design_dir, out, oasis, bar, progress, camera=False):
-    """Write the package's files into ``stage``; return (manifest dict, report files)."""
+def _write_package(stage, tile, design_dir, out, flags, bar, progress):
+    """Write the package's files into ``stage``; return (manifest dict, report files).
+
+    ``flags`` is (oasis, allow_drc, camera budget)."""
+    from fab.package.drc import run_package_drc
     from fab.package.layer_images import write_layer_images
     from fab.package.manifest import file_records, layout_keys
     from fab.package.order import ORDER_FILES, write_mask_order
@@ -298,6 +322,7 @@ def _write_package(stage, tile, design_dir, out, oasis, bar, progress, camera=Fa
 
     design, der, masks, pitch_nm = tile.design, tile.derived, tile.masks, tile.pitch_nm
     n, n_levels = tile.levels.shape[0], design.fabrication.levels
+    oasis, allow_drc, camera = flags
     tiles = (der.tiles, der.tiles)
     aperture_nm = round(design.fabrication.aperture * 1e9)
     extra = dict(tile.extra)
@@ -322,6 +347,9 @@ def _write_package(stage, tile, design_dir, out, oasis, bar, progress, camera=Fa
         ) from None
     if problems:
         raise PackageCheckFailed("; ".join(problems))
+    bar.update()
+    bar.set_postfix_str("drc")
+    extra["drc"] = run_package_drc(stage, design, masks, allow_drc, out)[1]
     bar.update()
     bar.set_postfix_str("images")
     half = max(tiles) * n * pitch_nm // 2 + 1
