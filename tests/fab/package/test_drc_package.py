@@ -15,7 +15,7 @@ from fab.package.drc import DrcRefused
 from fab.package.masks import masks_from_levels
 from layouts.drc_rdb import MAX_ITEMS, category_name, read_lyrdb_counts
 
-# 532 nm, N-BK7, 4 levels, 10 um process, 2 x 2 tiles (its 4 um vernier bars are too narrow)
+# 532 nm, N-BK7, 4 levels, 10 um process, 2 x 2 tiles
 GREEN = (
     'name = "green"\n[optics]\nwavelength_nm = 532.0\n[material]\nname = "bk7"\n'
     "[fabrication]\nlevels = 4\nfeature_size_um = 10.0\naperture_mm = 1.5\n"
