@@ -3,6 +3,7 @@ checked against a flat KLayout run on the whole GDS and a brute-force count on t
 
 import json
 import re
+from types import SimpleNamespace
 
 import klayout.db as kdb
 import numpy as np
@@ -11,8 +12,9 @@ import pytest
 from doe.infra.cli import main
 from doe.records.fab_manifest import DRC_DECK, DRC_MARKERS, MANIFEST_NAME, read_fab_manifest
 from fab.package.build import build_package
-from fab.package.drc import DrcRefused
+from fab.package.drc import DrcRefused, allows_corner_contacts, refused_count, violation_summary
 from fab.package.masks import masks_from_levels
+from layouts.drc import check_plate, plate_rules
 from layouts.drc_rdb import MAX_ITEMS, category_name, read_lyrdb_counts
 
 # 532 nm, N-BK7, 4 levels, 10 um process, 2 x 2 tiles
@@ -136,3 +138,17 @@ def test_build_package_refuses_with_drc_refused(tmp_path):
     with pytest.raises(DrcRefused, match=r"L1 width \d+ \(all at corner contacts\)"):
         build_package(d, tmp_path / "out", config=d / "design.toml", progress=False)
     assert not (tmp_path / "out").exists()
+
+
+def test_corner_contacts_refuse_unless_the_process_accepts_them(green):
+    root, _, manifest = green
+    rules = manifest.drc()["rules"]
+    result = check_plate(root / "out" / "mask.gds", plate_rules(rules["layers"], 10_000, 1))
+    assert result.total == manifest.drc()["total"] > 0
+    assert refused_count(result, False) == result.total
+    assert refused_count(result, True) == result.beyond_corners() == 0  # only corner contacts
+    assert "(corner contacts, allowed)" in violation_summary(result, True)
+    fab = SimpleNamespace(levels=4)  # a design from before the key: not allowed
+    assert not allows_corner_contacts(SimpleNamespace(fabrication=fab))
+    fab.allow_corner_contacts = True
+    assert allows_corner_contacts(SimpleNamespace(fabrication=fab))
