@@ -214,9 +214,13 @@ def _touch_points(pairs):
 
 
 def _examples(parts):
-    """Centres (um) of the first :data:`EXAMPLES` markers, in KLayout's (deterministic) order."""
+    """Distinct centres (um) of the first :data:`EXAMPLES` markers, in KLayout's
+    (deterministic) order; a corner contact's two edge pairs share one centre."""
     out = []
-    for m in islice((m for part in parts for m in part.each()), EXAMPLES):
+    for m in islice((m for part in parts for m in part.each()), 20 * EXAMPLES):
         c = m.bbox().center()
-        out.append((c.x / 1000, c.y / 1000))
+        if (c.x / 1000, c.y / 1000) not in out:
+            out.append((c.x / 1000, c.y / 1000))
+        if len(out) == EXAMPLES:
+            break
     return tuple(out)
