@@ -15,13 +15,16 @@ The tile array is checked hierarchically (a ``DeepShapeStore``: the tile cell wi
 its neighbours in the array as context) and the marks in the top cell flat; the two
 lie far apart (else the whole layer is checked flat), so the counts add up to those
 of a flat run on the whole plate: every marker is counted at each of its placements.
-The cost grows with the number of markers: tenths of a second for a plate of 16 x 16
-tiles without them, seconds with hundreds of thousands. The same rules as a KLayout DRC
-script are written by :mod:`layouts.drc_deck`, the markers by :mod:`layouts.drc_rdb`.
+An array of at least 6 x 6 tiles is counted from four arrays of 3 or 4 tiles a side
+(:mod:`layouts.drc_periodic`), exactly: the tests compare with flat runs. The same
+rules as a KLayout DRC script are written by :mod:`layouts.drc_deck`, the markers by
+:mod:`layouts.drc_rdb`.
 """
 
 from dataclasses import dataclass
 from itertools import islice
+
+from layouts.drc_periodic import extrapolate, single_array, small_arrays
 
 RULES = ("width", "space", "notch", "area", "off_grid")
 EXAMPLES = 3  # marker locations given per layer and rule
@@ -106,9 +109,11 @@ class DrcResult:
     top_cell : str
     markers : dict
         (layer, rule) -> tuple of klayout.db EdgePairs or Region (for the marker
-        database): the tile array's markers and the marks', or the whole layer's.
-    store : klayout.db.DeepShapeStore
-        Holds the hierarchical markers: they live as long as it does.
+        database): the tile array's markers (of its 3 x 3 tiles at the origin for a
+        large array) and the marks', or the whole layer's.
+    store : tuple
+        The ``DeepShapeStore`` and small layouts that hold the hierarchical markers:
+        they live as long as it does.
     """
 
     rules: DrcRules
@@ -150,20 +155,54 @@ def check_plate(gds_path, rules):
     top = layout.top_cell()
     dss = kdb.DeepShapeStore()
     reach = max(rules.min_width_nm, rules.min_space_nm) + 1
-    counts, corners, markers = [], {}, {}
+    array = single_array(layout, top)
+    counts, corners, markers, keep = [], {}, {}, []
     for layer in rules.layers:
         parts = _layer_parts(layout, top, layer, dss, reach)
-        found = [_layer_markers(part, rules) for part in parts]
+        if array is not None and len(parts) == 2:  # the tile array counted from small ones
+            small = small_arrays(layout, array, layer, dss)
+            keep += small
+            tallies = [_tally(_layer_markers(region, rules)) for _, region in small[1:]]
+            # the markers shown are those of the 3 x 3 tiles at the array's origin
+            found = [_layer_markers(small[0][1], rules), _layer_markers(parts[1], rules)]
+            tallies.insert(0, _tally(found[0]))
+            tally = {
+                rule: [extrapolate([t[rule][i] for t in tallies], array.na, array.nb)
+                       for i in range(3)]
+                for rule in RULES
+            }  # fmt: skip
+            tally = _add(tally, _tally(found[1]))
+        else:
+            found = [_layer_markers(part, rules) for part in parts]
+            tally = {rule: [0, 0, 0] for rule in RULES}
+            for f in found:
+                tally = _add(tally, _tally(f))
         for rule in RULES:
             marks = tuple(f[rule] for f in found)
-            zero = [m.with_distance(0, 1, False) for m in marks] if rule in _DISTANCE else []
-            at_corners = sum(z.count() for z in zero)
-            count = sum(m.count() for m in marks)
+            count, at_corners, touch = tally[rule]
             counts.append(RuleCount(layer, rule, count, at_corners, _examples(marks)))
             markers[(layer, rule)] = marks
             if rule == "width":  # a corner contact is a width of 0 (and a space of 0) at a point
-                corners[layer] = sum(_touch_points(z) for z in zero)
-    return DrcResult(rules, tuple(counts), corners, top.name, markers, dss)
+                corners[layer] = touch
+    return DrcResult(rules, tuple(counts), corners, top.name, markers, (dss, keep))
+
+
+def _tally(found):
+    """Return {rule: [markers, at corner contacts, corner-contact points]} of
+    :func:`_layer_markers`'s result."""
+    out = {}
+    for rule, marks in found.items():
+        zero = marks.with_distance(0, 1, False) if rule in _DISTANCE else None
+        out[rule] = [
+            marks.count(),
+            zero.count() if zero is not None else 0,
+            _touch_points(zero) if zero is not None and rule == "width" else 0,
+        ]
+    return out
+
+
+def _add(a, b):
+    return {rule: [x + y for x, y in zip(a[rule], b[rule], strict=True)] for rule in a}
 
 
 def _layer_parts(layout, top, layer, dss, reach):

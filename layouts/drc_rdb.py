@@ -4,8 +4,9 @@ One category per layer and rule (``L1_width``, ...), each marker an item in the
 top cell in micrometres, as KLayout's own DRC writes them: open it over the GDS
 (``klayout mask.gds -m drc.lyrdb``, or Tools > Marker Browser) to step through them.
 A category lists at most :data:`MAX_ITEMS` markers (a plate of random pixels has
-hundreds of thousands, some 300 bytes each) and says so in its description; the
-deck run in KLayout lists them all.
+hundreds of thousands, some 300 bytes each), and of a large tile array only those of
+its 3 x 3 tiles at the origin (:mod:`layouts.drc_periodic`); its description then
+gives the plate's count. The deck run in KLayout lists them all.
 """
 
 from itertools import islice
@@ -45,18 +46,19 @@ def write_lyrdb(path, result, gds_name, design_name=""):
     cell = db.create_cell(result.top_cell)
     to_um = kdb.CplxTrans(0.001)
     limits = result.rules.limits()
+    plate = {(c.layer, c.rule): c.count for c in result.counts}
     for (layer, rule), markers in result.markers.items():
         cat = db.create_category(category_name(layer, rule))
         cat.description = category_text(layer, rule, limits[rule])
-        count = sum(part.count() for part in markers)
-        if count > MAX_ITEMS:
-            cat.description += f" ({count} markers, the first {MAX_ITEMS} listed)"
+        listed = min(sum(part.count() for part in markers), MAX_ITEMS)
+        if listed < plate[(layer, rule)]:
+            cat.description += f" ({plate[(layer, rule)]} markers on the plate, {listed} listed)"
         left = MAX_ITEMS
         for part in markers:
             if left <= 0:
                 break
-            listed = part if part.count() <= left else list(islice(part.each(), left))
-            db.create_items(cell.rdb_id(), cat.rdb_id(), to_um, listed)
+            items = part if part.count() <= left else list(islice(part.each(), left))
+            db.create_items(cell.rdb_id(), cat.rdb_id(), to_um, items)
             left -= part.count()
     db.save(str(path))
 

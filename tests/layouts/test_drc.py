@@ -59,6 +59,7 @@ def flat_counts(path, rules):
         out[(layer, "width")] = region.width_check(rules.min_width_nm, False, euclid).count()
         out[(layer, "space")] = region.space_check(rules.min_space_nm, False, euclid).count()
         out[(layer, "notch")] = region.notch_check(rules.min_space_nm, False, euclid).count()
+        out[(layer, "area")] = region.with_area(0, rules.min_area_nm2, False).count()
     return out
 
 
@@ -83,6 +84,24 @@ def test_hierarchical_counts_equal_a_flat_run_on_the_whole_gds(plate):
     ours = {(c.layer, c.rule): c.count for c in result.counts}
     for key, count in flat_counts(path, rules).items():
         assert ours[key] == count
+
+
+@pytest.mark.parametrize("feature", [PITCH, PITCH + 1500])
+def test_a_large_array_counted_from_small_ones_equals_a_flat_run(tmp_path, feature):
+    # 7 x 6 tiles: counted from 3 x 3 ... 4 x 4 arrays; with the feature above the pitch
+    # every single-pixel line, gap and pixel is a marker too, many across the seams
+    levels = np.random.default_rng(5).integers(0, 4, (10, 10)).astype(np.uint8)
+    masks = masks_from_levels(levels, 4, 1e-7)
+    lib, _ = build_library(masks, PITCH, (7, 6), "drc", marks=False)
+    write_gds(lib, tmp_path / "big.gds")
+    rules = plate_rules([1, 2], feature, 1)
+    result = check_plate(tmp_path / "big.gds", rules)
+    ours = {(c.layer, c.rule): c.count for c in result.counts}
+    flat = flat_counts(tmp_path / "big.gds", rules)
+    assert sum(flat.values()) > 0 and ours == {**ours, **flat}
+    for mk in masks:
+        want = corner_contacts(np.tile(mk.bitmap, (6, 7)))
+        assert result.corner_contacts[mk.gds_layer] == want
 
 
 def _gds(path, rects, layer=1):
