@@ -148,7 +148,18 @@ def test_corner_contacts_refuse_unless_the_process_accepts_them(green):
     assert refused_count(result, False) == result.total
     assert refused_count(result, True) == result.beyond_corners() == 0  # only corner contacts
     assert "(corner contacts, allowed)" in violation_summary(result, True)
-    fab = SimpleNamespace(levels=4)  # a design from before the key: not allowed
+    fab = SimpleNamespace(levels=4)  # a design object without the key: not allowed
     assert not allows_corner_contacts(SimpleNamespace(fabrication=fab))
     fab.allow_corner_contacts = True
     assert allows_corner_contacts(SimpleNamespace(fabrication=fab))
+
+
+def test_a_process_accepting_corner_contacts_writes_them_without_allow_drc(tmp_path):
+    toml = GREEN + "allow_corner_contacts = true\n"
+    d = design(tmp_path / "design", toml, checker_levels(24, 4))
+    result = build_package(d, tmp_path / "out", config=d / "design.toml", progress=False)
+    drc = result.manifest.drc()
+    assert drc["corner_contacts_allowed"] and not drc["violations_allowed"]
+    assert drc["total"] == sum(c["at_corner_contacts"] for c in drc["counts"]) > 0
+    report = (tmp_path / "out" / "fab_report.md").read_text()
+    assert "which the design's process accepts" in report
