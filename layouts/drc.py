@@ -15,7 +15,8 @@ The tile array is checked hierarchically (a ``DeepShapeStore``: the tile cell wi
 its neighbours in the array as context) and the marks in the top cell flat; the two
 lie far apart (else the whole layer is checked flat), so the counts add up to those
 of a flat run on the whole plate: every marker is counted at each of its placements.
-An array of at least 6 x 6 tiles is counted from four arrays of 3 or 4 tiles a side
+An array of at least 6 x 6 tiles, with the clipped edge tiles that fill the clear
+aperture round it, is counted from four such plates of 3 or 4 whole tiles a side
 (:mod:`layouts.drc_periodic`), exactly: the tests compare with flat runs. The same
 rules as a KLayout DRC script are written by :mod:`layouts.drc_deck`, the markers by
 :mod:`layouts.drc_rdb`.
@@ -206,9 +207,10 @@ def _add(a, b):
 
 
 def _layer_parts(layout, top, layer, dss, reach):
-    """Return the layer's shapes as regions checked apart: the tile array hierarchically
-    and the top cell's own shapes (the marks) flat, or the whole layer flat when a mark
-    lies within ``reach`` of the array (then the two interact).
+    """Return the layer's shapes as regions checked apart: the tile array (hierarchically
+    when it is one array of a leaf cell) and the top cell's own shapes (the marks) flat,
+    or the whole layer flat when a mark lies within ``reach`` of the array (then the two
+    interact).
 
     The marks are few and flat; checked hierarchically their polygons are cut where
     KLayout splits the top cell, which changes how many edge pairs a flat run reports.
@@ -220,7 +222,12 @@ def _layer_parts(layout, top, layer, dss, reach):
         return (kdb.Region(),)
     below = top.begin_shapes_rec(li)
     below.min_depth = 1  # the shapes of the cells placed in the top cell: the tile array
-    array = kdb.Region(below, dss)
+    # KLayout's hierarchical space check counts other edge pairs than a flat run where
+    # cells other than one array's tiles abut (the clipped edge tiles, the dies' plate
+    # cell): the array checked hierarchically only when it is all the top cell places
+    insts = list(top.each_inst())
+    pure = len(insts) == 1 and not layout.cell(insts[0].cell_index).child_cells()
+    array = kdb.Region(below, dss) if pure else kdb.Region(below)
     marks = kdb.Region(top.shapes(li))
     near = kdb.Region(array.bbox().enlarged(reach, reach))
     if not array.is_empty() and not marks.interacting(near).is_empty():

@@ -104,6 +104,33 @@ def test_a_large_array_counted_from_small_ones_equals_a_flat_run(tmp_path, featu
         assert result.corner_contacts[mk.gds_layer] == want
 
 
+@pytest.mark.parametrize(
+    ("tiles", "aperture", "feature"),
+    [((7, 6), 380_000, PITCH), ((3, 2), 180_000, PITCH)],
+)
+def test_a_filled_plate_counts_its_edge_tiles_as_a_flat_run_does(
+    tmp_path, tiles, aperture, feature
+):
+    # clipped edge tiles complete the aperture round the array: 3 pixel columns and 8
+    # rows each side; 7 x 6 tiles are counted from small plates, 3 x 2 checked whole
+    levels = np.random.default_rng(5).integers(0, 4, (10, 10)).astype(np.uint8)
+    masks = masks_from_levels(levels, 4, 1e-7)
+    lib, info = build_library(
+        masks, PITCH, tiles, "drc", aperture_nm=aperture, marks=False, mode="fill"
+    )
+    assert len(info.edge_cells) == 8 and info.plate.edge_pixels == (3, 3, 8, 8)
+    write_gds(lib, tmp_path / "filled.gds")
+    rules = plate_rules([1, 2], feature, 1)
+    result = check_plate(tmp_path / "filled.gds", rules)
+    ours = {(c.layer, c.rule): c.count for c in result.counts}
+    flat = flat_counts(tmp_path / "filled.gds", rules)
+    assert sum(flat.values()) > 0 and ours == {**ours, **flat}
+    (c0, c1), (r0, r1) = info.plate.pixel_span()
+    for mk in masks:
+        pixels = mk.bitmap[np.ix_(np.arange(r0, r1) % 10, np.arange(c0, c1) % 10)]
+        assert result.corner_contacts[mk.gds_layer] == corner_contacts(pixels)
+
+
 def _gds(path, rects, layer=1):
     lib = gdstk.Library(unit=1e-6, precision=1e-9)
     cell = lib.new_cell("TOP")
