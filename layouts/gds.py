@@ -180,10 +180,15 @@ def build_library(
             lib.remove(cell)
     frame_half = max(half, plate.aperture_nm // 2) if mode != "shrink" else half
     rules = mark_rules(feature_nm, grid_nm)
+    # the clipped edge pixels reach past the frame by up to a pixel: the marks keep
+    # their clearances to the pattern, not to the frame (a coarse pixel came within
+    # a feature size of them)
+    reach = -(-max(abs(v) for v in plate.extent_nm()) // grid_nm) * grid_nm
+    marks_half = max(frame_half, reach)
     mark_layers, marks_info = (), {}
     if marks:
-        mark_layers, marks_info = _marks(top, masks, frame_half, design_name, rules)
-    die_layout = plan_dies(dies, 2 * plate_half_size_nm(frame_half, rules), lane_nm, grid_nm)
+        mark_layers, marks_info = _marks(top, masks, (marks_half, frame_half), design_name, rules)
+    die_layout = plan_dies(dies, 2 * plate_half_size_nm(marks_half, rules), lane_nm, grid_nm)
     if several:
         mark_layers = (*mark_layers, _substrate(lib.new_cell(top_name), top, die_layout))
     info = PlateLayout(
@@ -224,15 +229,18 @@ def _substrate(top, plate_cell, die_layout):
     return MarkLayer(DICING_LANE_LAYER, 0, "dicing lanes and substrate edge (not etched)", None)
 
 
-def _marks(cell, masks, frame_half, design_name, rules):
-    """Draw the marks, labels and monitors around a clear-aperture frame of half width
-    ``frame_half`` into ``cell``; return (mark layers, the PlateLayout's marks keys)."""
-    grid_nm = rules.grid_nm
-    polys, layers = marks_and_labels(masks, frame_half, design_name, rules.feature_nm, grid_nm)
+def _marks(cell, masks, halves, design_name, rules):
+    """Draw the marks, labels and monitors around a square of half width ``halves[0]``
+    (the pattern's reach) and the clear-aperture frame of half width ``halves[1]`` into
+    ``cell``; return (mark layers, the PlateLayout's marks keys)."""
+    grid_nm, (half, frame_half) = rules.grid_nm, halves
+    polys, layers = marks_and_labels(
+        masks, half, design_name, rules.feature_nm, grid_nm, frame_half_nm=frame_half
+    )
     cell.add(*(_snapped(p, grid_nm) for p in polys))
-    pads, cds = monitor_plan(masks, frame_half, rules)
+    pads, cds = monitor_plan(masks, half, rules)
     info = {
-        "plate_half_nm": plate_half_size_nm(frame_half, rules),
+        "plate_half_nm": plate_half_size_nm(half, rules),
         "mark_rules": rules,
         "pads": pads,
         "cd_structures": cds,

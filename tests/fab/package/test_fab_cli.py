@@ -6,7 +6,7 @@ import re
 
 import numpy as np
 import pytest
-from package_helpers import make_design_dir
+from package_helpers import corner_free_levels, make_design_dir
 
 from doe.derived import derive, design_summary
 from doe.design import load_design
@@ -445,9 +445,7 @@ def test_manifest_lattice_pitch_is_lambda_f_over_tile_size(tmp_path):
     n = 35
     design_dir = tmp_path / "design"
     design_dir.mkdir()
-    np.save(
-        design_dir / "levels.npy", np.random.default_rng(0).integers(0, 8, (n, n)).astype(np.uint8)
-    )
+    np.save(design_dir / "levels.npy", corner_free_levels(n, 8, seed=0))
     assert main(["fab", str(design_dir), "--out", str(tmp_path / "out")]) == 0
     man = json.loads((tmp_path / "out" / "fab_manifest.json").read_text())
     design = load_design()
