@@ -66,25 +66,48 @@ def lattice_problem(der, kernel_size, grid):
     )
 
 
-def snapped_pixel_pitch(tile_nominal, tile_pixels, grid):
+# Relative slack of the pixel-count floor: a tile of exactly N feature sizes (up to
+# float noise in the SI round trip) has N pixels, not N - 1.
+_FLOOR_SLACK = 1e-9
+
+
+def tile_pixel_count(tile_nominal, feature_size):
+    """Return N, the most pixels per tile that are each at least the feature size.
+
+    Rounding to the nearest N would make the pixel up to half a pixel's share
+    narrower than the feature size, and a Euclidean width rule at the feature size
+    then flags every single-pixel line.
+    """
+    return max(1, math.floor(tile_nominal / feature_size * (1 + _FLOOR_SLACK)))
+
+
+def snapped_pixel_pitch(tile_nominal, tile_pixels, grid, minimum=0.0):
     """Return the mask pixel pitch (m): the nominal tile over N pixels, snapped to the grid.
 
-    0 when the grid is coarser than twice the pitch (the caller refuses that).
+    The snap does not take a pixel of at least ``minimum`` (the feature size) below
+    it: it then goes one grid step up instead of down. A pixel already below
+    ``minimum`` (a tile of more pixels than the feature size allows) snaps to the
+    nearest grid step. 0 when the grid is coarser than twice the pitch (the caller
+    refuses that).
     """
-    return round(tile_nominal / tile_pixels / grid) * grid
+    nominal = tile_nominal / tile_pixels
+    steps = round(nominal / grid)
+    if 0 < steps * grid < minimum * (1 - _FLOOR_SLACK) <= nominal:
+        steps += 1
+    return steps * grid
 
 
 def derive(d, tile_pixels=None):
     """Return the :class:`Derived` quantities of design ``d``.
 
-    ``tile_pixels`` overrides N (default: the tile size divided by the target
-    feature size, rounded).
+    ``tile_pixels`` overrides N (default: :func:`tile_pixel_count`, the most pixels
+    of at least the feature size that fit the tile).
     """
     sensor, fab, wl, f = d.sensor, d.fabrication, d.optics.wavelength, d.optics.focal_length
     subpixel = sensor.pixel_pitch / sensor.superres_factor
     tile_nominal = wl * f / subpixel  # order spacing lambda f / T = sub-pixel pitch
-    n_pix = tile_pixels or max(1, round(tile_nominal / fab.feature_size))
-    pitch = snapped_pixel_pitch(tile_nominal, n_pix, fab.grid)
+    n_pix = tile_pixels or tile_pixel_count(tile_nominal, fab.feature_size)
+    pitch = snapped_pixel_pitch(tile_nominal, n_pix, fab.grid, fab.feature_size)
     tile = n_pix * pitch
     lattice = wl * f / tile if tile > 0 else math.inf
     half_width_subpixels = max(sensor.columns, sensor.rows) * sensor.superres_factor / 2

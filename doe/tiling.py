@@ -167,10 +167,17 @@ def _pixel_count_fix(d, der):
     """The feature size, near the design's, whose grid-snapped pitch drifts least."""
     grid, nominal = d.fabrication.grid, der.tile_size_nominal
     counts = range(max(d.kernel_size, der.tile_pixels - 20), der.tile_pixels + 21)
-    best = min(counts, key=lambda n: abs(n * snapped_pixel_pitch(nominal, n, grid) - nominal))
+
+    def feature(n):  # the feature size that gives N = n (derive's floor), on the 1 nm grid
+        return math.floor(nominal / n * 1e9) * 1e-9
+
+    def pitch(n):
+        return snapped_pixel_pitch(nominal, n, grid, feature(n))
+
+    best = min(counts, key=lambda n: abs(n * pitch(n) - nominal))
     return (
-        f"[fabrication] feature_size_um = {nominal / best * 1e6:.4g} (N = {best}, whose "
-        f"{snapped_pixel_pitch(nominal, best, grid) * 1e9:g} nm pitch lands nearest the grid)"
+        f"[fabrication] feature_size_um = {feature(best) * 1e6:.6g} (N = {best}, whose "
+        f"{pitch(best) * 1e9:g} nm pitch lands nearest the grid)"
     )
 
 

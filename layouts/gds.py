@@ -22,6 +22,7 @@ import numpy as np
 
 from layouts.marks import (
     DEFAULT_FEATURE_NM,
+    OUTLINE_LAYER,
     MarkLayer,
     mark_rules,
     marks_and_labels,
@@ -180,10 +181,12 @@ def build_library(
             lib.remove(cell)
     frame_half = max(half, plate.aperture_nm // 2) if mode != "shrink" else half
     rules = mark_rules(feature_nm, grid_nm)
+    marks_half = frame_half
     mark_layers, marks_info = (), {}
     if marks:
-        mark_layers, marks_info = _marks(top, masks, frame_half, design_name, rules)
-    die_layout = plan_dies(dies, 2 * plate_half_size_nm(frame_half, rules), lane_nm, grid_nm)
+        marks_half = _marks_half(masks, frame_half, plate, design_name, rules)
+        mark_layers, marks_info = _marks(top, masks, (marks_half, frame_half), design_name, rules)
+    die_layout = plan_dies(dies, 2 * plate_half_size_nm(marks_half, rules), lane_nm, grid_nm)
     if several:
         mark_layers = (*mark_layers, _substrate(lib.new_cell(top_name), top, die_layout))
     info = PlateLayout(
@@ -224,15 +227,42 @@ def _substrate(top, plate_cell, die_layout):
     return MarkLayer(DICING_LANE_LAYER, 0, "dicing lanes and substrate edge (not etched)", None)
 
 
-def _marks(cell, masks, frame_half, design_name, rules):
-    """Draw the marks, labels and monitors around a clear-aperture frame of half width
-    ``frame_half`` into ``cell``; return (mark layers, the PlateLayout's marks keys)."""
-    grid_nm = rules.grid_nm
-    polys, layers = marks_and_labels(masks, frame_half, design_name, rules.feature_nm, grid_nm)
+def _marks_half(masks, frame_half, plate, design_name, rules):
+    """Return the half width to draw the marks round: the frame's, or more when the
+    clipped edge pixels (which reach past the frame by up to a pixel) would come
+    within a feature size of a mark (a coarse pixel's can)."""
+    reach = max(abs(v) for v in plate.extent_nm())
+    half, f, g = frame_half, rules.feature_nm, rules.grid_nm
+    for _ in range(4):
+        polys, _ = marks_and_labels(masks, half, design_name, f, g, frame_half_nm=frame_half)
+        gap = min(_bbox_gap(p.bounding_box(), reach) for p in polys if p.layer != OUTLINE_LAYER)
+        if gap >= f:
+            break
+        half += -(-(f - gap) // g) * g
+    return int(half)
+
+
+def _bbox_gap(box, half_nm):
+    """Euclidean distance (nm) from a bounding box (um) to the square |x|, |y| <= half_nm:
+    at most the distance from the polygon inside the box."""
+    (x0, y0), (x1, y1) = box
+    dx = max(0.0, x0 * 1000 - half_nm, -half_nm - x1 * 1000)
+    dy = max(0.0, y0 * 1000 - half_nm, -half_nm - y1 * 1000)
+    return int(np.floor(np.hypot(dx, dy)))
+
+
+def _marks(cell, masks, halves, design_name, rules):
+    """Draw the marks, labels and monitors around a square of half width ``halves[0]``
+    (the pattern's reach) and the clear-aperture frame of half width ``halves[1]`` into
+    ``cell``; return (mark layers, the PlateLayout's marks keys)."""
+    grid_nm, (half, frame_half) = rules.grid_nm, halves
+    polys, layers = marks_and_labels(
+        masks, half, design_name, rules.feature_nm, grid_nm, frame_half_nm=frame_half
+    )
     cell.add(*(_snapped(p, grid_nm) for p in polys))
-    pads, cds = monitor_plan(masks, frame_half, rules)
+    pads, cds = monitor_plan(masks, half, rules)
     info = {
-        "plate_half_nm": plate_half_size_nm(frame_half, rules),
+        "plate_half_nm": plate_half_size_nm(half, rules),
         "mark_rules": rules,
         "pads": pads,
         "cd_structures": cds,

@@ -420,8 +420,9 @@ def monitor_plan(masks, aperture_half_nm, rules=None):
 
 
 def marks_and_labels(
-    masks, aperture_half_nm, design_name, feature_nm=DEFAULT_FEATURE_NM, grid_nm=1
-):
+    masks, aperture_half_nm, design_name, feature_nm=DEFAULT_FEATURE_NM, grid_nm=1,
+    frame_half_nm=None,
+):  # fmt: skip
     """Build every non-pattern polygon of the plate.
 
     Parameters
@@ -435,6 +436,9 @@ def marks_and_labels(
     feature_nm, grid_nm : int
         The design's feature size (the narrowest width and space drawn) and the
         write grid (every vertex lies on it).
+    frame_half_nm : int or None
+        Half the clear-aperture frame drawn on the outline layer, when the marks keep
+        clear of a pattern reaching past it (default ``aperture_half_nm``).
 
     Returns
     -------
@@ -465,7 +469,8 @@ def marks_and_labels(
     ]
     h = plate_half_size_nm(a, rules)
     polys += _frame(0, 0, 2 * h - 2 * OUTLINE_WIDTH_NM, 2 * h, OUTLINE_LAYER)
-    polys += _frame(0, 0, 2 * a, 2 * a + 2 * OUTLINE_WIDTH_NM, OUTLINE_LAYER)
+    f = a if frame_half_nm is None else int(frame_half_nm)
+    polys += _frame(0, 0, 2 * f, 2 * f + 2 * OUTLINE_WIDTH_NM, OUTLINE_LAYER)
     layers.append(
         MarkLayer(OUTLINE_LAYER, 0, "plate edge and clear-aperture frame (not etched)", None)
     )

@@ -32,6 +32,8 @@ GDS_NAME = "mask.gds"
 OASIS_NAME = "mask.oas"
 LEVELS_FILE = "levels.npy"
 TARGET_PSF_FILE = "target_psf.npy"
+DRC_DECK = "drc.lydrc"  # the design rules as a KLayout DRC script
+DRC_MARKERS = "drc.lyrdb"  # the violations as a KLayout marker database
 
 # Data polarity and resist tone: stated once, as data the manifest and report use.
 DATA_POLARITY = "a polygon marks area to etch (etched = drawn)"
@@ -184,6 +186,13 @@ class FabManifest:
         return TileGeometry(
             n_levels, step, pitch, n, (tiles[0], tiles[1]), (origin[0], origin[1]), edges
         )
+
+    def drc(self):
+        """Return the design-rule check's block (``drc``) as written, or None without one."""
+        block = self.fields.get("drc")
+        if block is not None and not isinstance(block, Mapping):
+            raise InputError(self.path, f"drc must be an object, got {block!r}")
+        return block
 
     def levels_path(self):
         """Return the level map's path (``levels_file``); InputError if it names no file."""
@@ -342,6 +351,48 @@ def build_fab_manifest(
     return manifest
 
 
+def drc_record(result, allowed, corner_contacts_allowed):
+    """Return the manifest's ``drc`` block of a design-rule check.
+
+    Parameters
+    ----------
+    result : layouts.drc.DrcResult
+    allowed : bool
+        The package was written with violations because ``--allow-drc`` was given.
+    corner_contacts_allowed : bool
+        The design's process accepts pixels touching only at a corner.
+    """
+    r = result.rules
+    return {
+        "deck": DRC_DECK,
+        "markers": DRC_MARKERS,
+        "rules": {
+            "layers": list(r.layers),
+            "datatype": 0,
+            "min_width_nm": r.min_width_nm,
+            "min_space_nm": r.min_space_nm,
+            "min_area_um2": r.min_area_nm2 / 1e6,
+            "grid_nm": r.grid_nm,
+            "metrics": "euclidean",
+            "checks": dict(r.limits()),
+        },
+        "counts": [
+            {
+                "layer": c.layer,
+                "rule": c.rule,
+                "count": c.count,
+                "at_corner_contacts": c.at_corners,
+                "examples_um": [list(xy) for xy in c.examples_um],
+            }
+            for c in result.counts
+        ],
+        "corner_contacts": {str(k): v for k, v in sorted(result.corner_contacts.items())},
+        "total": result.total,
+        "corner_contacts_allowed": bool(corner_contacts_allowed),
+        "violations_allowed": bool(allowed),
+    }
+
+
 def write_fab_manifest(path, manifest):
     """Write a manifest (a :class:`FabManifest` or the dict of :func:`build_fab_manifest`)."""
     fields = manifest.fields if isinstance(manifest, FabManifest) else manifest
@@ -358,6 +409,8 @@ def previous_package_files(path, image_names):
 
     def named(manifest):
         names = [name for mk in manifest["masks"] for name in image_names(mk["name"])]
+        drc = manifest.get("drc") or {}
+        names += [drc[key] for key in ("deck", "markers") if key in drc]
         return names + ([manifest["oasis"]] if "oasis" in manifest else [])
 
     return previous_files(path, named)

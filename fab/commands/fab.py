@@ -69,6 +69,12 @@ def register(sub):
     p.add_argument(
         "--lane-um", type=float, default=200.0, help="dicing lane width in um (default 200)"
     )
+    p.add_argument(
+        "--allow-drc",
+        action="store_true",
+        help="write the package even when the design-rule check (drc.lydrc: width and space "
+        "at the feature size, Euclidean) finds violations; the report lists them",
+    )
     p.set_defaults(func=_fab)
 
 
@@ -81,6 +87,7 @@ def _fab(args):
             camera_budget=False if args.no_camera_budget else None, camera_psnr=args.camera_psnr,
             tiles=args.tiles, whole_tiles=args.whole_tiles, keep_aperture=args.keep_aperture,
             dies=tuple(args.dies), lane_um=args.lane_um,
+            allow_drc=args.allow_drc,
         )  # fmt: skip
     except PackageCheckFailed as e:
         print(f"doefab fab: FAIL {e}; nothing written", file=sys.stderr)
@@ -88,6 +95,13 @@ def _fab(args):
     for warning in result.warnings:  # once the package is in place: a refusal stays one line
         print(f"doefab fab: {warning}", file=sys.stderr)
     m = result.manifest.fields
+    drc = m["drc"]
+    if drc["violations_allowed"]:
+        print(
+            f"doefab fab: warning: {drc['total']} design-rule markers allowed by --allow-drc "
+            f"(markers in {drc['markers']})",
+            file=sys.stderr,
+        )
     depths = ", ".join(f"{mk['name']} {mk['etch_depth_nm']:.1f} nm" for mk in m["masks"])
     plate = m["plate"]
     dies = m["dies"]["nx"], m["dies"]["ny"]

@@ -1,8 +1,9 @@
 """Build the fabrication package of a phase tile: :func:`build_package` (``doefab fab``).
 
-Masks -> GDS (+ optional OASIS) -> KLayout read-back check -> layer images ->
-tolerance analysis -> manifest -> report, all written through a staging folder
-so that a failed or refused run leaves nothing behind.
+Masks -> GDS (+ optional OASIS) -> KLayout read-back check -> design-rule check
+(:mod:`fab.package.drc`) -> layer images -> tolerance analysis -> manifest -> report,
+all written through a staging folder so that a failed or refused run leaves nothing
+behind.
 """
 
 import shutil
@@ -13,6 +14,8 @@ from types import MappingProxyType
 
 from doe.infra.errors import InputError, first_line
 from doe.records.fab_manifest import (
+    DRC_DECK,
+    DRC_MARKERS,
     GDS_NAME,
     LEVELS_FILE,
     MANIFEST_NAME,
@@ -25,7 +28,7 @@ from doe.records.fab_manifest import (
     write_fab_manifest,
 )
 
-STAGES = ("gds", "check", "images", "tolerance", "manifest", "report")
+STAGES = ("gds", "check", "drc", "images", "tolerance", "manifest", "report")
 
 
 class PackageCheckFailed(Exception):
@@ -160,7 +163,7 @@ CAMERA_BUDGET = True
 def build_package(
     design_dir, out, *, config=None, force=False, oasis=False, progress=True,
     camera_budget=None, camera_psnr=None, tiles=None, whole_tiles=False, keep_aperture=False,
-    dies=(1, 1), lane_um=None,
+    dies=(1, 1), lane_um=None, allow_drc=False,
 ):  # fmt: skip
     """Write the fabrication package of DESIGN_DIR's tile into ``out``.
 
@@ -198,6 +201,9 @@ def build_package(
         Plates along x and y on the substrate, dicing lanes between them.
     lane_um : float or None
         Dicing lane width (default 200 um).
+    allow_drc : bool
+        Write the package even when the design-rule check finds violations
+        (``--allow-drc``); the manifest and report then say what was allowed.
 
     Returns
     -------
@@ -206,7 +212,8 @@ def build_package(
     Raises
     ------
     InputError
-        Unusable input (exit 2).
+        Unusable input (exit 2); :class:`fab.package.drc.DrcRefused` for a package
+        with design-rule violations without ``allow_drc``.
     PackageCheckFailed
         The written GDS does not read back as the masks (exit 1).
         In both cases nothing is left in ``out``.
@@ -229,7 +236,7 @@ def build_package(
     bar = tqdm(
         STAGES, desc="doefab fab", file=sys.stderr, disable=not (progress and sys.stderr.isatty())
     )
-    known = [GDS_NAME, MANIFEST_NAME, LEVELS_FILE, TARGET_PSF_FILE]
+    known = [GDS_NAME, MANIFEST_NAME, LEVELS_FILE, TARGET_PSF_FILE, DRC_DECK, DRC_MARKERS]
     known += [name for mk in tile.masks for name in layer_image_names(mk.name)]
     known += [OASIS_NAME] if oasis else []
     known += list(ORDER_FILES)
@@ -238,7 +245,7 @@ def build_package(
         stale = [*stale, *CAMERA_REPORT_FIGURES]
     with staged_output(out, force, names=known, stale=stale) as stage:
         manifest, report_files, more = _write_package(
-            stage, tile, choice, Path(design_dir), Path(out), oasis, bar, progress,
+            stage, tile, choice, Path(design_dir), Path(out), (oasis, allow_drc), bar, progress,
             (CAMERA_BUDGET if camera_budget is None else camera_budget, psnr),
         )  # fmt: skip
         warnings += more
@@ -321,10 +328,13 @@ def _plan(design, der, levels, target, k, pitch_nm):
 
 
 def _write_package(
-    stage, tile, choice, design_dir, out, oasis, bar, progress, camera=(False, None)
+    stage, tile, choice, design_dir, out, flags, bar, progress, camera=(False, None)
 ):
-    """Write the package's files into ``stage``; return (manifest dict, report files, warnings)."""
+    """Write the package's files into ``stage``; return (manifest dict, report files, warnings).
+
+    ``flags`` is (oasis, allow_drc)."""
     from doe.aperture import as_built, as_built_record
+    from fab.package.drc import run_package_drc
     from fab.package.layer_images import write_layer_images
     from fab.package.manifest import file_records, layout_keys
     from fab.package.order import ORDER_FILES, write_mask_order
@@ -335,6 +345,7 @@ def _write_package(
     design, der, masks, pitch_nm = tile.design, tile.derived, tile.masks, tile.pitch_nm
     n_levels = design.fabrication.levels
     tiles = choice.plate.tiles
+    oasis, allow_drc = flags
     aperture_nm = round(design.fabrication.aperture * 1e9)
     extra = dict(tile.extra)
     bar.set_postfix_str("gds")
@@ -359,6 +370,9 @@ def _write_package(
         ) from None
     if problems:
         raise PackageCheckFailed("; ".join(problems))
+    bar.update()
+    bar.set_postfix_str("drc")
+    extra["drc"] = run_package_drc(stage, design, masks, allow_drc, out)[1]
     bar.update()
     bar.set_postfix_str("images")
     write_layer_images(

@@ -19,6 +19,7 @@ from doe.fraunhofer import correlation, level_phase, rmse
 from doe.goals import goals_missed
 from doe.infra.files import atomic_write_bytes, write_json
 from doe.materials import TABLE_KEY, index_source
+from fab.package.drc_report import drc_blocks
 from fab.package.layer_images import layer_image_blocks
 from fab.package.manifest import file_records
 from fab.package.polarity import masks_figure_description
@@ -162,7 +163,7 @@ def report_blocks(context, figures=()):
     b += _design_blocks(d)
     b += _material_blocks(d, context["manifest"])
     b += _process_blocks(context)
-    b += marks_blocks(context["manifest"])
+    b += marks_blocks(context["manifest"]) + drc_blocks(context["manifest"])
     b += plate_blocks(context)
     b.append(("h2", "Orientation"))
     b.append(("p", context.get("orientation") or context["manifest"].get("orientation", "")))

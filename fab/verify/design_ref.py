@@ -112,6 +112,7 @@ class _RetrievalReference:
     focal_length: float
     grid: float
     tile_nominal: float
+    feature_size: float = 0.0  # derive() snaps a pixel of at least it no lower
     lattice_pitch: float = math.nan  # from N, once the level map is read
     mask_pixel_pitch: float | None = None
     acceptance: None = None
@@ -144,6 +145,7 @@ def _retrieval_reference(source):
             focal_length=focal,
             grid=grid,
             tile_nominal=tile_nominal,
+            feature_size=float(design["fabrication"].get("feature_size_um", 0)) * 1e-6,
         )
     except (KeyError, TypeError, ValueError, IndexError, OverflowError, AttributeError) as e:
         raise InputError(source, f"malformed {RETRIEVAL_JSON} ({e!r} missing or wrong)") from None
@@ -151,7 +153,7 @@ def _retrieval_reference(source):
 
 def _retrieve_lattice(ref, n, source):
     """Return (lattice pitch, mask pixel pitch) of a retrieve folder's tile of N = ``n``."""
-    pitch = snapped_pixel_pitch(ref.tile_nominal, n, ref.grid)  # as derive() snaps it
+    pitch = snapped_pixel_pitch(ref.tile_nominal, n, ref.grid, ref.feature_size)  # as derive()
     if pitch == 0:
         raise InputError(source, f"its grid_nm is coarser than the mask pixels of N = {n}")
     return ref.wavelength * ref.focal_length / (n * pitch), pitch

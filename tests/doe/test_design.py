@@ -39,12 +39,14 @@ def test_derived_quantities_follow_from_first_principles():
     wl, f = 655e-9, 50e-3
     assert der.subpixel_pitch == pytest.approx(37.5e-6)
     assert der.tile_size_nominal == pytest.approx(wl * f / 37.5e-6)
-    n_pix = round(der.tile_size_nominal / 5e-6)
-    assert der.tile_pixels == n_pix
-    # the pitch lands on the 1 nm grid and is the nearest grid value
+    # the most pixels of at least the 5 um feature size: 873.33 um / 5 um = 174.67 -> 174
+    n_pix = math.floor(der.tile_size_nominal / 5e-6)
+    assert der.tile_pixels == n_pix == 174
+    # the pitch lands on the 1 nm grid, is the nearest grid value and not below 5 um
     pitch_nm = der.mask_pixel_pitch * 1e9
     assert pitch_nm == pytest.approx(round(pitch_nm), abs=1e-6)
     assert abs(pitch_nm - der.tile_size_nominal * 1e9 / n_pix) <= 0.5
+    assert pitch_nm == pytest.approx(5019) and pitch_nm >= 5000
     assert der.lattice_pitch == pytest.approx(wl * f / (n_pix * der.mask_pixel_pitch))
     assert der.lattice_drift_at_edge == pytest.approx((der.lattice_pitch - 37.5e-6) * 64 * 4 / 2)
     assert der.tiles == math.floor(14e-3 / der.tile_size)
@@ -68,11 +70,12 @@ def test_lattice_drift_is_taken_along_the_sensors_longer_side():
 @pytest.mark.parametrize("tiles", [2, 3, 16])
 def test_an_aperture_of_exactly_whole_tiles_holds_them_all(tiles):
     # N * pitch came out 1 ulp above the aperture: "0.873 mm is larger than 0.873 mm";
-    # and 2 x 0.87325 mm held 1 tile by floor(aperture / tile) alone.
-    raw = with_value("fabrication", "aperture_mm", tiles * 0.87325)
+    # and 2 tiles' width held 1 tile by floor(aperture / tile) alone. The tile is
+    # 174 pixels of 5019 nm.
+    raw = with_value("fabrication", "aperture_mm", tiles * 0.873306)
     der = derive(parse_design(raw, "whole.toml"))
-    assert der.tile_size == pytest.approx(0.87325e-3) and der.tiles == tiles
-    assert der.tiled_size == pytest.approx(tiles * 0.87325e-3)
+    assert der.tile_size == pytest.approx(0.873306e-3) and der.tiles == tiles
+    assert der.tiled_size == pytest.approx(tiles * 0.873306e-3)
 
 
 def test_the_mask_pitch_is_the_grid_value_nearest_the_tile_over_n():
@@ -84,7 +87,8 @@ def test_the_mask_pitch_is_the_grid_value_nearest_the_tile_over_n():
 
 @pytest.mark.parametrize(
     ("feature_um", "accepted"),
-    [(79.39, True), (0.21322, True), (0.21317, False)],  # N = 11 = K, 4096, 4097
+    # N = floor(873 333.3 nm / feature): 11 = K, 4096, 4097
+    [(79.39, True), (0.2132, True), (0.21315, False)],
 )
 def test_tile_pixel_limits_are_inclusive(feature_um, accepted):
     raw = with_value("fabrication", "feature_size_um", feature_um)
@@ -142,8 +146,8 @@ def test_an_unknown_material_is_refused_with_the_known_ones():
         ("fabrication", "aperture_mm", 0.5, "larger than the aperture"),
         # 100 nm of glass under 1256 nm of etch: refused only by the mesh, after training
         ("material", "thickness_mm", 1e-4, r"not thicker than the deepest etch \(1255.8 nm\)"),
-        # a 2 um grid snapped the 4990.5 nm pitch to 4000 nm: the PSF 25 % too large
-        ("fabrication", "grid_nm", 2000, r"dots land 124% of a sub-pixel off theirs"),
+        # a 2 um grid snaps the 5019.2 nm pitch to 6000 nm: the PSF 16 % too small
+        ("fabrication", "grid_nm", 2000, r"dots land 82% of a sub-pixel off theirs"),
         ("optics", "wavelength_nm", 5000.0, "outside the Sellmeier range"),
         ("sensor", "pixel_pitch_um", -150.0, "must be > 0"),
         # found by hypothesis: a pitch of 1e160 um overflowed the fill factor
@@ -280,7 +284,7 @@ def test_presets_are_listed_and_load():
 def test_config_show_cli(capsys):
     assert main(["config", "show", "--json"]) == 0
     out = capsys.readouterr().out
-    assert '"tile_pixels": 175' in out and '"mask_pixel_pitch_nm": 4990' in out
+    assert '"tile_pixels": 174' in out and '"mask_pixel_pitch_nm": 5019' in out
 
 
 def _table_value(text):
@@ -326,8 +330,11 @@ def test_config_show_table_lists_every_value_of_the_json_under_its_section(capsy
         ("this is = = not toml", "not valid TOML"),
         ("[learning]\nsteps = 1" + "0" * 5000 + "\n", "not valid TOML"),  # past int() digits
         ("[fabrication]\naperture_mm = 0.1\n", "larger than the aperture"),
-        # a tile a quarter of a micron too large read "(0.873 mm) is larger than ... (0.873 mm)"
-        ("[fabrication]\naperture_mm = 0.873\n", "(0.87325 mm) is larger than the aperture (0.873"),
+        # a tile 0.3 um too large read "(0.873 mm) is larger than ... (0.873 mm)"
+        (
+            "[fabrication]\naperture_mm = 0.873\n",
+            "(0.873306 mm) is larger than the aperture (0.873",
+        ),
         # 2^63 - 1 columns passed, with a lattice drift of 6.6e16 um at the sensor's edge
         (
             "[sensor]\ncolumns = 9223372036854775807\n",

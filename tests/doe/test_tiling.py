@@ -56,8 +56,10 @@ def test_tiling_figures_match_a_hand_computation(
 ):
     t = tiling(load_design(name))
     nominal = wl * f / subpixel  # the tile whose orders lie one sub-pixel apart
-    n = round(nominal / feature)
-    tile = n * round(nominal / n * 1e9) * 1e-9  # the pitch snapped to the 1 nm grid
+    n = math.floor(nominal / feature)  # the most pixels of at least the feature size
+    pitch_nm = round(nominal / n * 1e9)  # snapped to the 1 nm grid, not below the feature
+    pitch_nm += pitch_nm < round(feature * 1e9)
+    tile = n * pitch_nm * 1e-9
     assert t.tile_size == pytest.approx(tile, rel=1e-12)
     assert t.tiles == math.floor(aperture / tile) == tiles
     assert t.tiles_exact == pytest.approx(aperture / tile)
@@ -89,7 +91,8 @@ def test_a_16_um_array_at_the_papers_optics_is_refused_with_fixes_that_work(tmp_
     raw["fabrication"]["aperture_mm"] = 14.0
     assert main(["config", "show", "--config", str(_write(tmp_path, "ss2x4", raw))]) == 2
     err = capsys.readouterr().err
-    assert "no dot lattice forms: 1 whole tile(s) of 7.997 mm" in err
+    # 1599 pixels of 5002 nm (the 7.9976 mm tile over the most 5 um pixels, snapped)
+    assert "no dot lattice forms: 1 whole tile(s) of 7.998 mm" in err
     assert "[fabrication] aperture_mm" in err  # the key the message names
     (f_max,) = _numbers(r"change \[optics\] focal_length_mm <= ([\d.]+)", err)
     (a_min,) = _numbers(r"aperture_mm >= ([\d.]+)", err)
@@ -140,19 +143,20 @@ def test_config_show_and_presets_print_the_verdicts(capsys, preset):
 
 
 def test_outermost_dots_drifting_off_a_tight_active_area_warn():
-    # sun2020's grid snap puts the 5th dot 5 x |lambda f / T - s| = 17.9 nm off its
-    # sub-pixel; an active area 0.03 um wider than the 5.71 um dot leaves 15 nm.
-    d = parse_design(_with("sun2020", sensor={"active_area_um": 5.74}), "tight.toml")
+    # sun2020's grid snap puts the 5th dot 5 x |lambda f / T - s| = 5.9 nm off its
+    # sub-pixel; an active area 7 nm wider than the 5.708 um dot leaves 3.6 nm.
+    d = parse_design(_with("sun2020", sensor={"active_area_um": 5.715}), "tight.toml")
     t = tiling(d)
-    tile = 175 * 4990e-9
+    tile = 174 * 5019e-9
     offset = 5 * abs(655e-9 * 50e-3 / tile - 37.5e-6)
-    assert t.kernel_edge_offset == pytest.approx(offset) and offset > (5.74e-6 - t.dot_diameter) / 2
+    assert t.kernel_edge_offset == pytest.approx(offset)
+    assert offset > (5.715e-6 - t.dot_diameter) / 2
     assert t.verdict == "marginal" and "outermost dots drift" in t.problems[0]
     assert tiling(parse_design(_with("sun2020", sensor={"active_area_um": 5.9}))).verdict == "ok"
     # the fix: a tile pixel count whose snapped pitch lands nearer the grid
     (feature,) = _numbers(r"feature_size_um = ([\d.]+) \(N = \d+", t.fixes[0])
     raw = _with(
-        "sun2020", sensor={"active_area_um": 5.74}, fabrication={"feature_size_um": feature}
+        "sun2020", sensor={"active_area_um": 5.715}, fabrication={"feature_size_um": feature}
     )
     fixed = tiling(parse_design(raw, "fixed.toml"))
     assert fixed.verdict == "ok" and fixed.kernel_edge_offset < offset / 5

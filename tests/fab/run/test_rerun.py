@@ -15,7 +15,7 @@ from fab.run.stages import RunResult, run_pipeline
 SMALL = """
 name = "small"
 [fabrication]
-feature_size_um = 20.0     # N = 44 pixels: a fast tile
+feature_size_um = 20.0     # N = 43 pixels: a fast tile
 levels = {levels}
 [learning]
 steps = 12

@@ -20,7 +20,7 @@ pytestmark = pytest.mark.slow
 SMALL = """
 name = "small"
 [fabrication]
-feature_size_um = 20.0     # N = 44 pixels: a fast tile
+feature_size_um = 20.0     # N = 43 pixels of 20.31 um (873.3 um / 20 um = 43.67): a fast tile
 [learning]
 steps = 12
 """
@@ -63,7 +63,7 @@ def test_run_writes_the_whole_package(finished):
     assert "index.html" in listed and "fab/mask.gds" in listed
     for rel, digest in listed.items():
         assert sha256_file(finished / rel) == digest, rel
-    assert manifest["design"]["derived"]["tile_pixels"] == 44
+    assert manifest["design"]["derived"]["tile_pixels"] == 43
     assert manifest["seeds"] == {"learn": 0, "retrieve": 0}
     assert manifest["versions"]["numpy"]
     index = (finished / "index.html").read_text()
