@@ -100,7 +100,7 @@ BK7 = '[optics]\nwavelength_nm = 532.0\n[material]\nname = "bk7"\n'
             4,
             "paper_gaussian",
         ),
-        ("[fabrication]\nlevels = 16\nfeature_size_um = 25.0\n", 16, "asymmetric"),
+        ("[fabrication]\nlevels = 16\nfeature_size_um = 24.5\n", 16, "asymmetric"),
     ],
 )
 def test_a_retrieved_tile_has_no_corner_contact_in_any_mask(tmp_path, body, n_levels, target):
