@@ -13,15 +13,12 @@ of one mesh per piece, 3MF components of one object per piece. Units are mm;
 lower-left of the whole-tile array at ``origin_mm``.
 """
 
-import io
-import zipfile
-
 import numpy as np
 
 from fab.mesh import relief as mesh
+from fab.mesh.formats import threemf_package
 from layouts.plate_plan import PlatePattern, edge_pieces
 
-_ZIP_DATE = (1980, 1, 1, 0, 0, 0)
 EDGE_SCENE = "aperture_edge"
 """Stem of the edge pieces' scene files (``aperture_edge.glb``, ``aperture_edge.3mf``)."""
 
@@ -107,39 +104,9 @@ def scene_3mf_bytes(meshes, name=EDGE_SCENE):
         f'<object id="{top}" name="{name}" type="model"><components>{"".join(comps)}'
         "</components></object>"
     )
-    model = (
-        '<?xml version="1.0" encoding="UTF-8"?>\n'
-        '<model unit="millimeter" xml:lang="en-US" '
-        'xmlns="http://schemas.microsoft.com/3dmanufacturing/core/2015/02">'
+    return threemf_package(
         f'<resources>{"".join(objects)}</resources><build><item objectid="{top}"/></build>'
-        "</model>\n"
     )
-    content_types = (
-        '<?xml version="1.0" encoding="UTF-8"?>\n'
-        '<Types xmlns="http://schemas.openxmlformats.org/package/2006/content-types">'
-        '<Default Extension="rels" '
-        'ContentType="application/vnd.openxmlformats-package.relationships+xml"/>'
-        '<Default Extension="model" '
-        'ContentType="application/vnd.ms-package.3dmanufacturing-3dmodel+xml"/></Types>\n'
-    )
-    rels = (
-        '<?xml version="1.0" encoding="UTF-8"?>\n'
-        '<Relationships xmlns="http://schemas.openxmlformats.org/package/2006/relationships">'
-        '<Relationship Target="/3D/3dmodel.model" Id="rel0" '
-        'Type="http://schemas.microsoft.com/3dmanufacturing/2013/01/3dmodel"/>'
-        "</Relationships>\n"
-    )
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w") as z:
-        for member, text in (
-            ("[Content_Types].xml", content_types),
-            ("_rels/.rels", rels),
-            ("3D/3dmodel.model", model),
-        ):
-            info = zipfile.ZipInfo(member, date_time=_ZIP_DATE)
-            info.compress_type = zipfile.ZIP_DEFLATED
-            z.writestr(info, text.encode("utf-8"), compresslevel=6)
-    return buf.getvalue()
 
 
 SCENE_ENCODERS = {"glb": scene_glb_bytes, "3mf": scene_3mf_bytes}

@@ -90,11 +90,19 @@ def threemf_bytes(vertices, faces, offsets=None):
             f'<object id="2" name="aperture" type="model"><components>{comps}</components></object>'
         )
         build = '<item objectid="2"/>'
+    return threemf_package(f"<resources>{objects}</resources><build>{build}</build>")
+
+
+def threemf_package(resources_and_build):
+    """Return the bytes of a 3MF package (mm) whose model holds ``resources_and_build``.
+
+    The zip members carry a fixed date, so equal models give equal bytes.
+    """
     model = (
         '<?xml version="1.0" encoding="UTF-8"?>\n'
         '<model unit="millimeter" xml:lang="en-US" '
         'xmlns="http://schemas.microsoft.com/3dmanufacturing/core/2015/02">'
-        f"<resources>{objects}</resources><build>{build}</build></model>\n"
+        f"{resources_and_build}</model>\n"
     )
     content_types = (
         '<?xml version="1.0" encoding="UTF-8"?>\n'
