@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 import trimesh
-from package_helpers import make_design_dir
+from package_helpers import GREEN_FOUR_LEVELS, make_design_dir
 
 import fab.package.report as report
 from doe.infra.cli import main
@@ -18,19 +18,7 @@ from fab.package.build import build_package
 # a default-like design (sun2020's 655 nm, 8 levels) on a 3 mm aperture, N = 15
 DEFAULT_LIKE = 'name = "small"\n[psf]\nkernel_size = 7\n[fabrication]\naperture_mm = 3.0\n'
 # a 532 nm, bk7, 4-level design on a 12.7 mm aperture: 17 x 17 tiles of 0.709 mm, N = 11
-FOUR_LEVELS = """name = "green4"
-[optics]
-wavelength_nm = 532.0
-[material]
-name = "bk7"
-[fabrication]
-levels = 4
-aperture_mm = 12.7
-feature_size_um = 10.0
-grid_nm = 10
-[psf]
-kernel_size = 7
-"""
+FOUR_LEVELS = 'name = "green4"\n' + GREEN_FOUR_LEVELS
 DESIGNS = {"default_like": (DEFAULT_LIKE, 15, 8), "four_levels": (FOUR_LEVELS, 11, 4)}
 
 

@@ -7,6 +7,22 @@ from doe.goals import Goal
 from doe.mask_rules import corner_contacts
 from doe.rule_finish import repair_corners
 
+# A 532 nm, bk7, 4-level design on a 12.7 mm aperture, 10 um features on a 10 nm grid:
+# the tests' design beside sun2020 (17 x 17 tiles of 0.709 mm).
+GREEN_FOUR_LEVELS = """
+[optics]
+wavelength_nm = 532.0
+[material]
+name = "bk7"
+[fabrication]
+levels = 4
+aperture_mm = 12.7
+feature_size_um = 10.0
+grid_nm = 10
+[psf]
+kernel_size = 7
+"""
+
 # The diagonal partner and the two other pixels of the four 2 x 2 blocks a pixel is in,
 # as offsets from it: (partner, other, other).
 _BLOCKS = (

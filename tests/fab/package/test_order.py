@@ -6,7 +6,7 @@ import json
 
 import klayout.db as kdb
 import pytest
-from package_helpers import make_design_dir
+from package_helpers import GREEN_FOUR_LEVELS, make_design_dir
 
 from doe.records.fab_manifest import read_fab_manifest
 from fab.package.build import build_package
@@ -18,20 +18,6 @@ FIELDS = {
     "cd_tolerance_source", "cd_structures_width_nm", "field_size_nm", "plate_size_nm",
     "blank", "etch_depth_nm",
 }  # fmt: skip
-# a 532 nm, bk7, 4-level design on a 12.7 mm aperture, 10 um features on a 10 nm grid
-FOUR_LEVELS = """
-[optics]
-wavelength_nm = 532.0
-[material]
-name = "bk7"
-[fabrication]
-levels = 4
-aperture_mm = 12.7
-feature_size_um = 10.0
-grid_nm = 10
-[psf]
-kernel_size = 7
-"""
 
 
 @pytest.fixture(scope="module", params=["sun2020", "four_levels"])
@@ -40,7 +26,7 @@ def package(request, tmp_path_factory):
     config = None
     if request.param == "four_levels":
         config = root / "four.toml"
-        config.write_text(FOUR_LEVELS)
+        config.write_text(GREEN_FOUR_LEVELS)
         make_design_dir(root / "design", n=9, n_levels=4, k=7)
     else:
         make_design_dir(root / "design", n=9, k=7)
