@@ -199,6 +199,7 @@ def _record(plan, psf, result, scores):
             "sample_cell": list(sensor.sample_cell),
             "design": plan.design.name,
             "init": str(opts.init) if opts.init else None,
+            "psf_start": opts.psf_start,
         },
         "design": design_summary(plan.design),
         "images": {"source": plan.source, "count": len(plan.names)},

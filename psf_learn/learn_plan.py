@@ -24,7 +24,7 @@ from doe.records.psf_source import check_psf_grid
 from psf_learn import images as imgio
 from psf_learn import store
 from psf_learn.network import FEATURES_MAX, STAGES_MAX, check_arch
-from psf_learn.psf import baseline_psf, gaussian_psf
+from psf_learn.psf import START_KINDS, baseline_psf, gaussian_psf, starting_psf
 from psf_learn.sensor import sensor_from_design
 from psf_learn.sr import load_model
 from psf_learn.train import (
@@ -61,6 +61,12 @@ class LearnOptions:
         A model folder to fine-tune.
     freeze_psf : bool
         Keep a ``learned`` PSF fixed.
+    psf_start : str, optional
+        Where a ``learned`` PSF starts: a baseline name, ``gaussian:SIGMA``, ``random``,
+        ``dots[:N]`` or a ``psf.npy`` file (default: the Gaussian of sigma 0.459 on the axis).
+    psf_until : float, optional
+        Fraction of the run in which the PSF learns (default 1); the network alone
+        trains on for the rest, for the PSF it ends with.
     features, stages, arch, batch, patch, lr, psf_lr : optional
         Network and training settings (defaults: :class:`psf_learn.train.TrainConfig`'s;
         the patch is the largest multiple of the factor up to 64).
@@ -86,6 +92,8 @@ class LearnOptions:
     seed: int | None = None
     init: object = None
     freeze_psf: bool = False
+    psf_start: str | None = None
+    psf_until: float | None = None
     features: int | None = None
     stages: int | None = None
     arch: str | None = None
@@ -207,6 +215,8 @@ def _check_numbers(opts):
     flags.at_most("--steps", opts.steps, flags.STEPS_MAX, "years of training")
     flags.positive("--lr", opts.lr)
     flags.positive("--psf-lr", opts.psf_lr)
+    flags.positive("--psf-until", opts.psf_until)
+    flags.at_most("--psf-until", opts.psf_until, 1.0, "the whole run")
     for flag, value in (("--photons", opts.photons), ("--dark-counts", opts.dark_counts)):
         flags.at_most(flag, flags.non_negative(flag, value), flags.PHOTONS_MAX, "counts per pixel")
     flags.seed("--seed", opts.seed)
@@ -225,6 +235,7 @@ def _train_config(opts, design, sensor):
         patch=opts.patch or default_patch(sensor.factor),
         lr=opts.lr,
         psf_lr=opts.psf_lr,
+        psf_until=opts.psf_until,
         features=opts.features,
         stages=opts.stages,
         arch=opts.arch,
@@ -279,8 +290,13 @@ def _start_from_init(opts, design, sensor, config):
 def _starting_psf(opts, design, sensor, init_psf):
     """Return (starting PSF, whether it is learned) of the ``psf`` option."""
     spec, k = opts.psf, design.kernel_size
+    if opts.psf_start and (spec != "learned" or init_psf is not None):
+        why = "an --init model's PSF" if spec == "learned" else f"a fixed PSF (--psf {spec})"
+        raise InputError("--psf-start", f"sets where a learned PSF starts, not {why}")
     if spec == "learned":
         psf0 = init_psf if init_psf is not None else gaussian_psf(k)
+        if opts.psf_start:
+            psf0 = _start_psf(opts.psf_start, design, sensor, opts.seed)
         learn_psf = not opts.freeze_psf
     elif spec in PSF_CHOICES or spec.startswith("gaussian:"):
         try:
@@ -298,6 +314,26 @@ def _starting_psf(opts, design, sensor, init_psf):
     learned_from = Path(opts.init) / "psf.npy" if opts.init else None
     check_psf_kernel(psf0, learned_from if spec == "learned" else spec, design)
     return psf0, learn_psf
+
+
+def _start_psf(spec, design, sensor, seed):
+    """Return the PSF ``--psf-start`` names: a baseline, ``random``, ``dots[:N]`` or a file."""
+    k = design.kernel_size
+    named = spec in PSF_CHOICES[1:] + START_KINDS or spec.partition(":")[0] in ("gaussian", "dots")
+    if not named:
+        if not Path(spec).exists():
+            raise InputError(
+                "--psf-start",
+                f"{spec!r} is no file and none of {', '.join(PSF_CHOICES[1:] + START_KINDS)}, "
+                "gaussian:SIGMA, dots:N",
+            )
+        check_psf_grid(spec, design)
+        return read_psf(spec)
+    try:
+        seed = design.learning.seed if seed is None else seed
+        return starting_psf(spec, k, sensor.weights, seed)
+    except ValueError as e:
+        raise InputError("--psf-start", str(e)) from None
 
 
 def _training_images(opts, config, psf0, factor):

@@ -135,6 +135,31 @@ def baseline_psf(name, k, weights=None):
     raise ValueError(f"unknown baseline PSF {name!r}")
 
 
+START_KINDS = ("random", "dots")
+
+
+def starting_psf(spec, k, weights=None, seed=0):
+    """Return the (k, k) PSF a learned PSF starts from: a baseline name, ``random`` or ``dots``.
+
+    ``random`` is uniform noise over the window; ``dots[:N]`` is N (default 6) dots of
+    random weight at random cells over a faint floor (1 % of the light), so that every
+    cell starts where the softmax still has a gradient. Both are drawn from ``seed``.
+    """
+    rng = np.random.default_rng([seed, k])
+    if spec == "random":
+        psf = rng.random((k, k)) + 1e-3
+        return psf / psf.sum()
+    if spec == "dots" or spec.startswith("dots:"):
+        count = spec.partition(":")[2] or "6"
+        if not count.isdigit() or not 1 <= int(count) <= k * k:
+            raise ValueError(f"dots:N needs a whole N from 1 to {k * k}, got {spec!r}")
+        psf = np.full((k, k), 0.01 / k**2)
+        cells = rng.choice(k * k, size=int(count), replace=False)
+        psf.flat[cells] += 0.99 * rng.dirichlet(np.ones(len(cells)))
+        return psf / psf.sum()
+    return baseline_psf(spec, k, weights)
+
+
 class LearnedPSF(nn.Module):
     """A learnable PSF: softmax over K x K logits (>= 0 and sum 1 by construction).
 

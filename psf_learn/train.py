@@ -49,6 +49,7 @@ class TrainConfig:
     patch: int = 64  # sub-pixels; learn takes default_patch(factor) when not given
     lr: float = 2e-3
     psf_lr: float = 0.05
+    psf_until: float = 1.0  # fraction of the run the PSF learns; the network alone after it
     features: int = 24
     stages: int = 4
     arch: str = "resnet"
@@ -248,9 +249,12 @@ def train(
         if done or (stop_at_step is not None and run.step >= stop_at_step):
             break
         t0 = time.monotonic()
+        psf_learns = frac < config.psf_until
         for g in opt.param_groups:
             g["lr"] = g["base"] * lr_factor(frac)
-        figures = _step(camera, model, opt, batch, run.step, device, init_state is not None)
+        figures = _step(
+            camera, model, opt, batch, run.step, device, init_state is not None, psf_learns
+        )
         if world > 1:  # the global batch's figures, as one process would have them
             torch.distributed.all_reduce(figures)
             figures = figures / world
@@ -417,8 +421,11 @@ def _budget_spent(config, run, budget, world, device):
     return done, frac
 
 
-def _step(camera, model, opt, batch, step, device, fine_tuning):
+def _step(camera, model, opt, batch, step, device, fine_tuning, psf_learns=True):
     """Take one optimiser step; return the batch's (L1 loss, MSE of the clipped estimate).
+
+    Past ``psf_until`` (``psf_learns`` False) the PSF's gradient is dropped before the
+    clipping, so the network's steps are those of a fixed PSF.
 
     Raises InputError naming ``--lr`` when the gradients are no longer finite.
     """
@@ -428,6 +435,8 @@ def _step(camera, model, opt, batch, step, device, fine_tuning):
     loss = F.l1_loss(estimate, target)
     opt.zero_grad(set_to_none=True)
     loss.backward()
+    if not psf_learns:
+        camera.psf.logits.grad = None  # Adam then leaves the PSF and its moments alone
     # long runs at a high learning rate spike without this
     norm = nn.utils.clip_grad_norm_(camera.parameters(), 1.0)
     if not torch.isfinite(norm):  # the same on every rank: the gradients are shared

@@ -36,7 +36,7 @@ def register(sub):
     p.add_argument("--seed", type=int, help="random seed (default: the design's)")
     p.add_argument("--config", help="design TOML file or preset name")
     p.add_argument("--init", metavar="MODEL_DIR", help="start from a trained model (fine-tune)")
-    p.add_argument("--freeze-psf", action="store_true", help="keep the PSF fixed")
+    _psf_flags(p)
     p.add_argument("--features", type=int, help="network feature channels (default 24)")
     p.add_argument("--stages", type=int, help="residual blocks / projection stages (default 4)")
     p.add_argument("--arch", choices=("resnet", "dbpn"), help="network design (default resnet)")
@@ -105,6 +105,24 @@ def register(sub):
     p.add_argument("--photons", type=float, help="counts of white (default: the model's)")
     p.add_argument("--force", action="store_true", help="overwrite existing outputs")
     p.set_defaults(func=_sr)
+
+
+def _psf_flags(p):
+    """Add the flags of a learned PSF: fixed, where it starts, how long it learns."""
+    p.add_argument("--freeze-psf", action="store_true", help="keep the PSF fixed")
+    p.add_argument(
+        "--psf-start",
+        metavar="START",
+        help="where a learned PSF starts: delta, box, gaussian:SIGMA, random, dots[:N] or a "
+        "psf.npy file (default: gaussian, sigma 0.459 sub-pixel on the axis)",
+    )
+    p.add_argument(
+        "--psf-until",
+        type=float,
+        metavar="FRACTION",
+        help="fraction of the run in which the PSF learns (default 1); the network alone "
+        "trains on for the rest",
+    )
 
 
 def _learn(args):

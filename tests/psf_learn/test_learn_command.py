@@ -147,6 +147,45 @@ def test_a_named_baseline_psf_is_trained_with_as_given(trained, tmp_path):
     assert json.loads((out / "learn.json").read_text())["config"]["psf"] == "box"
 
 
+def test_a_learned_psf_starts_where_psf_start_says_and_learn_json_records_it(trained, tmp_path):
+    _, images = trained
+    out = tmp_path / "m"
+    start = ["--psf-start", "gaussian:1.5", "--psf-until", "0.5"]
+    assert main(["learn", "--out", str(out), "--images", str(images), *start, *SMALL]) == 0
+    config = json.loads((out / "learn.json").read_text())["config"]
+    assert config["psf_start"] == "gaussian:1.5" and config["psf_until"] == 0.5
+    psf = np.load(out / "psf.npy")
+    wide, narrow = baseline_psf("gaussian:1.5", K), gaussian_psf(K)
+    # three steps move the PSF a little from where it started, nowhere near the default
+    assert np.abs(psf - wide).max() < 0.1 * np.abs(psf - narrow).max()
+    assert not np.allclose(psf, wide)
+
+
+@pytest.mark.parametrize(
+    "extra, says",
+    [
+        (["--psf", "box", "--psf-start", "random"], "not a fixed PSF (--psf box)"),
+        (["--psf-start", "spiral"], "no file and none of"),
+        (["--psf-start", "dots:0"], "dots:N needs a whole N"),
+    ],
+)
+def test_a_psf_start_that_cannot_be_is_refused(tmp_path, capsys, extra, says):
+    out = tmp_path / "m"
+    assert main(["learn", "--out", str(out), *SMALL, *extra]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--psf-start" in err and says in err
+    assert not out.exists()
+
+
+def test_a_psf_start_with_an_init_model_is_refused(trained, tmp_path, capsys):
+    model, images = trained
+    out = tmp_path / "m"
+    flags = ["--init", str(model), "--psf-start", "box", "--images", str(images)]
+    assert main(["learn", "--out", str(out), *SMALL, *flags]) == 2
+    assert "an --init model's PSF" in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_learn_for_minutes_trains_until_the_time_is_spent(trained, tmp_path):
     # Without --steps (the default), --minutes is the budget of training time.
     out = tmp_path / "out"
@@ -486,6 +525,8 @@ def test_learn_refuses_bad_inputs_with_exit_2(image_folder, tmp_path, capsys, ki
         ("--features", "100000"),
         ("--minutes", "1e308"),  # overflowed the deadline after the images had loaded
         ("--steps", str(10**9 + 1)),  # trained on for ever
+        ("--psf-until", "0"),
+        ("--psf-until", "1.5"),
     ],
 )
 def test_learn_refuses_bad_numbers_with_exit_2(tmp_path, capsys, flag, value):

@@ -51,6 +51,7 @@ def test_learn_takes_the_flags_as_keyword_arguments(tmp_path):
     flags = {"images", "psf", "minutes", "steps", "seed", "init", "freeze_psf", "features"}
     flags |= {"stages", "arch", "batch", "patch", "lr", "psf_lr", "photons", "dark_counts"}
     flags |= {"threads", "device", "restart", "force", "eval_images", "no_baseline"}
+    flags |= {"psf_start", "psf_until"}
     assert set(LearnOptions.__dataclass_fields__) == flags  # each `doefab learn` flag
     with pytest.raises(TypeError, match="stpes"):
         learn(tmp_path / "m", stpes=3)

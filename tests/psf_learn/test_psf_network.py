@@ -6,7 +6,14 @@ import torch
 
 from doe.infra.files import check_psf
 from psf_learn.network import SRNet
-from psf_learn.psf import LearnedPSF, baseline_psf, box_psf, delta_psf, gaussian_psf
+from psf_learn.psf import (
+    LearnedPSF,
+    baseline_psf,
+    box_psf,
+    delta_psf,
+    gaussian_psf,
+    starting_psf,
+)
 
 K = 11
 
@@ -128,3 +135,25 @@ def test_count_parameters_counts_the_trainable_weights_and_biases():
     assert count_parameters(net) == expected
     net.head.requires_grad_(False)
     assert count_parameters(net) == expected - head
+
+
+@pytest.mark.parametrize("spec", ["random", "dots", "dots:3"])
+def test_drawn_starting_psfs_are_psfs_drawn_from_the_seed(spec):
+    a, b, other = (starting_psf(spec, 11, seed=s) for s in (0, 0, 1))
+    assert a.shape == (11, 11) and np.all(a > 0) and a.sum() == pytest.approx(1.0, abs=1e-12)
+    np.testing.assert_array_equal(a, b)
+    assert not np.allclose(a, other)
+    if spec.startswith("dots"):  # N bright cells over a floor of 1 % of the light
+        n = int(spec.partition(":")[2] or 6)
+        floor = a.min()
+        assert np.count_nonzero(a > 2 * floor) == n
+        assert a.sum() - floor * a.size == pytest.approx(0.99, abs=1e-9)
+
+
+def test_a_named_starting_psf_is_the_baseline_of_that_name():
+    np.testing.assert_array_equal(
+        starting_psf("gaussian:1.5", 11), baseline_psf("gaussian:1.5", 11)
+    )
+    for bad in ("dots:0", "dots:x", "dots:122", "spiral"):
+        with pytest.raises(ValueError):
+            starting_psf(bad, 11)

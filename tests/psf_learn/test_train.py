@@ -345,3 +345,24 @@ def test_training_on_cuda_returns_a_cpu_camera_and_says_where(
         assert json.loads((out / "learn.json").read_text())["device"].startswith(name)
         note = "--device cpu repeats bit for bit" in capsys.readouterr().err
         assert note == (device != "cpu")
+
+
+# --- the PSF's share of the run -------------------------------------------------------
+
+
+def test_past_psf_until_the_network_alone_trains():
+    torch.set_num_threads(1)
+    images, sensor = _images(), SensorModel(POINT, 200.0)
+    config = TrainConfig(**{**TINY.__dict__, "psf_until": 0.5})
+    start = gaussian_psf(K)
+    half = train(config, images, sensor, start, stop_at_step=3)
+    full = train(config, images, sensor, start)
+    assert not np.allclose(half.camera.psf.numpy(), start)  # the PSF learned until then
+    np.testing.assert_array_equal(full.camera.psf.numpy(), half.camera.psf.numpy())
+    assert not torch.equal(
+        torch.cat([p.reshape(-1) for p in full.camera.net.parameters()]),
+        torch.cat([p.reshape(-1) for p in half.camera.net.parameters()]),
+    )
+    # the whole run (the default): the PSF still moves in the second half
+    always = train(TINY, images, sensor, start)
+    assert not np.allclose(always.camera.psf.numpy(), half.camera.psf.numpy())
