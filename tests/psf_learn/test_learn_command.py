@@ -14,6 +14,7 @@ from doe.design import load_design
 from doe.infra.cli import main
 from doe.infra.files import check_psf
 from psf_learn.psf import baseline_psf, box_psf, gaussian_psf
+from psf_learn.sensor import sensor_from_design
 from psf_learn.sr import load_model
 from psf_learn.train import default_patch
 
@@ -159,6 +160,25 @@ def test_a_learned_psf_starts_where_psf_start_says_and_learn_json_records_it(tra
     # three steps move the PSF a little from where it started, nowhere near the default
     assert np.abs(psf - wide).max() < 0.1 * np.abs(psf - narrow).max()
     assert not np.allclose(psf, wide)
+
+
+@pytest.mark.parametrize("preset, patch", [("swissspad", "12"), ("pf32", "16")])
+def test_psf_start_on_other_sensors_takes_their_window_and_centre(
+    image_folder, tmp_path, preset, patch
+):
+    images = image_folder(tmp_path / "images")
+    design = load_design(preset)
+    k = design.kernel_size
+    out = tmp_path / "m"
+    small = ["--steps", "2", "--features", "4", "--stages", "1", "--batch", "2"]
+    flags = ["--config", preset, "--patch", patch, "--psf-start", "gaussian:1.5", "--lr", "1e-9"]
+    args = ["learn", "--out", str(out), "--images", str(images), "--no-baseline"]
+    assert main([*args, *small, *flags, "--psf-lr", "1e-9"]) == 0
+    psf = np.load(out / "psf.npy")
+    assert psf.shape == (k, k)
+    weights = np.asarray(sensor_from_design(design).weights)
+    # two steps at a vanishing learning rate leave the start: the design's own centring
+    np.testing.assert_allclose(psf, baseline_psf("gaussian:1.5", k, weights), atol=1e-6)
 
 
 @pytest.mark.parametrize(

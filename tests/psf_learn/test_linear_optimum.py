@@ -34,7 +34,7 @@ def _brute_force_mse(psf, spectrum, weights, noise_var):
     return np.trace(cov - gain) / n**2
 
 
-@pytest.mark.parametrize("f, weights", [(2, "point"), (2, "area"), (4, "point")])
+@pytest.mark.parametrize("f, weights", [(2, "point"), (2, "area"), (3, "point"), (4, "point")])
 def test_the_closed_form_equals_the_brute_force_lmmse(f, weights):
     rng = np.random.default_rng(f)
     n = 4 * f
