@@ -41,13 +41,12 @@ import importlib.util
 import itertools
 import json
 import math
-import os
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+from learn_runs import train_all
 
 ROOT = Path(__file__).resolve().parents[1]
 # ../shared/data beside the checkout, or beside the folder of worktrees
@@ -166,44 +165,9 @@ def main(argv=None):
 
 def _train_all(args, out, models):
     budget = ["--steps", str(args.steps)] if args.steps else ["--minutes", str(args.minutes)]
-    queue = list(models)
-    running = []
-    while queue or running:
-        while queue and len(running) < args.parallel:
-            key, psf, _ = queue.pop(0)
-            cmd = [
-                sys.executable,
-                "-m",
-                "doe",
-                "learn",
-                "--out",
-                str(out / key),
-                "--images",
-                args.train,
-                "--psf",
-                psf,
-                "--seed",
-                str(args.seed),
-                "--force",
-                "--restart",
-                "--no-baseline",  # the low fill-factor row is the no-plate model
-                "--threads",
-                str(max(1, (os.cpu_count() or 1) // args.parallel)),
-                *budget,
-                *args.learn_args,
-            ]
-            log = open(out / f"{key}.log", "w")  # closed when the process ends
-            print(f"training {key}: {' '.join(cmd[2:])}", file=sys.stderr)
-            running.append((key, subprocess.Popen(cmd, stdout=log, stderr=log, cwd=ROOT), log))
-        time.sleep(2)
-        for item in list(running):
-            key, proc, log = item
-            if proc.poll() is not None:
-                log.close()
-                running.remove(item)
-                if proc.returncode:
-                    sys.exit(f"training {key} failed, see {out / (key + '.log')}")
-                print(f"trained {key}", file=sys.stderr)
+    common = ["--images", args.train, "--seed", str(args.seed), "--force", "--restart"]
+    common += ["--no-baseline", *budget, *args.learn_args]  # the low fill-factor row: no plate
+    train_all(out, [(key, ["--psf", psf]) for key, psf, _ in models], args.parallel, common)
 
 
 def _as_fabricated_psf(learned_psf):
