@@ -7,6 +7,8 @@
   frame's grid (mirrored by 4 SPAD pixels, so that the FFT's wrap-around falls
   outside), for a scene spectrum A (|nu|^2 + nu0^2)^(-a/2) fitted to the
   Sun-Hays 80 images and the frame's own shot noise.
+- ``--alternate N``: the PSF steps on one network step in N (its gradient dropped on
+  the others, as ``--psf-until`` drops it), an alternating schedule.
 - ``--area``: the SPAD's 30 um disc integrated over the four 37.5 um sub-pixels it
   straddles (a quarter each), instead of the point sample of ``doefab learn``.
 
@@ -16,6 +18,7 @@ Sun-Hays 80 images and prints Set5 / Set14 PSNR-Y:
     python bench/learn_variants.py --base wiener --psf box gaussian:1.5 learned \
         learned@gaussian:1.5   # learned from sigma 1.5
     python bench/learn_variants.py --area --psf gaussian:1 gaussian:1.5 learned
+    python bench/learn_variants.py --base bicubic --alternate 2 --psf learned
     python bench/learn_variants.py --steps 20 --psf box   # proves the script
 """
 
@@ -108,6 +111,17 @@ def use_wiener_base():
     training.CodedCamera.__init__, training.CodedCamera.forward = init, forward
 
 
+def alternate_psf_steps(every):
+    """Make psf_learn.train step the PSF on one step in ``every`` (the network on all)."""
+    plain_step = training._step
+
+    def step(camera, model, opt, batch, index, device, fine_tuning, psf_learns=True):
+        learns = psf_learns and index % every == every - 1
+        return plain_step(camera, model, opt, batch, index, device, fine_tuning, learns)
+
+    training._step = step
+
+
 def score(camera, folder, wiener):
     """Return the mean scores of the camera on a folder, as doefab evaluate draws the noise."""
     from psf_learn.evaluate import EVAL_SEED
@@ -133,6 +147,7 @@ def main(argv=None):
     p.add_argument("--psf", nargs="+", default=["box", "gaussian:1.5", "learned"])
     p.add_argument("--base", choices=("bicubic", "wiener"), default="wiener")
     p.add_argument("--area", action="store_true", help="integrate the disc over 4 sub-pixels")
+    p.add_argument("--alternate", type=int, default=1, help="the PSF steps on 1 step in N")
     p.add_argument("--steps", type=int, default=6000)
     p.add_argument("--data", default=str(DATA), help="folder holding set5/, set14/, sun_hays80/")
     args = p.parse_args(argv)
@@ -147,10 +162,14 @@ def main(argv=None):
     wiener = args.base == "wiener"
     if wiener:
         use_wiener_base()
+    if args.alternate > 1:
+        alternate_psf_steps(args.alternate)
     data = Path(args.data)
     _, images = imgio.read_folder(data / "sun_hays80")
     scenes = training.augment_scales(images, 64 + 10)
-    print(f"base {args.base}, {'area' if args.area else 'point'} sampling, {args.steps} steps")
+    sampling = "area" if args.area else "point"
+    every = f"PSF on 1 step in {args.alternate}"
+    print(f"base {args.base}, {sampling} sampling, {every}, {args.steps} steps")
     for spec in args.psf:
         head, _, start = spec.partition("@")  # learned@START: learned from START
         learned = head == "learned"
