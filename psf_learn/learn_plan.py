@@ -192,6 +192,8 @@ def plan_learning(out, design_config, opts):
     config = _train_config(opts, design, sensor)
     config, init_state, init_psf = _start_from_init(opts, design, sensor, config)
     psf0, learn_psf = _starting_psf(opts, design, sensor, init_psf)
+    if opts.psf_until is not None and not learn_psf:  # a flag that would do nothing
+        raise InputError("--psf-until", "sets how long a learned PSF learns; this one is fixed")
     config = with_overrides(config, learn_psf=learn_psf)
     names, scenes, source = _training_images(opts, config, psf0, sensor.factor)
     held_out = _held_out_images(opts, psf0.shape[0], sensor.factor)

@@ -187,13 +187,16 @@ def test_psf_start_on_other_sensors_takes_their_window_and_centre(
         (["--psf", "box", "--psf-start", "random"], "not a fixed PSF (--psf box)"),
         (["--psf-start", "spiral"], "no file and none of"),
         (["--psf-start", "dots:0"], "dots:N needs a whole N"),
+        (["--psf", "box", "--psf-until", "0.5"], "this one is fixed"),
+        (["--freeze-psf", "--psf-until", "0.5"], "this one is fixed"),
     ],
 )
-def test_a_psf_start_that_cannot_be_is_refused(tmp_path, capsys, extra, says):
+def test_a_psf_start_or_until_that_cannot_be_is_refused(tmp_path, capsys, extra, says):
     out = tmp_path / "m"
     assert main(["learn", "--out", str(out), *SMALL, *extra]) == 2
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "--psf-start" in err and says in err
+    flag = "--psf-until" if "--psf-until" in extra else "--psf-start"
+    assert len(err.splitlines()) == 1 and flag in err and says in err
     assert not out.exists()
 
 
