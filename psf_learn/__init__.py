@@ -6,6 +6,7 @@ PSF co-design (``doefab learn``, ``evaluate``, ``sr``)
 - ``network``: compact 4x super-resolution networks
 - ``images``: training and evaluation images (embedded default set included)
 - ``train``, ``evaluate``, ``sr``, ``store``: training with checkpoints, metrics, inference, files
+- ``linear_optimum``: the Wiener reconstruction's error for any PSF, and the best PSF for it
 - ``scores``: PSNR / SSIM in both conventions (full-range grey, the SR papers' MATLAB Y)
 - ``heldout``: the no-plate model trained alongside, both scored on held-back images
 - ``learn_plan``, ``learn``: a training's settings checked, then run and written (``learn()``)

@@ -63,7 +63,8 @@ class LearnOptions:
         Keep a ``learned`` PSF fixed.
     psf_start : str, optional
         Where a ``learned`` PSF starts: a baseline name, ``gaussian:SIGMA``, ``random``,
-        ``dots[:N]`` or a ``psf.npy`` file (default: the Gaussian of sigma 0.459 on the axis).
+        ``dots[:N]`` or a ``psf.npy`` file (default: the Gaussian of sigma 0.459 centred
+        on the axis; ``gaussian`` is the baseline, centred on the pixel).
     psf_until : float, optional
         Fraction of the run in which the PSF learns (default 1); the network alone
         trains on for the rest, for the PSF it ends with.
@@ -330,7 +331,9 @@ def _start_psf(spec, design, sensor, seed):
                 "gaussian:SIGMA, dots:N",
             )
         check_psf_grid(spec, design)
-        return read_psf(spec)
+        psf = read_psf(spec)
+        check_psf_kernel(psf, spec, design)
+        return psf
     try:
         seed = design.learning.seed if seed is None else seed
         return starting_psf(spec, k, sensor.weights, seed)

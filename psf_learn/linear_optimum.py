@@ -57,7 +57,8 @@ def transfer(psf, weights, shape):
     k = psf.shape[-1]
     grid = torch.zeros((rows, cols), dtype=torch.float64)
     r, c = (torch.arange(k) - k // 2) % rows, (torch.arange(k) - k // 2) % cols
-    grid = grid.index_put((r[:, None].expand(k, k), c[None, :].expand(k, k)), psf)
+    # accumulate: a window wider than the grid wraps round, as a circular blur does
+    grid = grid.index_put((r[:, None].expand(k, k), c[None, :].expand(k, k)), psf, accumulate=True)
     area = torch.zeros((rows, cols), dtype=torch.float64)
     w = torch.as_tensor(np.asarray(weights, dtype=np.float64))
     area[: w.shape[0], : w.shape[1]] = w

@@ -113,8 +113,9 @@ def _psf_flags(p):
     p.add_argument(
         "--psf-start",
         metavar="START",
-        help="where a learned PSF starts: delta, box, gaussian:SIGMA, random, dots[:N] or a "
-        "psf.npy file (default: gaussian, sigma 0.459 sub-pixel on the axis)",
+        help="where a learned PSF starts: delta, box, gaussian[:SIGMA] (centred on the pixel, "
+        "as the baselines), random, dots[:N] or a psf.npy file (default: sigma 0.459 "
+        "sub-pixel centred on the axis)",
     )
     p.add_argument(
         "--psf-until",
