@@ -3,7 +3,13 @@
 import numpy as np
 import pytest
 
-from psf_learn.linear_optimum import image_spectrum, linear_mse, linear_psnr, optimal_psf
+from psf_learn.linear_optimum import (
+    image_spectrum,
+    linear_mse,
+    linear_psnr,
+    optimal_psf,
+    transfer,
+)
 from psf_learn.psf import baseline_psf, box_psf, delta_psf, gaussian_psf, point_sample_weights
 
 
@@ -83,3 +89,18 @@ def test_the_spectrum_holds_the_images_variance():
     assert spectrum.sum() / 32**2 == pytest.approx(0.01, rel=0.05)
     with pytest.raises(ValueError, match="no image is 128"):
         image_spectrum(images, size=128)
+
+
+@pytest.mark.parametrize("shape", [(12, 12), (8, 12)])
+def test_the_transfer_is_the_blur_then_the_active_area_read_out(shape):
+    rng = np.random.default_rng(5)
+    scene, psf, weights = rng.random(shape), rng.random((5, 5)), rng.random((4, 4))
+    blurred = np.zeros(shape)  # blurred[p] = sum_o psf[K//2 + o] scene[p - o], circularly
+    for (i, j), v in np.ndenumerate(psf):
+        blurred += v * np.roll(scene, (i - 2, j - 2), axis=(0, 1))
+    read = np.zeros(shape)  # read[n] = sum_s W[s] blurred[n + s]
+    for (i, j), v in np.ndenumerate(weights):
+        read += v * np.roll(blurred, (-i, -j), axis=(0, 1))
+    expected = np.fft.fft2(read)
+    got = np.fft.fft2(scene) * transfer(psf, weights, shape).numpy()
+    np.testing.assert_allclose(got, expected, atol=1e-10)

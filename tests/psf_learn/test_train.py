@@ -359,6 +359,7 @@ def test_past_psf_until_the_network_alone_trains():
     full = train(config, images, sensor, start)
     assert not np.allclose(half.camera.psf.numpy(), start)  # the PSF learned until then
     np.testing.assert_array_equal(full.camera.psf.numpy(), half.camera.psf.numpy())
+    assert full.camera.psf.logits.grad is None  # left out of the step, and of the clipping
     assert not torch.equal(
         torch.cat([p.reshape(-1) for p in full.camera.net.parameters()]),
         torch.cat([p.reshape(-1) for p in half.camera.net.parameters()]),
@@ -366,3 +367,4 @@ def test_past_psf_until_the_network_alone_trains():
     # the whole run (the default): the PSF still moves in the second half
     always = train(TINY, images, sensor, start)
     assert not np.allclose(always.camera.psf.numpy(), half.camera.psf.numpy())
+    assert always.camera.psf.logits.grad is not None
