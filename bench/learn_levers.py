@@ -28,6 +28,8 @@ from pathlib import Path
 import numpy as np
 from learn_runs import ROOT, train_all
 
+from doe.infra import flags
+
 DATA = ROOT.parent / "shared" / "data"
 FIXED = [
     ("delta", "no plate (delta)", ["--psf", "delta"]),
@@ -59,10 +61,10 @@ SETS = ("set5", "set14")
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--steps", type=int, default=6000, help="step budget of every model")
+    p.add_argument("--steps", type=flags.count, default=6000, help="step budget of every model")
     p.add_argument("--data", default=str(DATA), help="folder holding set5/, set14/, sun_hays80/")
     p.add_argument("--out", default=str(ROOT / "bench" / "out" / "learn_levers"))
-    p.add_argument("--parallel", type=int, default=2, help="models trained at once")
+    p.add_argument("--parallel", type=flags.count, default=2, help="models trained at once")
     p.add_argument("--only", nargs="+", help="train and score only these rows (keys)")
     p.add_argument("--reuse", action="store_true", help="score the rows in --out, train the rest")
     p.add_argument("--reprint", action="store_true", help="print --out's levers.json again")
@@ -71,6 +73,10 @@ def main(argv=None):
     if args.reprint:
         _print(json.loads((out / "levers.json").read_text()))
         return 0
+    known = [key for key, _, _ in FIXED + LEARNED]
+    unknown = sorted(set(args.only or ()) - set(known))
+    if unknown:
+        p.error(f"--only: no row {', '.join(unknown)}; the rows are {', '.join(known)}")
     data = Path(args.data)
     for name in ("sun_hays80", *SETS):
         if not (data / name).is_dir():
@@ -134,6 +140,7 @@ def _score(out, rows, data, spectrum, noise):
     for key, label, _ in rows:
         model = load_model(out / key)
         row = {"label": label, "fixed": key in {k for k, _, _ in FIXED}}
+        row["steps"] = model.learn.steps  # --reuse: the model's own, whatever this run asked
         for name, (names, images) in sets.items():
             row[name] = evaluate(model, names, images)["psnr_y"]
         row["linear_psnr"] = linear_psnr(model.psf, spectrum, model.sensor.weights, noise)
@@ -155,11 +162,15 @@ def _print(results):
     )
     print(f"{'row':54s}{'Set5':>8s}{'Set14':>8s}{'over best':>16s}{'linear':>9s}")
     for r in rows.values():
-        margin = "" if r["fixed"] else "/".join(f"{r[s] - best[s]:+.2f}" for s in SETS)
-        print(f"{r['label'][:54]:54s}{r['set5']:8.2f}{r['set14']:8.2f}{margin:>16s}"
+        margin = (
+            "" if r["fixed"] or not rivals else "/".join(f"{r[s] - best[s]:+.2f}" for s in SETS)
+        )
+        steps = r.get("steps", results["steps"])
+        label = r["label"] + ("" if steps == results["steps"] else f" ({steps} steps)")
+        print(f"{label[:54]:54s}{r['set5']:8.2f}{r['set14']:8.2f}{margin:>16s}"
               f"{r['linear_psnr']:9.3f}")  # fmt: skip
     learned = [r for r in rows.values() if not r["fixed"]]
-    if learned:
+    if learned and rivals:
         top = max(learned, key=lambda r: min(r[s] - best[s] for s in SETS))
         worst = min(top[s] - best[s] for s in SETS)
         verdict = "reaches" if worst >= TARGET_DB else "misses"

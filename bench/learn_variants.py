@@ -1,4 +1,4 @@
-"""Two levers that ``doefab learn`` does not offer, measured beside the same fixed PSFs.
+"""Three levers that ``doefab learn`` does not offer, measured beside the same fixed PSFs.
 
 - ``--base wiener``: the network refines a Wiener (linear MMSE) upsampling of the
   frame built from the current PSF, instead of a bicubic one, and sees it beside

@@ -48,6 +48,8 @@ from pathlib import Path
 import numpy as np
 from learn_runs import train_all
 
+from doe.infra import flags
+
 ROOT = Path(__file__).resolve().parents[1]
 # ../shared/data beside the checkout, or beside the folder of worktrees
 DATA = next(
@@ -102,7 +104,7 @@ def main(argv=None):
     p.add_argument("--train", help="training images (default: DATA/sun_hays80)")
     p.add_argument("--extra", nargs="*", default=[], help="more evaluation folders")
     p.add_argument("--out", default=str(ROOT / "bench" / "out" / "table2"), help="work folder")
-    p.add_argument("--parallel", type=int, default=1, help="models trained at once")
+    p.add_argument("--parallel", type=flags.count, default=1, help="models trained at once")
     p.add_argument(
         "--models",
         nargs="+",
