@@ -1,4 +1,4 @@
-"""``doefab learn --psf-start`` and ``--psf-until``: where a learned PSF starts, how long it learns."""
+"""``doefab learn --psf-start`` and ``--psf-until``: where a learned PSF starts, how long."""
 
 import json
 
