@@ -6,6 +6,7 @@ import json
 import numpy as np
 import pytest
 import torch
+from model_helpers import POINT, fixed_model
 from skimage import io
 
 from doe.derived import design_summary
@@ -19,7 +20,6 @@ from psf_learn.sensor import SensorModel
 from psf_learn.sr import SRModel, load_model, super_resolve, white_counts
 
 K = 11
-POINT = tuple(map(tuple, np.eye(4)[[2]].T @ np.eye(4)[[2]]))
 SMALL = ["--steps", "3", "--features", "4", "--stages", "1", "--batch", "2", "--patch", "16"]
 pytestmark = pytest.mark.usefixtures("on_the_cpu")  # only CPU runs repeat bit for bit
 
@@ -49,28 +49,13 @@ def test_evaluation_is_deterministic_and_noisy():
     assert evaluate(_flat_model(0.0), ["x"], img)["psnr"] > a["psnr"]
 
 
-class _Fixed(torch.nn.Module):
-    """A "network" that ignores the frame and returns a fixed (H, W) estimate."""
-
-    def __init__(self, estimate):
-        super().__init__()
-        self.estimate = torch.as_tensor(estimate, dtype=torch.float32)[None, None]
-
-    def forward(self, frame):
-        return self.estimate
-
-
-def _fixed_model(estimate):
-    return SRModel(_Fixed(estimate), delta_psf(K), SensorModel(POINT, 0.0), None)
-
-
 def test_psnr_and_ssim_of_a_known_error_inside_the_border_crop():
     # catches 20 log10 of the MSE, a border cropped on one side only (or transposed, or
     # none by default), SSIM of the wrong pair or with a data range of 255
     image = np.full((24, 32), 0.5)
     estimate = np.full((24, 32), 0.6)
     estimate[:4], estimate[-4:], estimate[:, :4], estimate[:, -4:] = 0.0, 1.0, 0.0, 1.0
-    psnr, ssim, _ = evaluate_image(_fixed_model(estimate), image)
+    psnr, ssim, _ = evaluate_image(fixed_model(estimate), image)
     assert psnr == pytest.approx(20.0, abs=1e-4)  # MSE 0.1^2 -> 10 log10(1 / 0.01)
     # constant images: SSIM is the luminance term alone, C1 = (0.01 * data range)^2
     c1 = 0.01**2
@@ -79,7 +64,7 @@ def test_psnr_and_ssim_of_a_known_error_inside_the_border_crop():
 
 def test_the_estimate_is_clipped_to_the_unit_range_before_scoring():
     # catches a dropped clamp: 1.05 counts as 1.0 against 0.95, an MSE of 0.05^2
-    psnr, _, est = evaluate_image(_fixed_model(np.full((24, 32), 1.05)), np.full((24, 32), 0.95))
+    psnr, _, est = evaluate_image(fixed_model(np.full((24, 32), 1.05)), np.full((24, 32), 0.95))
     assert est.max() == 1.0
     assert psnr == pytest.approx(10 * np.log10(1 / 0.05**2), abs=1e-4)
 

@@ -15,17 +15,12 @@ import math
 
 import numpy as np
 import pytest
-import torch
+from model_helpers import fixed_model
 from scipy.signal import correlate2d
 
 from psf_learn.evaluate import evaluate, score_image
 from psf_learn.images import dead_leaves
-from psf_learn.psf import delta_psf
 from psf_learn.scores import image_scores, y_channel
-from psf_learn.sensor import SensorModel
-from psf_learn.sr import SRModel
-
-POINT = tuple(map(tuple, np.eye(4)[[2]].T @ np.eye(4)[[2]]))
 
 
 def _basicsr_y(img):
@@ -67,17 +62,6 @@ def _rgb(grey_uint8):
     return np.repeat(grey_uint8[..., None], 3, axis=2)
 
 
-class _Fixed(torch.nn.Module):
-    """A "network" that ignores the frame and returns a fixed (H, W) estimate."""
-
-    def __init__(self, estimate):
-        super().__init__()
-        self.estimate = torch.as_tensor(estimate, dtype=torch.float32)[None, None]
-
-    def forward(self, frame):
-        return self.estimate
-
-
 def _pair():
     """A fixed (reference as 8-bit codes, estimate in [0, 1] off the 8-bit grid) pair."""
     rng = np.random.default_rng(7)
@@ -89,7 +73,7 @@ def _pair():
 def test_psnr_y_and_ssim_y_equal_basicsr_on_a_fixed_pair():
     # through evaluate's own path: a model whose "network" returns the estimate
     ref, estimate = _pair()
-    model = SRModel(_Fixed(estimate), delta_psf(11), SensorModel(POINT, 0.0), None)
+    model = fixed_model(estimate)
     scores, _ = score_image(model, ref / 255.0)
     sr = _rgb(np.round(estimate.astype(np.float32) * 255.0).astype(np.uint8))  # tensor2img
     assert scores["psnr_y"] == pytest.approx(_basicsr_psnr_y(sr, _rgb(ref), 4), abs=0.01)
@@ -120,7 +104,7 @@ def test_the_estimate_is_scored_as_an_8_bit_file_holds_it():
 
 def test_evaluate_gives_both_conventions_per_image_and_their_means():
     ref, estimate = _pair()
-    model = SRModel(_Fixed(estimate), delta_psf(11), SensorModel(POINT, 0.0), None)
+    model = fixed_model(estimate)
     other = np.clip(ref / 255.0 + 0.1, 0, 1)
     res = evaluate(model, ["a", "b"], [ref / 255.0, other])
     for key in ("psnr", "ssim", "psnr_y", "ssim_y"):
