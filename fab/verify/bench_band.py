@@ -10,16 +10,14 @@ lambda too. A capture under a band is the weighted sum of the monochromatic ones
 
 import math
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from doe.fraunhofer import level_phase, order_amplitudes, window_indices
 from doe.infra.errors import InputError
 from doe.materials import material_dispersion
-from doe.records.fab_manifest import MANIFEST_NAME, read_fab_manifest
-from doe.records.retrieval import RETRIEVAL_JSON, read_retrieval
-from doe.spectrum import gaussian_band, monochromatic, read_spectrum
+from doe.spectrum import Spectrum, gaussian_band, monochromatic, read_spectrum
+from fab.verify.design_ref import read_design_optics
 
 # Wavelengths a Gaussian band is sampled at, per FWHM: the trapezoid rule over +-3
 # sigma of a Gaussian converges long before (doe.spectrum.gaussian_band).
@@ -34,41 +32,31 @@ class Band:
     ``scale[i]`` = lambda_i / lambda0 multiplies the lattice pitch and the dot's size.
     """
 
-    wavelengths: tuple[float, ...]
-    weights: tuple[float, ...]
+    spectrum: Spectrum
     phase_factor: tuple[float, ...]
     scale: tuple[float, ...]
-    description: str
+
+    @property
+    def wavelengths(self):
+        return self.spectrum.wavelengths
+
+    @property
+    def weights(self):
+        return self.spectrum.weights
 
     @property
     def monochromatic(self):
         return len(self.wavelengths) == 1 and self.scale[0] == 1.0
 
     def as_dict(self):
-        return {
-            "description": self.description,
-            "wavelengths_nm": [w * 1e9 for w in self.wavelengths],
-            "weights": list(self.weights),
-        }
+        return self.spectrum.as_dict()
 
 
 def design_glass(design_dir):
     """Return (design wavelength m, dispersion) of a fab or retrieve output folder."""
-    folder = Path(design_dir)
-    manifest, retrieval = folder / MANIFEST_NAME, folder / RETRIEVAL_JSON
-    try:
-        if manifest.is_file():
-            source, man = manifest, read_fab_manifest(manifest).fields
-            wavelength = float(man["wavelength_nm"]) * 1e-9
-            table = {"name": man["material"]}
-        else:
-            source, design = retrieval, read_retrieval(retrieval).as_dict()["design"]
-            wavelength = float(design["optics"]["wavelength_nm"]) * 1e-9
-            table = design["material"]
-    except (KeyError, TypeError, ValueError) as e:
-        raise InputError(source, f"no glass to disperse the plate with ({e!r} missing)") from None
-    _, dispersion = material_dispersion(table, f"{source}: [material]")
-    return wavelength, dispersion
+    optics = read_design_optics(design_dir)
+    _, dispersion = material_dispersion(optics.material, f"{optics.source}: [material]")
+    return optics.wavelength, dispersion
 
 
 def bench_band(design_dir, bandwidth_nm=0.0, spectrum_file=None):
@@ -89,11 +77,9 @@ def bench_band(design_dir, bandwidth_nm=0.0, spectrum_file=None):
     delay0 = (dispersion.index(wavelength) - 1) / wavelength
     factors = tuple(float((dispersion.index(w) - 1) / w / delay0) for w in spectrum.wavelengths)
     return Band(
-        wavelengths=spectrum.wavelengths,
-        weights=spectrum.weights,
+        spectrum,
         phase_factor=factors,
         scale=tuple(float(w / wavelength) for w in spectrum.wavelengths),
-        description=spectrum.description,
     )
 
 

@@ -30,13 +30,11 @@ from doe.records.capture import (
     CaptureRecord,
     write_capture_record,
 )
-from doe.records.fab_manifest import MANIFEST_NAME, read_fab_manifest
-from doe.records.retrieval import RETRIEVAL_JSON, read_retrieval
 from fab.package.masks import masks_from_levels
 from fab.plate.model import PlateFaults
 from fab.verify.bench_band import bench_band
 from fab.verify.capture import write_image
-from fab.verify.design_ref import read_design_dir
+from fab.verify.design_ref import read_design_dir, read_design_optics
 from fab.verify.simulate import ORIENTATION_MAPS, simulate_capture
 
 # The aperture's diffraction spot, as a Gaussian sigma in units of lambda f / D: a
@@ -113,7 +111,8 @@ def simulate_design_capture(design_dir, out, bench, faults=Faults(), force=False
         files without ``force``.
     """
     ref = read_design_dir(design_dir)
-    wavelength, focal, aperture = _optics(Path(design_dir))
+    optics = read_design_optics(design_dir)
+    wavelength, focal, aperture = optics.wavelength, optics.focal_length, optics.aperture
     lens = focal if bench.focal_length_mm is None else bench.focal_length_mm * 1e-3
     lattice_um = ref.lattice_pitch * 1e6 * lens / focal
     pitch_px = lattice_um / bench.pixel_pitch_um
@@ -165,27 +164,6 @@ def simulate_design_capture(design_dir, out, bench, faults=Faults(), force=False
         write_capture_record(stage / CAPTURE_JSON, record)
     out = Path(out)
     return SimulatedCapture(record, out, tuple(out / n for n in names))
-
-
-def _optics(folder):
-    """Return (wavelength m, design focal length m, aperture m) the design folder states."""
-    manifest, retrieval = folder / MANIFEST_NAME, folder / RETRIEVAL_JSON
-    try:
-        if manifest.is_file():
-            source, man = manifest, read_fab_manifest(manifest).fields
-            wavelength = float(man["wavelength_nm"]) * 1e-9
-            focal = float(man["focal_length_mm"]) * 1e-3
-            aperture = float(man["tile_size_um"]) * 1e-6 * max(man["tiles"])
-        else:
-            source, design = retrieval, read_retrieval(retrieval).as_dict()["design"]
-            wavelength = float(design["optics"]["wavelength_nm"]) * 1e-9
-            focal = float(design["optics"]["focal_length_mm"]) * 1e-3
-            aperture = float(design["fabrication"]["aperture_mm"]) * 1e-3
-    except (KeyError, TypeError, ValueError) as e:
-        raise InputError(source, f"no optics to image the plate with ({e!r} missing)") from None
-    if not all(math.isfinite(v) and v > 0 for v in (wavelength, focal, aperture)):
-        raise InputError(source, "wavelength, focal length and aperture must be > 0")
-    return wavelength, focal, aperture
 
 
 def _plate_faults(ref, faults):

@@ -170,3 +170,41 @@ def _check_values(source, acceptance, lattice, depths, pitch):
             raise InputError(source, f"an etch depth of {depth * 1e9:g} nm is not positive")
     if pitch is not None and not (math.isfinite(pitch) and pitch > 0):
         raise InputError(source, f"the mask pixel pitch {pitch * 1e9:g} nm is not positive")
+
+
+@dataclass(frozen=True)
+class DesignOptics:
+    """The optics and glass a design folder states (SI units), and the file that says so."""
+
+    source: Path
+    wavelength: float
+    focal_length: float
+    aperture: float  # the patterned width: whole tiles in a fab folder, the design's in another
+    material: dict  # the [material] table, or {"name": ...} from a manifest
+
+
+def read_design_optics(path):
+    """Read the optics of a fab folder (fab_manifest.json) or a retrieve folder (retrieval.json).
+
+    InputError naming the file when a key is missing or a value is not a positive number.
+    """
+    path = Path(path)
+    manifest, retrieval = path / MANIFEST_NAME, path / RETRIEVAL_JSON
+    try:
+        if manifest.is_file():
+            source, man = manifest, read_fab_manifest(manifest).fields
+            wavelength = float(man["wavelength_nm"]) * 1e-9
+            focal = float(man["focal_length_mm"]) * 1e-3
+            aperture = float(man["tile_size_um"]) * 1e-6 * max(man["tiles"])
+            material = {"name": man["material"]}
+        else:
+            source, design = retrieval, read_retrieval(retrieval).as_dict()["design"]
+            wavelength = float(design["optics"]["wavelength_nm"]) * 1e-9
+            focal = float(design["optics"]["focal_length_mm"]) * 1e-3
+            aperture = float(design["fabrication"]["aperture_mm"]) * 1e-3
+            material = design["material"]
+    except (KeyError, TypeError, ValueError) as e:
+        raise InputError(source, f"no optics to image the plate with ({e!r} missing)") from None
+    if not all(math.isfinite(v) and v > 0 for v in (wavelength, focal, aperture)):
+        raise InputError(source, "wavelength, focal length and aperture must be > 0")
+    return DesignOptics(source, wavelength, focal, aperture, material)
