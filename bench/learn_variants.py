@@ -35,11 +35,12 @@ from torch import nn
 
 from psf_learn import images as imgio
 from psf_learn import train as training
+from psf_learn.evaluate import evaluate
 from psf_learn.linear_optimum import transfer
 from psf_learn.network import ResBlock
 from psf_learn.psf import baseline_psf, gaussian_psf, starting_psf
-from psf_learn.scores import image_scores, mean_scores
 from psf_learn.sensor import SensorModel, sensor_from_design, simulate_capture
+from psf_learn.sr import SRModel
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 # log A, nu0 (cycles per sub-pixel), a: least squares on the log spectrum of the 80 images
@@ -122,24 +123,23 @@ def alternate_psf_steps(every):
     training._step = step
 
 
-def score(camera, folder, wiener):
-    """Return the mean scores of the camera on a folder, as doefab evaluate draws the noise."""
-    from psf_learn.evaluate import EVAL_SEED
+class _ToldThePSF(nn.Module):
+    """A WienerNet called as evaluate calls a network, net(frame), with its PSF bound."""
 
+    def __init__(self, net, psf):
+        super().__init__()
+        self.net, self.psf = net, torch.from_numpy(psf)
+
+    def forward(self, frames):
+        return self.net(frames, self.psf)
+
+
+def score(camera, folder, wiener):
+    """Return ``psf_learn.evaluate.evaluate``'s mean scores of a trained camera on a folder."""
     names, images = imgio.read_folder(folder)
-    psf, f = camera.psf().detach(), camera.sensor.factor
-    per = {}
-    for i, (name, image) in enumerate(zip(names, images, strict=True)):
-        h, w = image.shape[0] // f * f, image.shape[1] // f * f
-        scene = torch.from_numpy(np.ascontiguousarray(image[:h, :w], dtype=np.float32))[None, None]
-        with torch.no_grad():
-            frame = simulate_capture(
-                scene, psf.float(), camera.sensor, padding="reflect", seeds=[(EVAL_SEED, i)]
-            )
-            out = camera.net(frame, psf) if wiener else camera.net(frame)
-        estimate = out.clamp(0, 1)[0, 0].double().numpy()
-        per[name] = image_scores(estimate, scene[0, 0].double().numpy(), f)
-    return mean_scores(per)
+    psf = camera.psf.numpy()
+    net = _ToldThePSF(camera.net, psf) if wiener else camera.net
+    return evaluate(SRModel(net, psf, camera.sensor, None), names, images)
 
 
 def main(argv=None):
